@@ -1,0 +1,32 @@
+# Two commands do all the set-up on a fresh machine: `make demo` and `make test`.
+PY      ?= python3
+VENV    := .venv
+VPY     := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+# DDS stays on this host in everything the Makefile starts.
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+export ROS_DOMAIN_ID ?= $(shell $(PY) -c "import os; print(os.getpid() % 200 + 20)")
+export PYTHONDONTWRITEBYTECODE := 1
+
+.PHONY: test demo venv bench clean
+
+venv: $(STAMP)
+
+# Rebuilt whenever the dependency lists change (a stale .venv is never used).
+$(STAMP): setup.py requirements-ros.txt
+	@test -x $(VPY) || $(PY) -m venv $(VENV)
+	$(VPY) -m pip install -q --upgrade pip
+	$(VPY) -m pip install -q -e '.[full,test]' -r requirements-ros.txt
+	@touch $(STAMP)
+
+test: $(STAMP)
+	$(VPY) -m pytest -q test
+
+demo: $(STAMP)
+	$(VENV)/bin/cstomo demo
+
+bench: $(STAMP)
+	$(VENV)/bin/cstomo bench --quick --out out/bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info

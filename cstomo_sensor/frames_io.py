@@ -1,0 +1,82 @@
+"""File formats of REFERENCE_SENSOR.md section 6: frames, forces and load scripts (CSV)."""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FrameError
+
+FORCES_HEADER = "frame,fx,fy,fz,magnitude,elevation,azimuth"
+
+
+def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame") -> np.ndarray:
+    """Return ``v`` as a float64 (n_meas,) array, or raise :class:`FrameError` naming the problem."""
+    a = np.asarray(v, dtype=float)
+    if a.shape != (n_meas,):
+        raise FrameError(f"{what} has shape {a.shape}, expected ({n_meas},) voltages")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise FrameError(f"{what} holds {int(bad.sum())} non-finite values (first at index {int(np.argmax(bad))}); expected finite volts")
+    return a
+
+
+def read_frames(path: str | os.PathLike, n_meas: int = 208) -> np.ndarray:
+    """Read a frames file: (n_frames, n_meas) volts; comment lines start with '#'."""
+    rows = []
+    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        try:
+            vals = [float(t) for t in s.split(",")]
+        except ValueError as err:
+            raise FrameError(f"{path}:{lineno}: {err}; expected {n_meas} comma-separated numbers") from None
+        rows.append(check_frame(vals, n_meas, f"{path}:{lineno}"))
+    if not rows:
+        raise FrameError(f"{path}: no frames")
+    return np.array(rows)
+
+
+def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | None = None) -> None:
+    frames = np.atleast_2d(np.asarray(frames, dtype=float))
+    buf = io.StringIO()
+    if comment:
+        for c in comment.splitlines():
+            buf.write(f"# {c}\n")
+    np.savetxt(buf, frames, delimiter=",", fmt="%.9e")
+    Path(path).write_text(buf.getvalue())
+
+
+def write_forces(path: str | os.PathLike, forces: np.ndarray) -> None:
+    """Write a forces file from (n, 3) force vectors (newtons, wrench frame)."""
+    from .angles import force_angles
+
+    f = np.atleast_2d(np.asarray(forces, dtype=float))
+    mag, el, az = force_angles(f)
+    table = np.column_stack([np.arange(len(f)), f, mag, el, az])
+    np.savetxt(path, table, delimiter=",", header=FORCES_HEADER, comments="", fmt=["%d"] + ["%.9g"] * 6)
+
+
+def read_forces(path: str | os.PathLike) -> np.ndarray:
+    """Read a forces (or truth) file: (n, 3) force vectors."""
+    t = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    return t[:, 1:4]
+
+
+def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a load script ``time,fx,fy,fz``: (times (n,), forces (n, 3)); times must increase."""
+    t = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if t.shape[1] != 4:
+        raise FrameError(f"{path}: {t.shape[1]} columns, expected time,fx,fy,fz")
+    if np.any(np.diff(t[:, 0]) < 0):
+        raise FrameError(f"{path}: times must not decrease")
+    return t[:, 0], t[:, 1:4]
+
+
+def force_at(times: np.ndarray, forces: np.ndarray, t: float) -> np.ndarray:
+    """The load script's force at time t (each row holds until the next row's time)."""
+    i = int(np.searchsorted(times, t, side="right")) - 1
+    return forces[max(i, 0)] if t >= times[0] else np.zeros(3)

@@ -1,0 +1,39 @@
+"""ament_python set-up for cstomo_sensor (also installs with plain pip into a virtual environment)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "cstomo_sensor"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.rules")),
+        ("share/" + package_name + "/config/sensors", glob("config/sensors/*.yaml")),
+        ("share/" + package_name + "/scenes", glob("scenes/*.yaml")),
+    ],
+    python_requires=">=3.10",
+    install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],
+    extras_require={
+        # Everything a workstation without ROS needs (make test installs this set).
+        "full": ["pyvista", "pytetwild", "scikit-fem", "rosbags", "matplotlib"],
+        "test": ["pytest", "hypothesis"],
+    },
+    zip_safe=True,
+    maintainer="cstomo_sensor developers",
+    maintainer_email="cstomo@example.com",
+    description="EIT force-direction sensor for a robot joint, as a ROS 2 node",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "cstomo = cstomo_sensor.cli:main",
+            "cstomo_sensor_node = cstomo_sensor.node:main",
+        ],
+    },
+)
