@@ -1,0 +1,409 @@
+"""The board's wire protocol (docs/protocol.md): pure encoding and decoding, no port, no threads.
+
+Binary mode: every packet is ``0x00, COBS(header | payload | crc32), 0x00`` with a little-endian
+header ``u8 version, u8 type, u16 payload length`` and CRC-32 (zlib) over header and payload.
+Text mode: one line of 208 comma-separated voltages per frame.
+
+Decoders are fed bytes in any chunking, never raise, and count what they drop in a stats object.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import zlib
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import ClassVar, Union
+
+import numpy as np
+
+PROTOCOL_VERSION = 1
+N_VALUES = 208
+N_ELECTRODES = 16
+DRIVE_CURRENT_A = 0.008
+
+_HEADER = struct.Struct("<BBH")  # version, type, payload length
+_CRC = struct.Struct("<I")
+_DATA_HEAD = struct.Struct("<IQH")  # seq, board time (us), contact mask
+_SAT_BYTES = (N_VALUES + 7) // 8  # 26
+_DATA_LEN = _DATA_HEAD.size + _SAT_BYTES + 4 * N_VALUES  # 872
+MAX_PACKET = 1024  # decoded packet (header + payload + crc) bound
+MAX_ENCODED = MAX_PACKET + MAX_PACKET // 254 + 2  # COBS worst case
+MAX_TEXT_LINE = 16 * 1024
+
+
+class MsgType(IntEnum):
+    """Packet type byte. Host to board below 0x80, board to host from 0x80."""
+
+    IDENTIFY = 0x01
+    START = 0x02
+    STOP = 0x03
+    SET_CURRENT = 0x04
+    SET_PATTERN = 0x05
+    IDENTITY = 0x81
+    ACK = 0x82
+    ERROR = 0x83
+    DATA = 0x90
+
+
+class ErrorCode(IntEnum):
+    """Error codes a board sends in an :class:`Error` packet."""
+
+    UNKNOWN_COMMAND = 1
+    BAD_ARGUMENT = 2
+    NOT_SUPPORTED = 3
+    BAD_VERSION = 4
+
+
+def crc32(data: bytes) -> int:
+    """CRC-32 (zlib, IEEE 802.3: poly 0x04C11DB7 reflected, init and xorout 0xFFFFFFFF).
+
+    ``crc32(b"123456789") == 0xCBF43926``.
+    """
+    return zlib.crc32(data) & 0xFFFFFFFF
+
+
+def cobs_encode(data: bytes) -> bytes:
+    """Consistent Overhead Byte Stuffing: the result holds no 0x00 byte."""
+    out = bytearray()
+    for seg in bytes(data).split(b"\0"):
+        while len(seg) >= 254:
+            out += b"\xff" + seg[:254]
+            seg = seg[254:]
+        out.append(len(seg) + 1)
+        out += seg
+    return bytes(out)
+
+
+def cobs_decode(data: bytes) -> bytes | None:
+    """Invert :func:`cobs_encode`; ``None`` for input that no encoder could have produced."""
+    out = bytearray()
+    i, n = 0, len(data)
+    while i < n:
+        code = data[i]
+        j = i + code
+        if code == 0 or j > n:
+            return None
+        out += data[i + 1 : j]
+        if code < 0xFF and j < n:
+            out.append(0)
+        i = j
+    return bytes(out)
+
+
+# --- messages ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Identify:
+    """Host asks the board who it is; the board answers :class:`Identity`."""
+
+    TYPE: ClassVar[MsgType] = MsgType.IDENTIFY
+
+    def payload(self) -> bytes:
+        return b""
+
+
+@dataclass(frozen=True)
+class Start:
+    """Host starts streaming at ``rate_hz`` frames per second (0: the board's default rate)."""
+
+    rate_hz: float = 0.0
+    TYPE: ClassVar[MsgType] = MsgType.START
+
+    def payload(self) -> bytes:
+        return struct.pack("<f", self.rate_hz)
+
+
+@dataclass(frozen=True)
+class Stop:
+    """Host stops streaming."""
+
+    TYPE: ClassVar[MsgType] = MsgType.STOP
+
+    def payload(self) -> bytes:
+        return b""
+
+
+@dataclass(frozen=True)
+class SetCurrent:
+    """Host sets the drive current in amperes (the reference board drives 0.008 A)."""
+
+    amps: float = DRIVE_CURRENT_A
+    TYPE: ClassVar[MsgType] = MsgType.SET_CURRENT
+
+    def payload(self) -> bytes:
+        return struct.pack("<f", self.amps)
+
+
+@dataclass(frozen=True)
+class SetPattern:
+    """Host selects the pair list: ``layers`` 1 (one ring of 16) or 2 (two rings of 8)."""
+
+    layers: int = 2
+    TYPE: ClassVar[MsgType] = MsgType.SET_PATTERN
+
+    def payload(self) -> bytes:
+        return struct.pack("<B", self.layers)
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Board's answer to :class:`Identify`."""
+
+    firmware: str
+    n_electrodes: int = N_ELECTRODES
+    protocol_version: int = PROTOCOL_VERSION
+    n_values: int = N_VALUES
+    TYPE: ClassVar[MsgType] = MsgType.IDENTITY
+
+    def payload(self) -> bytes:
+        fw = self.firmware.encode("utf-8")[:64]
+        return struct.pack("<HBH", self.protocol_version, self.n_electrodes, self.n_values) + fw
+
+
+@dataclass(frozen=True)
+class Ack:
+    """Board accepted the command whose type byte is ``command``."""
+
+    command: int
+    TYPE: ClassVar[MsgType] = MsgType.ACK
+
+    def payload(self) -> bytes:
+        return struct.pack("<B", self.command)
+
+
+@dataclass(frozen=True)
+class Error:
+    """Board refused command ``command`` (0: not tied to a command) with an :class:`ErrorCode`."""
+
+    command: int
+    code: int
+    text: str = ""
+    TYPE: ClassVar[MsgType] = MsgType.ERROR
+
+    def payload(self) -> bytes:
+        return struct.pack("<BB", self.command, self.code) + self.text.encode("utf-8")[:200]
+
+
+@dataclass(frozen=True, eq=False)
+class DataFrame:
+    """One frame of 208 voltages.
+
+    Parameters
+    ----------
+    seq : int or None
+        Board's frame counter (u32, wraps); None in text mode.
+    board_time_us : int or None
+        Board's monotonic clock at the measurement, microseconds; None in text mode.
+    values : (208,) float64 ndarray
+        Volts, in the order of REFERENCE_SENSOR.md section 2 (float32 on the binary wire).
+    saturated : (208,) bool ndarray
+        True where the board's voltage channel saturated for that value.
+    contact_ok : (16,) bool ndarray
+        True where the electrode's contact check passed (0-based electrode index).
+    """
+
+    seq: int | None
+    board_time_us: int | None
+    values: np.ndarray
+    saturated: np.ndarray = field(default_factory=lambda: np.zeros(N_VALUES, bool))
+    contact_ok: np.ndarray = field(default_factory=lambda: np.ones(N_ELECTRODES, bool))
+    TYPE: ClassVar[MsgType] = MsgType.DATA
+
+    def __post_init__(self) -> None:
+        for name, shape in (("values", (N_VALUES,)), ("saturated", (N_VALUES,)), ("contact_ok", (N_ELECTRODES,))):
+            a = getattr(self, name)
+            if np.shape(a) != shape:
+                raise ValueError(f"DataFrame.{name}.shape={np.shape(a)}, expected {shape}")
+
+    def payload(self) -> bytes:
+        contact = int(np.packbits(np.asarray(self.contact_ok, bool), bitorder="little").view("<u2")[0])
+        sat = np.packbits(np.asarray(self.saturated, bool), bitorder="little").tobytes()
+        head = _DATA_HEAD.pack((self.seq or 0) & 0xFFFFFFFF, (self.board_time_us or 0) & (2**64 - 1), contact)
+        return head + sat + np.asarray(self.values, "<f4").tobytes()
+
+
+Message = Union[Identify, Start, Stop, SetCurrent, SetPattern, Identity, Ack, Error, DataFrame]
+
+
+def encode(msg: Message) -> bytes:
+    """Bytes on the wire for one message: ``0x00 COBS(header payload crc32) 0x00``."""
+    body = msg.payload()
+    packet = _HEADER.pack(PROTOCOL_VERSION, int(msg.TYPE), len(body)) + body
+    return b"\0" + cobs_encode(packet + _CRC.pack(crc32(packet))) + b"\0"
+
+
+def encode_text(values: np.ndarray) -> bytes:
+    """One text-mode line: 208 comma-separated volts (shortest round-trip repr), ``\\n``-terminated."""
+    return (",".join(repr(float(v)) for v in values) + "\n").encode("ascii")
+
+
+def _parse(kind: MsgType, p: bytes) -> Message | None:
+    """Payload to message; None when the payload length does not fit the type."""
+    n = len(p)
+    if kind is MsgType.DATA:
+        if n != _DATA_LEN:
+            return None
+        seq, t_us, contact = _DATA_HEAD.unpack_from(p)
+        sat = np.frombuffer(p, np.uint8, _SAT_BYTES, _DATA_HEAD.size)
+        values = np.frombuffer(p, "<f4", N_VALUES, _DATA_HEAD.size + _SAT_BYTES).astype(np.float64)
+        return DataFrame(
+            seq,
+            t_us,
+            values,
+            np.unpackbits(sat, bitorder="little")[:N_VALUES].astype(bool),
+            ((contact >> np.arange(N_ELECTRODES)) & 1).astype(bool),
+        )
+    if kind in (MsgType.IDENTIFY, MsgType.STOP):
+        return (Identify() if kind is MsgType.IDENTIFY else Stop()) if n == 0 else None
+    if kind in (MsgType.START, MsgType.SET_CURRENT):
+        if n != 4:
+            return None
+        (x,) = struct.unpack("<f", p)
+        return Start(x) if kind is MsgType.START else SetCurrent(x)
+    if kind in (MsgType.SET_PATTERN, MsgType.ACK):
+        if n != 1:
+            return None
+        return SetPattern(p[0]) if kind is MsgType.SET_PATTERN else Ack(p[0])
+    if kind is MsgType.IDENTITY:
+        if n < 5:
+            return None
+        ver, n_el, n_val = struct.unpack_from("<HBH", p)
+        return Identity(p[5:].decode("utf-8", "replace"), n_el, ver, n_val)
+    if kind is MsgType.ERROR:
+        if n < 2:
+            return None
+        return Error(p[0], p[1], p[2:].decode("utf-8", "replace"))
+    return None
+
+
+# --- decoders ---------------------------------------------------------------------------------
+
+
+@dataclass
+class DecoderStats:
+    """Running counts of a decoder (mutable; copy it for a snapshot).
+
+    ``corrupt`` is the sum of every reason a frame was dropped.
+    """
+
+    bytes: int = 0
+    messages: int = 0
+    crc_errors: int = 0
+    bad_length: int = 0
+    unknown_type: int = 0
+    bad_version: int = 0
+    bad_values: int = 0
+
+    @property
+    def corrupt(self) -> int:
+        return self.crc_errors + self.bad_length + self.unknown_type + self.bad_version + self.bad_values
+
+
+class Decoder:
+    """Binary-mode decoder: feed bytes in any chunking, get the complete valid messages.
+
+    Frames are split at every 0x00; empty frames are ignored. A frame is dropped and counted when
+    its COBS coding or length is wrong (``bad_length``), its CRC-32 fails (``crc_errors``), its
+    version is not :data:`PROTOCOL_VERSION` (``bad_version``), its type is unknown
+    (``unknown_type``), or a data frame holds a non-finite value (``bad_values``).
+    """
+
+    def __init__(self) -> None:
+        self.stats = DecoderStats()
+        self._buf = bytearray()
+
+    def reset(self) -> None:
+        """Forget a partial frame (after a reconnect); the counts stay."""
+        self._buf.clear()
+
+    def feed(self, data: bytes) -> list[Message]:
+        """Add bytes; return the messages completed by them, in order. Never raises."""
+        self.stats.bytes += len(data)
+        self._buf += data
+        *frames, rest = self._buf.split(b"\0")
+        self._buf = bytearray(rest)
+        if len(self._buf) > MAX_ENCODED:  # no delimiter for too long: drop it
+            self._buf.clear()
+            self.stats.bad_length += 1
+        out = []
+        for f in frames:
+            if f:
+                msg = self._decode(bytes(f))
+                if msg is not None:
+                    out.append(msg)
+        return out
+
+    def _decode(self, frame: bytes) -> Message | None:
+        st = self.stats
+        packet = cobs_decode(frame)
+        if packet is None or not _HEADER.size + _CRC.size <= len(packet) <= MAX_PACKET:
+            st.bad_length += 1
+            return None
+        body, (crc,) = packet[:-4], _CRC.unpack(packet[-4:])
+        if crc32(body) != crc:
+            st.crc_errors += 1
+            return None
+        version, kind, length = _HEADER.unpack_from(body)
+        if version != PROTOCOL_VERSION:
+            st.bad_version += 1
+            return None
+        if kind not in MsgType._value2member_map_:
+            st.unknown_type += 1
+            return None
+        msg = _parse(MsgType(kind), body[_HEADER.size :]) if length == len(body) - _HEADER.size else None
+        if msg is None:
+            st.bad_length += 1
+            return None
+        if isinstance(msg, DataFrame) and not np.isfinite(msg.values).all():
+            st.bad_values += 1
+            return None
+        st.messages += 1
+        return msg
+
+
+class TextDecoder:
+    """Text-mode decoder: one frame per ``\\n``-terminated line of 208 comma-separated volts.
+
+    Blank lines and lines starting with ``#`` are skipped; a line with the wrong count
+    (``bad_length``, also for a line longer than :data:`MAX_TEXT_LINE`), an unparsable or a
+    non-finite value (``bad_values``) is dropped and counted. Never raises.
+    """
+
+    def __init__(self) -> None:
+        self.stats = DecoderStats()
+        self._buf = bytearray()
+
+    def reset(self) -> None:
+        """Forget a partial line (after a reconnect); the counts stay."""
+        self._buf.clear()
+
+    def feed(self, data: bytes) -> list[DataFrame]:
+        """Add bytes; return the frames completed by them, in order. Never raises."""
+        self.stats.bytes += len(data)
+        self._buf += data
+        *lines, rest = self._buf.split(b"\n")
+        self._buf = bytearray(rest)
+        if len(self._buf) > MAX_TEXT_LINE:
+            self._buf.clear()
+            self.stats.bad_length += 1
+        out = []
+        for raw in lines:
+            line = raw.strip()
+            if not line or line.startswith(b"#"):
+                continue
+            if len(line) > MAX_TEXT_LINE or line.count(b",") != N_VALUES - 1:
+                self.stats.bad_length += 1
+                continue
+            try:
+                values = np.array([float(t) for t in line.split(b",")])
+            except ValueError:
+                self.stats.bad_values += 1
+                continue
+            if not all(map(math.isfinite, values)):
+                self.stats.bad_values += 1
+                continue
+            self.stats.messages += 1
+            out.append(DataFrame(None, None, values))
+        return out
