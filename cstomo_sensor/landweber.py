@@ -287,9 +287,10 @@ def filter_factors(
         return f
     k = float(n_iter)
     one_minus_qk = np.empty_like(sk)
-    pos = a <= 1.0  # base q = 1 - a >= 0
+    pos = a < 1.0  # base q = 1 - a in [0, 1)
     one_minus_qk[pos] = -np.expm1(k * np.log1p(-a[pos]))
-    neg = ~pos  # q = -(a - 1) in [-1, 0): q^k = (-1)^k (a - 1)^k
+    one_minus_qk[a == 1.0] = 1.0  # q = 0: one step reaches the limit (k >= 1 here)
+    neg = a > 1.0  # q = -(a - 1) in [-1, 0): q^k = (-1)^k (a - 1)^k
     if neg.any():
         mag = np.exp(k * np.log(a[neg] - 1.0))
         sign = -1.0 if n_iter % 2 else 1.0
