@@ -234,6 +234,13 @@ class SimulatedBoard:
         self._thread.start()
         return self
 
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the :meth:`start` thread to end (duration over or stopped); True if it did."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+            return not self._thread.is_alive()
+        return True
+
     def stop(self) -> None:
         """Ask :meth:`run` to return (from any thread or a signal handler)."""
         self._stop.set()

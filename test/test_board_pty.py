@@ -1,0 +1,197 @@
+"""End to end over a real pseudo-terminal: SimulatedBoard (in a thread) -> BoardDriver."""
+import time
+
+import numpy as np
+import pytest
+
+from cstomo_sensor.board.driver import BoardDriver
+from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
+from cstomo_sensor.board.wire import DataFrame, encode
+from cstomo_sensor.errors import ConfigError
+from cstomo_sensor.pattern import MeasurementPattern
+
+RATE = 400.0
+
+
+class CountingSource:
+    """The k-th frame asked for is k + i / 1024 (exact in float32), and every frame is kept."""
+
+    def __init__(self):
+        self.frames = []
+
+    def frame(self, t, rng):
+        v = len(self.frames) + np.arange(208) / 1024
+        self.frames.append(v.copy())
+        return v
+
+    def truth(self, t):
+        return np.zeros(3)
+
+
+def wait_for(pred, timeout=5.0):
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def drain(driver, quiet=0.3):
+    """Every frame the driver delivers until none comes for ``quiet`` seconds."""
+    out = []
+    while (f := driver.get(quiet)) is not None:
+        out.append(f)
+    return out
+
+
+def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, **driver_kw):
+    """Connect a driver to a fresh board, stream for ``duration``, return everything that arrived."""
+    src = CountingSource()
+    board = SimulatedBoard(src, protocol=protocol, rate_hz=RATE, duration=duration, link=tmp_path / "board",
+                           faults=faults, seed=1)
+    driver = BoardDriver(board.device, protocol=protocol, queue_size=queue_size, **driver_kw)
+    try:
+        assert wait_for(lambda: driver.stats().connected)
+        board.start()
+        frames = []
+        while not board.join(0.05):
+            frames += drain(driver, quiet=0.0)
+        frames += drain(driver)
+        return src, board.stats(), driver.stats(), frames
+    finally:
+        driver.close()
+        board.close()
+
+
+def check_values(frames, src, skip=()):
+    """Each frame carries exactly the values the source produced for its seq (float32 on the wire)."""
+    keep = np.ones(208, bool)
+    keep[list(skip)] = False
+    for f in frames:
+        want = np.float32(src.frames[f.seq])
+        assert np.array_equal(f.values[keep], want[keep]), f"frame {f.seq} values differ"
+
+
+def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
+    src, board, st, frames = run(tmp_path, duration=0.5)
+    assert len(frames) > 50 and board.sent == len(frames) == st.frames == board.next_seq
+    assert [f.seq for f in frames] == list(range(len(frames)))
+    check_values(frames, src)
+    assert np.all(np.diff([f.board_time_us for f in frames]) > 0)
+    assert all(f.contact_ok.all() and not f.saturated.any() for f in frames)
+    assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects) == (0, 0, 0, 0)
+
+
+@pytest.mark.parametrize("fault", ["bit_flip", "drop", "truncate", "garbage"])
+def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
+    src, board, st, frames = run(tmp_path, FaultConfig(**{fault: 0.1}), duration=0.6)
+    n_faults = board.injected.get(fault, 0)
+    assert n_faults > 0 and board.injected.get("overrun", 0) == 0
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(seqs) and seqs[0] == 0
+    check_values(frames, src)
+    lost = board.next_seq - len(frames)
+    missing_inside = seqs[-1] + 1 - len(frames)
+    assert st.seq_gaps == missing_inside
+    if fault == "garbage":  # a burst is a corrupt frame of its own; the frame after it survives
+        assert lost == 0 and st.corrupt >= n_faults
+    else:
+        assert lost == n_faults
+        assert st.corrupt >= (0 if fault == "drop" else n_faults)
+    assert seqs[-1] >= board.next_seq - 5 and len(frames) > 0.7 * board.next_seq  # it went on after faults
+
+
+def test_stall_reopens_and_resumes(tmp_path):
+    faults = FaultConfig(stall_at=0.3, stall_for=0.5)
+    src, board, st, frames = run(tmp_path, faults, duration=1.2, stall_timeout=0.2)
+    assert board.injected["stall"] == 1 and st.reconnects >= 1
+    times = np.array([f.board_time_us for f in frames]) / 1e6
+    assert times.max() > 0.9 and np.diff(times).max() > 0.4  # frames on both sides of the stall
+    assert [f.seq for f in frames] == list(range(len(frames))) and st.seq_gaps == 0
+    check_values(frames, src)
+
+
+def test_saturated_channel_and_dead_electrode_are_flagged(tmp_path):
+    faults = FaultConfig(saturate_channel=17, full_scale=2.5, dead_electrode=5)
+    src, board, st, frames = run(tmp_path, faults, duration=0.3)
+    dead = MeasurementPattern(16, 2).electrode_rows(5)
+    assert len(frames) > 20 and st.corrupt == 0
+    for f in frames:
+        assert np.flatnonzero(f.saturated).tolist() == [17] and f.values[17] == 2.5
+        assert np.flatnonzero(~f.contact_ok).tolist() == [5]
+        assert not np.any(f.values[dead] == np.float32(src.frames[f.seq])[dead])
+    check_values(frames, src, skip=[17, *np.flatnonzero(dead)])
+
+
+def test_text_mode_nan_lines_are_dropped_and_counted(tmp_path):
+    src, board, st, frames = run(tmp_path, FaultConfig(nan=0.1), protocol="text", duration=0.5)
+    assert board.injected["nan"] > 0 and "overrun" not in board.injected
+    assert st.corrupt == board.injected["nan"] and len(frames) + st.corrupt == board.next_seq
+    ks = [int(f.values[0]) for f in frames]
+    assert ks == sorted(ks) and ks[-1] >= board.next_seq - 3
+    for k, f in zip(ks, frames):
+        assert f.seq is None and np.array_equal(f.values, src.frames[k])
+
+
+def test_disconnect_reconnects_through_the_link_without_losing_frames(tmp_path):
+    faults = FaultConfig(disconnect_at=0.3, reappear_after=0.3)
+    src, board, st, frames = run(tmp_path, faults, duration=1.2, stall_timeout=0.5, reconnect_backoff=(0.02, 0.1))
+    assert board.injected["disconnect"] == 1 and st.reconnects >= 1
+    first_after = board.generation_first_seq[1]
+    assert first_after > 0
+    seqs = [f.seq for f in frames]
+    assert [s for s in seqs if s >= first_after] == list(range(first_after, board.next_seq))
+    assert st.seq_gaps == seqs[-1] + 1 - len(frames)
+    check_values(frames, src)
+
+
+def test_queue_overflow_drops_the_oldest_and_counts(tmp_path):
+    src = CountingSource()
+    with SimulatedBoard(src, rate_hz=RATE, duration=0.3, seed=1) as board, \
+            BoardDriver(board.device, queue_size=8) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        board.start().join()
+        assert wait_for(lambda: driver.stats().frames == board.stats().sent)
+        frames = drain(driver, quiet=0.1)
+        st, n = driver.stats(), board.stats().next_seq
+    assert n > 50 and [f.seq for f in frames] == list(range(n - 8, n))
+    assert st.dropped_overflow == n - 8 and st.seq_gaps == 0
+
+
+def test_close_is_idempotent(tmp_path):
+    board = SimulatedBoard(CountingSource(), rate_hz=RATE, seed=1).start()
+    driver = BoardDriver(board.device)
+    assert driver.get(2.0) is not None
+    driver.close()
+    driver.close()
+    assert not driver.stats().connected and driver.get(0.01) is None
+    board.close()
+    board.close()
+
+
+def test_loop_url(tmp_path):
+    with BoardDriver("loop://", read_timeout=0.01) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        sent = [DataFrame(s, 10 * s, np.full(208, s / 4)) for s in (3, 4, 6)]
+        assert driver.send(b"\x13\x37garbage" + b"".join(encode(f) for f in sent))
+        got = [driver.get(2.0) for _ in sent]
+        st = driver.stats()
+    assert [g.seq for g in got] == [3, 4, 6] and [g.values[0] for g in got] == [0.75, 1.0, 1.5]
+    assert st.corrupt == 1 and st.seq_gaps == 1 and st.frames == 3
+
+
+def test_missing_device_is_retried_not_raised(tmp_path):
+    with BoardDriver(str(tmp_path / "nothing"), reconnect_backoff=(0.01, 0.02)) as driver:
+        assert wait_for(lambda: "open failed" in driver.stats().last_error)
+        assert driver.get(0.05) is None and not driver.stats().connected
+
+
+@pytest.mark.parametrize("kw", [{"protocol": "ascii"}, {"rate_hz": 0.0}, {"rate_hz": -5}])
+def test_bad_arguments_raise_config_error(kw):
+    with pytest.raises(ConfigError, match="protocol|rate_hz") as err:
+        BoardDriver("loop://", **kw)
+    if "protocol" in kw:
+        assert "'ascii'" in str(err.value) and "binary" in str(err.value) and "text" in str(err.value)
+    with pytest.raises(ConfigError):
+        SimulatedBoard(CountingSource(), **{"rate_hz": 100.0, **kw})
