@@ -16,7 +16,7 @@ venv: $(STAMP)
 $(STAMP): setup.py requirements-ros.txt
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
-	$(VPY) -m pip install -q -e '.[full,test]' -r requirements-ros.txt
+	$(VPY) -m pip install -q --config-settings editable_mode=compat -e '.[full,test]' -r requirements-ros.txt
 	@touch $(STAMP)
 
 test: $(STAMP)
