@@ -1,0 +1,229 @@
+"""Difference imaging: the normalised sensitivity matrix on a coarse voxel basis and the precomputed
+regularised Landweber matrix R, saved to and loaded from one npz file (no pickle).
+
+Normalisation (our form of the paper's equation (21)), stated once:
+
+- data ``y = (V - V_ref) / v_scale`` with ``v_scale = max(|V_model_ref|, 0.05 rms(V_model_ref))``
+  (relative voltage change against the device's tared reference ``V_ref``; the floor keeps
+  near-zero channels from amplifying noise);
+- unknowns ``x = dsigma / sigma0`` per voxel (relative conductivity change, uniform in a voxel);
+- ``S = diag(1 / v_scale) J_fine P sigma0``, with ``P`` (n_fine_cells, n_voxels) the indicator of the
+  voxel holding each forward cell's centroid: the derivative of the voltages with respect to a
+  uniform change in each voxel.
+
+The basis is a box grid over the body (``grid`` cells per axis; voxels holding no forward cell,
+the socket's cavity, are dropped): runtime cost and image resolution follow the grid, forward
+accuracy follows the fine mesh.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError, FrameError, ModelMismatchError
+from .fem import ForwardModel
+from .geometry import SensorGeometry
+from .landweber import LandweberSVD, choose_by_discrepancy
+from .mesh import MeshSpec, TetMesh, build_mesh, cache_load, cache_save, default_cache_dir, input_hash
+
+log = logging.getLogger(__name__)
+
+RECON_FORMAT = 2
+V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation is floored
+
+
+@dataclass(frozen=True)
+class ReconSpec:
+    """Every knob of the reconstruction model (all enter the cache key).
+
+    ``iterations`` None chooses k by the discrepancy principle (tau = 1.1) at the noise of
+    ``snr_db`` on the response of a reference inclusion (:func:`reference_inclusion`);
+    ``damping`` is relative to s_max^2.
+    """
+
+    mesh_size: float = 4.0e-3
+    grid: tuple[int, int, int] = (8, 8, 4)
+    iterations: int | None = None
+    damping: float = 0.0
+    snr_db: float = 60.0
+
+    def __post_init__(self) -> None:
+        MeshSpec(h=self.mesh_size)  # validates the size
+        g = tuple(int(v) for v in self.grid)
+        if len(g) != 3 or min(g) < 1 or max(g) > 64:
+            raise ConfigError(f"grid={self.grid!r}: expected three integers in 1..64")
+        object.__setattr__(self, "grid", g)
+        if self.iterations is not None and not (1 <= int(self.iterations) <= 10**9):
+            raise ConfigError(f"iterations={self.iterations!r}: expected None (automatic) or 1..1e9")
+        if not (0.0 <= self.damping < 1e6) or not np.isfinite(self.damping):
+            raise ConfigError(f"damping={self.damping!r}: expected >= 0 (relative to s_max^2)")
+        if not (0.0 < self.snr_db <= 200.0):
+            raise ConfigError(f"snr_db={self.snr_db!r}: expected 0 < snr_db <= 200")
+
+
+def voxel_basis(geometry: SensorGeometry, mesh: TetMesh, grid: tuple[int, int, int]):
+    """Assign forward cells to voxels of a box grid.
+
+    Returns
+    -------
+    cell_voxel : (n_cells,) int, voxel of each forward cell (0..n_voxels-1).
+    centers : (n_voxels, 3) volume-weighted centroids of the voxels' forward cells, m, body frame.
+    volumes : (n_voxels,) m^3.
+    """
+    lo = mesh.points.min(axis=0)
+    hi = mesh.points.max(axis=0)
+    g = np.array(grid)
+    ijk = np.clip(((mesh.centers - lo) / (hi - lo) * g).astype(int), 0, g - 1)
+    flat = np.ravel_multi_index(ijk.T, grid)
+    used, cell_voxel = np.unique(flat, return_inverse=True)
+    vol = np.bincount(cell_voxel, weights=mesh.volumes)
+    centers = np.stack([np.bincount(cell_voxel, weights=mesh.volumes * mesh.centers[:, i]) for i in range(3)], 1)
+    return cell_voxel, centers / vol[:, None], vol
+
+
+@dataclass(frozen=True, eq=False)
+class ReconstructionModel:
+    """The precomputed difference-imaging model; ``R @ y`` is one frame's image.
+
+    Attributes
+    ----------
+    R : (n_voxels, n_meas) float32, x = R y.
+    S : (n_meas, n_voxels) float64 normalised sensitivity (residuals and masking).
+    v_scale : (n_meas,) V.   model_reference : (n_meas,) V.   sigma0 : S/m.
+    centers : (n_voxels, 3) m, body frame.   volumes : (n_voxels,) m^3.
+    iterations, damping, step : the Landweber settings R equals.   key : hash of every input.
+    """
+
+    R: np.ndarray
+    S: np.ndarray
+    v_scale: np.ndarray
+    model_reference: np.ndarray
+    sigma0: float
+    centers: np.ndarray
+    volumes: np.ndarray
+    iterations: int
+    damping: float
+    step: float
+    key: str
+    meta: dict
+
+    @property
+    def n_meas(self) -> int:
+        return self.R.shape[1]
+
+    @property
+    def n_cells(self) -> int:
+        return self.R.shape[0]
+
+    def normalise(self, frames: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """``y = (V - V_ref) / v_scale`` for (n_meas,) or (n_frames, n_meas) frames; refuses NaN/Inf."""
+        v = np.asarray(frames, dtype=float)
+        ref = np.asarray(reference, dtype=float)
+        for name, a in (("frame", v), ("reference", ref)):
+            if a.shape[-1] != self.n_meas:
+                raise FrameError(f"{name} has {a.shape[-1]} values per frame, expected {self.n_meas}")
+            bad = ~np.isfinite(a)
+            if bad.any():
+                raise FrameError(f"{name} holds {int(bad.sum())} NaN/Inf values; expected finite volts")
+        return (v - ref) / self.v_scale
+
+    def reconstruct(self, frames: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Conductivity change per voxel, S/m: (n_voxels,) or (n_frames, n_voxels)."""
+        y = self.normalise(frames, reference)
+        return (y @ self.R.T.astype(np.float64)) * self.sigma0
+
+    def with_settings(self, iterations: int, damping: float = 0.0) -> "ReconstructionModel":
+        """A copy whose R equals other Landweber settings (one SVD of S, no forward model)."""
+        svd = LandweberSVD.from_jacobian(self.S)
+        lam = damping * svd.s_max**2
+        step = 1.0 / (svd.s_max**2 + lam)
+        R = svd.matrix(iterations, step, lam, dtype=np.float32)
+        return ReconstructionModel(R, self.S, self.v_scale, self.model_reference, self.sigma0, self.centers,
+                                   self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta))
+
+    # -- one file, no pickle ----------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        arrays = {k: getattr(self, k) for k in ("R", "S", "v_scale", "model_reference", "centers", "volumes")}
+        scalars = {"sigma0": self.sigma0, "iterations": self.iterations, "damping": self.damping,
+                   "step": self.step, "meta": self.meta}
+        cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path, key: str | None = None) -> "ReconstructionModel":
+        """Load; with ``key``, a model built for other inputs raises :class:`ModelMismatchError`."""
+        with np.load(path, allow_pickle=False) as z:
+            found = str(z["cache_key"])
+            if key is not None and found != key:
+                raise ModelMismatchError(f"{path}: model built for inputs {found}, expected {key}; rebuild it")
+            s = json.loads(str(z["scalars"]))
+            return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
+                       z["volumes"], s["iterations"], s["damping"], s["step"], found, s["meta"])
+
+
+def model_inputs(geometry: SensorGeometry, spec: ReconSpec) -> dict:
+    return {"format": RECON_FORMAT, "geometry": asdict(geometry), "spec": asdict(spec),
+            "mesh": MeshSpec(h=spec.mesh_size).__dict__}
+
+
+def reference_inclusion(geometry: SensorGeometry, centers: np.ndarray) -> np.ndarray:
+    """x for the parameter-choice rule: +20 % in the voxels within 8 mm of the point 2 mm below the
+    socket's bottom (or of the top centre): the size of the region a 20 N load compresses."""
+    c = geometry.socket_center - np.array([0, 0, geometry.socket_radius + 2e-3])
+    d = np.linalg.norm(centers - c, axis=1)
+    return 0.2 * (d <= max(8e-3, d.min()))
+
+
+def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_dir=None,
+                progress=None) -> ReconstructionModel:
+    """Build (or load from the cache) the reconstruction model of a sensor."""
+    say = progress or (lambda msg: log.info("%s", msg))
+    key = input_hash(model_inputs(geometry, spec))
+    path = Path(cache_dir or default_cache_dir()) / "models" / f"{geometry.name}-{key}.npz"
+    if cache_load(path, key) is not None:
+        model = ReconstructionModel.load(path, key)
+        model.meta["cache_hit"] = True
+        return model
+    seconds = {}
+    t = time.perf_counter()
+    say(f"meshing {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm; cached after the first time)")
+    mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
+    seconds["mesh"] = time.perf_counter() - t
+    say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_cells} cells; assembling and solving 16 drives")
+    fm = ForwardModel(geometry, mesh)
+    sol = fm.solve()
+    seconds.update(fm.seconds, **sol.seconds)
+    t = time.perf_counter()
+    J = fm.jacobian(solution=sol)
+    seconds["jacobian"] = time.perf_counter() - t
+    t = time.perf_counter()
+    cell_voxel, centers, volumes = voxel_basis(geometry, mesh, spec.grid)
+    Vref = sol.voltages
+    v_scale = np.maximum(np.abs(Vref), V_FLOOR * np.sqrt(np.mean(Vref**2)))
+    S = np.zeros((J.shape[0], len(volumes)))
+    for i in range(J.shape[0]):
+        S[i] = np.bincount(cell_voxel, weights=J[i], minlength=len(volumes))
+    S *= geometry.material.sigma0 / v_scale[:, None]
+    svd = LandweberSVD.from_jacobian(S)
+    lam = spec.damping * svd.s_max**2
+    step = 1.0 / (svd.s_max**2 + lam)
+    if spec.iterations is None:
+        noise = np.sqrt(np.mean(Vref**2)) * 10 ** (-spec.snr_db / 20)
+        noise_norm = float(np.linalg.norm(noise / v_scale))
+        y = S @ reference_inclusion(geometry, centers)
+        k = int(choose_by_discrepancy(svd, y, noise_norm, tau=1.1, step=step, damping=lam))
+    else:
+        k = int(spec.iterations)
+    R = svd.matrix(k, step, lam, dtype=np.float32)
+    seconds["landweber"] = time.perf_counter() - t
+    meta = {"seconds": seconds, "mesh": mesh.summary(), "rank": svd.rank, "condition": svd.condition,
+            "n_voxels": len(volumes), "cache_hit": False}
+    say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}")
+    model = ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
+                                spec.damping, step, key, meta)
+    model.save(path)
+    return model
