@@ -1,0 +1,547 @@
+"""``cstomo_sensor_node``: the managed (lifecycle) ROS 2 node of the sensor.
+
+configure: read the parameters into one frozen :class:`NodeConfig`, load (or build) the
+:class:`~cstomo_sensor.pipeline.Pipeline`, open the input (serial board or ``~/raw_voltages_in``)
+and set the reference (tare at start, else the saved tare, else the model's reference with a WARN).
+activate: publish. deactivate: stop publishing. cleanup/shutdown: release port, threads, pipeline.
+With ``autostart`` (default) the node walks itself to active, so ``ros2 run`` needs no manager.
+
+Frames go through :class:`~cstomo_sensor.messages.FrameProcessor` and
+:class:`~cstomo_sensor.messages.OutputMessages`, shared with ``cstomo replay``. See docs/node.md.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float32MultiArray
+from std_srvs.srv import Trigger
+
+from .errors import ConfigError, CstomoError, FrameError
+from .frames_io import read_frames, write_frames
+from .messages import (
+    FORCE_TOPICS,
+    RAW_TOPIC,
+    STRESS_TOPIC,
+    TOPIC_TYPES,
+    ClockMapper,
+    FrameProcessor,
+    OutputMessages,
+    raw_voltages_msg,
+    values_from_raw_msg,
+)
+from .pipeline import PipelineConfig
+
+PROTOCOLS = ("binary", "text")
+INPUTS = ("serial", "topic")
+RELIABILITIES = ("system_default", "reliable", "best_effort")
+
+
+def _d(description: str, *, read_only: bool = False, lo=None, hi=None, step=None) -> ParameterDescriptor:
+    desc = ParameterDescriptor(description=description, read_only=read_only)
+    if isinstance(lo, float) or isinstance(hi, float):
+        desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    elif lo is not None:
+        desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 1))]
+    return desc
+
+
+#: name -> (default, descriptor). Declared once, in this order; config/cstomo_sensor.yaml lists them all.
+PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
+    "input": ("serial", _d("Frame source: 'serial' (a board) or 'topic' (~/raw_voltages_in)", read_only=True)),
+    "port": ("/dev/cstomo", _d("Serial URL: device path, socket://, rfc2217://, loop://", read_only=True)),
+    "baudrate": (921600, _d("Serial speed (ignored by USB CDC and ptys)", read_only=True, lo=1200, hi=16_000_000)),
+    "protocol": ("binary", _d("Wire protocol of the board: 'binary' or 'text' (docs/protocol.md)", read_only=True)),
+    "rate_hz": (0.0, _d("Frame rate asked of a binary board in START; 0 = the board's default",
+                        read_only=True, lo=0.0, hi=10000.0)),
+    "sensor": ("cuboid_joint", _d("Sensor preset name or YAML path", read_only=True)),
+    "cache_dir": ("", _d("Model and tare cache directory; '' = $CSTOMO_CACHE_DIR or ~/.cache/cstomo_sensor",
+                         read_only=True)),
+    "estimator": ("linear", _d("Force estimator: 'linear' or 'model'", read_only=True)),
+    "mesh_size": (4.0e-3, _d("Forward mesh element size in metres", read_only=True, lo=2.0e-4, hi=2.0e-2)),
+    "grid": ([8, 8, 4], _d("Reconstruction voxel grid (nx, ny, nz), each 1..64", read_only=True)),
+    "iterations": (0, _d("Landweber iterations; 0 = discrepancy rule", read_only=True, lo=0, hi=1_000_000_000)),
+    "damping": (0.0, _d("Landweber damping relative to s_max^2", read_only=True, lo=0.0, hi=1.0e6)),
+    "tare_frames": (50, _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000)),
+    "tare_on_start": (False, _d("Tare on the first tare_frames frames at start (else the saved tare, "
+                                "else the model reference)", read_only=True)),
+    "frame_id": ("cstomo_socket", _d("frame_id of the wrench and the stress cloud (the wrench frame)",
+                                     read_only=True)),
+    "autostart": (True, _d("Walk to active by itself (no lifecycle manager needed)", read_only=True)),
+    "stress_field_every": (10, _d("Publish ~/stress_field every N frames; 0 = off", read_only=True,
+                                  lo=0, hi=1_000_000)),
+    "qos_depth": (10, _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000)),
+    "qos_reliability": ("system_default", _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
+                                             read_only=True)),
+    "stale_timeout": (0.5, _d("Seconds without frames after which the data is stale (force topics stop, "
+                              "diagnostics say why)", lo=0.01, hi=3600.0)),
+    "clock_window": (10.0, _d("Seconds of board time over which the board-to-host clock offset is "
+                              "the minimum", read_only=True, lo=0.1, hi=3600.0)),
+}
+
+
+def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(f"parameter '{name}'={value!r}: expected one of {list(choices)}")
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """Every setting of the node, built once from its parameters (validated here)."""
+
+    pipeline: PipelineConfig
+    input: str = "serial"
+    port: str = "/dev/cstomo"
+    baudrate: int = 921600
+    protocol: str = "binary"
+    rate_hz: float = 0.0
+    tare_frames: int = 50
+    tare_on_start: bool = False
+    frame_id: str = "cstomo_socket"
+    stress_field_every: int = 10
+    qos_depth: int = 10
+    qos_reliability: str = "system_default"
+    stale_timeout: float = 0.5
+    clock_window: float = 10.0
+
+    def __post_init__(self) -> None:
+        _choice("input", self.input, INPUTS)
+        _choice("protocol", self.protocol, PROTOCOLS)
+        _choice("qos_reliability", self.qos_reliability, RELIABILITIES)
+        if self.input == "serial" and not self.port:
+            raise ConfigError("parameter 'port'='': expected a serial URL")
+        if not self.frame_id:
+            raise ConfigError("parameter 'frame_id'='': expected a frame name")
+        for name in ("tare_frames", "qos_depth"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected >= 1")
+        for name in ("stale_timeout", "clock_window"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected > 0")
+
+    @classmethod
+    def from_parameters(cls, get) -> NodeConfig:
+        """Build from ``get(name) -> value``; a bad value raises ConfigError naming the parameter."""
+        try:
+            pipe = PipelineConfig(sensor=get("sensor"), cache_dir=get("cache_dir"), estimator=get("estimator"),
+                                  mesh_size=get("mesh_size"), grid=tuple(get("grid")),
+                                  iterations=get("iterations"), damping=get("damping"))
+        except (ConfigError, TypeError, ValueError) as err:
+            raise ConfigError(f"parameter {err}") from err
+        names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
+        return cls(pipeline=pipe, **{n: get(n) for n in names})
+
+    @property
+    def cache_path(self) -> Path:
+        if self.pipeline.cache_dir:
+            return Path(self.pipeline.cache_dir)
+        from .mesh import default_cache_dir
+
+        return default_cache_dir()
+
+    @property
+    def sensor_name(self) -> str:
+        return Path(self.pipeline.sensor).stem
+
+    @property
+    def tare_path(self) -> Path:
+        """Where the tare of this sensor is saved (frames-file format) and read back at start."""
+        return self.cache_path / f"tare_{self.sensor_name}.csv"
+
+    def qos(self) -> QoSProfile:
+        rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,
+               "best_effort": ReliabilityPolicy.BEST_EFFORT}[self.qos_reliability]
+        return QoSProfile(depth=self.qos_depth, reliability=rel)
+
+
+class _Stats:
+    """Counters of the frame path, reset per diagnostics period where noted (guarded by a lock)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.frames = 0          # frames handled (all time)
+        self.period_frames = 0   # frames handled since the last diagnostics
+        self.corrupt = 0         # malformed frames (topic mode) or rejected by the pipeline
+        self.late = 0            # frames dropped as older than stale_timeout
+        self.proc_sum = 0.0      # per-frame processing seconds, this period
+        self.proc_max = 0.0
+        self.proc_n = 0
+        self.residual = math.nan
+        self.last_frame = None   # time.monotonic() of the latest frame
+
+
+class CstomoSensorNode(LifecycleNode):
+    """The sensor as a lifecycle node; see the module docstring and docs/node.md."""
+
+    def __init__(self, node_name: str = "cstomo_sensor", **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        for name, (default, desc) in PARAMETERS.items():
+            self.declare_parameter(name, default, desc)
+        self.config: NodeConfig | None = None
+        self.pipe = None
+        self.processor: FrameProcessor | None = None
+        self.reference_source = "none"
+        self._active = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._driver = None
+        self._sub = None
+        self._pubs: dict = {}
+        self._diag_pub = self._diag_timer = self._tare_srv = None
+        self._stats = _Stats()
+        self._proc_lock = threading.Lock()  # one frame at a time through the processor
+        self._tare_done = threading.Event()
+        self._clock = ClockMapper()
+        self._last_diag = time.monotonic()
+        self._last_corrupt = 0
+        self._tare_group = MutuallyExclusiveCallbackGroup()
+        if self.get_parameter("autostart").value:
+            self._autostart_timer = self.create_timer(0.0, self._autostart)
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+
+    def _autostart(self) -> None:
+        self._autostart_timer.cancel()
+        self.destroy_timer(self._autostart_timer)
+        if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self.trigger_activate()
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            cfg = NodeConfig.from_parameters(lambda n: self.get_parameter(n).value)
+        except ConfigError as err:
+            self.get_logger().error(f"refusing to start: {err}")
+            return TransitionCallbackReturn.FAILURE
+        log = self.get_logger()
+        from .pipeline import Pipeline
+
+        t0 = time.monotonic()
+        try:
+            pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
+        except CstomoError as err:
+            log.error(f"refusing to start: {err}")
+            return TransitionCallbackReturn.FAILURE
+        log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
+                 f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
+        self.config, self.pipe = cfg, pipe
+        self._clock = ClockMapper(cfg.clock_window)
+        self._stats = _Stats()
+        self.processor = FrameProcessor(pipe, layers=pipe.geometry.layers,
+                                        stress_field_every=cfg.stress_field_every, on_tare=self._save_tare)
+        self.out = OutputMessages(pipe.centers, cfg.frame_id)
+        self._init_reference()
+        qos = cfg.qos()
+        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else [])
+        for topic in topics:
+            self._pubs[topic] = self.create_lifecycle_publisher(_msg_class(TOPIC_TYPES[topic]), f"~/{topic}", qos)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
+        self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
+        self._stop.clear()
+        if cfg.input == "serial":
+            from .board.driver import BoardDriver
+
+            try:
+                self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
+                                           rate_hz=cfg.rate_hz or None,
+                                           stall_timeout=max(cfg.stale_timeout, 0.2))
+            except ConfigError as err:
+                log.error(f"refusing to start: {err}")
+                self._release()
+                return TransitionCallbackReturn.FAILURE
+            self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
+            self._thread.start()
+        else:
+            self._sub = self.create_subscription(Float32MultiArray, "~/raw_voltages_in", self._on_raw, qos)
+        log.info(f"configured: input {cfg.input} ({cfg.port if cfg.input == 'serial' else '~/raw_voltages_in'}), "
+                 f"reference: {self.reference_source}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._active = True
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._active = False
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        self._active = False
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._driver is not None:
+            self._driver.close()
+            self._driver = None
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+            self._sub = None
+        for pub in self._pubs.values():
+            self.destroy_lifecycle_publisher(pub)
+        self._pubs = {}
+        if self._diag_timer is not None:
+            self.destroy_timer(self._diag_timer)
+        if self._diag_pub is not None:
+            self.destroy_publisher(self._diag_pub)
+        if self._tare_srv is not None:
+            self.destroy_service(self._tare_srv)
+        self._diag_pub = self._diag_timer = self._tare_srv = None
+        self.pipe = self.processor = None
+
+    # --- reference (tare) --------------------------------------------------------------------------
+
+    def _init_reference(self) -> None:
+        cfg, log = self.config, self.get_logger()
+        if cfg.tare_on_start:
+            self.processor.start_tare(cfg.tare_frames)
+            self.reference_source = "tare pending"
+            return
+        path = cfg.tare_path
+        if path.is_file():
+            try:
+                self.pipe.set_reference(read_frames(path).mean(axis=0))
+                self.reference_source = f"saved tare {path}"
+                return
+            except (CstomoError, OSError) as err:
+                log.warning(f"saved tare {path} unusable ({err}); falling back to the model reference")
+        else:
+            log.warning(f"no saved tare at {path}: using the model's reference frame; call ~/tare with the "
+                        "sensor unloaded")
+        self.pipe.set_reference(self.pipe.model_reference)
+        self.reference_source = "model (untared)"
+
+    def _save_tare(self, ref: np.ndarray) -> None:
+        cfg = self.config
+        self.reference_source = "tare"
+        try:
+            cfg.tare_path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = cfg.tare_path.with_suffix(".tmp")
+            write_frames(tmp, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}': mean of "
+                                           f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+            os.replace(tmp, cfg.tare_path)
+            self.reference_source = f"tare saved to {cfg.tare_path}"
+            self.get_logger().info(f"tare saved to {cfg.tare_path}")
+        except OSError as err:
+            self.get_logger().error(f"tare not saved to {cfg.tare_path}: {err}")
+        self._tare_done.set()
+
+    def _on_tare(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        cfg, proc = self.config, self.processor
+        if proc is None:
+            response.success, response.message = False, "not configured"
+            return response
+        with self._proc_lock:
+            self._tare_done.clear()
+            proc.start_tare(cfg.tare_frames)
+        wait = cfg.stale_timeout + cfg.tare_frames * 0.1 + 2.0
+        if not self._tare_done.wait(wait):
+            response.success = False
+            response.message = f"tare not finished within {wait:.1f} s: are frames arriving?"
+            return response
+        response.success = True
+        response.message = f"reference from {cfg.tare_frames} frames; {self.reference_source}"
+        return response
+
+    # --- frames ------------------------------------------------------------------------------------
+
+    def _serial_loop(self) -> None:
+        drv = self._driver
+        while not self._stop.is_set():
+            frame = drv.get(0.1)
+            if frame is None:
+                continue
+            host_ns = self.get_clock().now().nanoseconds
+            if frame.board_time_us is not None:
+                stamp_ns = self._clock.stamp_ns(frame.board_time_us, host_ns)
+            else:
+                stamp_ns = host_ns  # text mode: no board clock
+            self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
+
+    def _on_raw(self, msg: Float32MultiArray) -> None:
+        host_ns = self.get_clock().now().nanoseconds
+        try:
+            values = values_from_raw_msg(msg)
+        except FrameError as err:
+            with self._stats.lock:
+                self._stats.corrupt += 1
+            self.get_logger().warning(f"dropped input frame: {err}", throttle_duration_sec=5.0)
+            return
+        self._handle(values, None, None, host_ns, host_ns, raw=False)
+
+    def _handle(self, values, saturated, contact_ok, stamp_ns: int, host_ns: int, raw: bool) -> None:
+        """One frame: count it, maybe publish raw, process (tare or result), publish outputs."""
+        t0 = time.perf_counter()
+        st, proc, cfg = self._stats, self.processor, self.config
+        with st.lock:
+            st.frames += 1
+            st.period_frames += 1
+            st.last_frame = time.monotonic()
+        if proc is None:
+            return
+        if host_ns - stamp_ns > cfg.stale_timeout * 1e9:
+            with st.lock:
+                st.late += 1
+            return
+        active = self._active
+        if raw and active:
+            self._pubs[RAW_TOPIC].publish(raw_voltages_msg(values))
+        if not (active or proc.taring):
+            return
+        try:
+            with self._proc_lock:
+                result = proc.process(values, saturated, contact_ok)
+        except FrameError as err:
+            with st.lock:
+                st.corrupt += 1
+            self.get_logger().warning(f"dropped frame: {err}", throttle_duration_sec=5.0)
+            return
+        if result is None or not self._active:
+            return
+        for topic, msg in self.out.build(result, stamp_ns).items():
+            self._pubs[topic].publish(msg)
+        dt = time.perf_counter() - t0
+        with st.lock:
+            st.proc_sum += dt
+            st.proc_n += 1
+            st.proc_max = max(st.proc_max, dt)
+            if not math.isnan(result.residual):
+                st.residual = result.residual
+
+    # --- diagnostics -------------------------------------------------------------------------------
+
+    def stale_reason(self) -> str:
+        """Why the data is stale ('' when fresh)."""
+        cfg, st = self.config, self._stats
+        if cfg is None:
+            return "not configured"
+        last = st.last_frame
+        age = math.inf if last is None else time.monotonic() - last
+        if age <= cfg.stale_timeout:
+            return ""
+        what = "no frames yet" if last is None else f"no frames for {age:.1f} s (stale_timeout {cfg.stale_timeout} s)"
+        if self._driver is not None:
+            ds = self._driver.stats()
+            if not ds.connected:
+                what += f"; board disconnected ({ds.last_error or 'port not open'})"
+            elif ds.last_error:
+                what += f"; last error: {ds.last_error}"
+        elif self._sub is not None and self.count_publishers(self._sub.topic_name) == 0:
+            what += f"; nobody publishes {self._sub.topic_name}"
+        return what
+
+    def diagnostics(self) -> DiagnosticStatus:
+        """The node's DiagnosticStatus now (resets the per-period figures)."""
+        cfg, st = self.config, self._stats
+        now = time.monotonic()
+        period, self._last_diag = max(now - self._last_diag, 1e-9), now
+        with st.lock:
+            rate = st.period_frames / period
+            proc_mean = st.proc_sum / st.proc_n if st.proc_n else math.nan
+            proc_max = st.proc_max if st.proc_n else math.nan
+            st.period_frames, st.proc_sum, st.proc_max, st.proc_n = 0, 0.0, 0.0, 0
+            corrupt, late, residual, frames = st.corrupt, st.late, st.residual, st.frames
+        status = DiagnosticStatus(name=f"{self.get_name()}: sensor", hardware_id=cfg.port if cfg and cfg.input == "serial" else "")
+        kv = {"state": "active" if self._active else "inactive", "input": cfg.input if cfg else "",
+              "reference": self.reference_source, "frames": frames, "frame_rate_hz": f"{rate:.1f}",
+              "late_dropped": late}
+        level, msgs = DiagnosticStatus.OK, []
+        ds = self._driver.stats() if self._driver is not None else None
+        if ds is not None:
+            kv.update(connected=ds.connected, dropped_overflow=ds.dropped_overflow, reconnects=ds.reconnects,
+                      seq_gaps=ds.seq_gaps, last_error=ds.last_error)
+            corrupt += ds.corrupt
+            if not ds.connected:
+                level, msgs = DiagnosticStatus.ERROR, msgs + ["board disconnected"]
+        kv["corrupt"] = corrupt
+        if corrupt > self._last_corrupt:
+            level = max(level, DiagnosticStatus.WARN)
+            msgs.append(f"{corrupt - self._last_corrupt} corrupt frames")
+        self._last_corrupt = corrupt
+        ex = self.processor.excluded if self.processor is not None else None
+        if ex is not None:
+            kv.update(saturated_channels=ex.saturated, dead_electrodes=",".join(str(e + 1) for e in ex.dead_electrodes),
+                      excluded_channels=ex.channels)
+            if ex.channels:
+                level = max(level, DiagnosticStatus.WARN)
+                msgs.append(f"{ex.channels} channels excluded (saturated {ex.saturated}, dead electrodes "
+                            f"{[e + 1 for e in ex.dead_electrodes]})")
+        kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
+                  processing_time_max_ms=f"{proc_max * 1e3:.3f}")
+        reason = self.stale_reason() if self._active else ""
+        kv["stale_reason"] = reason
+        if reason:
+            level = DiagnosticStatus.ERROR if ds is not None and not ds.connected else max(level, DiagnosticStatus.WARN)
+            msgs.insert(0, f"stale: {reason}")
+        if self.reference_source.startswith("model"):
+            level = max(level, DiagnosticStatus.WARN)
+            msgs.append("untared: using the model reference")
+        status.level = level
+        status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
+        return status
+
+    def _publish_diagnostics(self) -> None:
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self.diagnostics()]
+        self._diag_pub.publish(arr)
+
+
+def _msg_class(type_name: str):
+    pkg, _, name = type_name.split("/")
+    import importlib
+
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    try:
+        node = CstomoSensorNode()
+    except (InvalidParameterTypeException, InvalidParameterValueException) as err:  # overrides refused
+        print(f"cstomo_sensor_node: {err}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node._release()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
