@@ -45,10 +45,10 @@ def drain(driver, quiet=0.3):
     return out
 
 
-def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, **driver_kw):
+def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, rate=RATE, **driver_kw):
     """Connect a driver to a fresh board, stream for ``duration``, return everything that arrived."""
     src = CountingSource()
-    board = SimulatedBoard(src, protocol=protocol, rate_hz=RATE, duration=duration, link=tmp_path / "board",
+    board = SimulatedBoard(src, protocol=protocol, rate_hz=rate, duration=duration, link=tmp_path / "board",
                            faults=faults, seed=1)
     driver = BoardDriver(board.device, protocol=protocol, queue_size=queue_size, **driver_kw)
     try:
@@ -125,7 +125,7 @@ def test_saturated_channel_and_dead_electrode_are_flagged(tmp_path):
 
 
 def test_text_mode_nan_lines_are_dropped_and_counted(tmp_path):
-    src, board, st, frames = run(tmp_path, FaultConfig(nan=0.1), protocol="text", duration=0.5)
+    src, board, st, frames = run(tmp_path, FaultConfig(nan=0.1), protocol="text", duration=0.8, rate=200.0)
     assert board.injected["nan"] > 0 and "overrun" not in board.injected
     assert st.corrupt == board.injected["nan"] and len(frames) + st.corrupt == board.next_seq
     ks = [int(f.values[0]) for f in frames]
@@ -165,7 +165,9 @@ def test_close_is_idempotent(tmp_path):
     assert driver.get(2.0) is not None
     driver.close()
     driver.close()
-    assert not driver.stats().connected and driver.get(0.01) is None
+    n = driver.stats().frames
+    drain(driver, quiet=0.01)  # frames received before close() stay readable
+    assert not driver.stats().connected and driver.get(0.1) is None and driver.stats().frames == n
     board.close()
     board.close()
 

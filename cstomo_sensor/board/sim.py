@@ -348,15 +348,20 @@ class SimulatedBoard:
             return Error(kind, ErrorCode.NOT_SUPPORTED, f"pattern {msg.layers} rings; this board has {self.layers}")
         return Error(kind, ErrorCode.UNKNOWN_COMMAND, f"not a command: type 0x{kind:02x}")
 
-    def _write(self, data: bytes) -> int:
-        """Write what fits into the pty; returns the bytes written."""
-        try:
-            return os.write(self._master, data)
-        except BlockingIOError:
-            return 0
-        except OSError as err:
-            log.debug("pty write: %s", err)
-            return 0
+    def _write(self, data: bytes, patience: float = 0.05) -> int:
+        """Write into the pty, waiting up to ``patience`` s for room; returns the bytes written."""
+        done, deadline = 0, time.monotonic() + patience
+        while done < len(data):
+            try:
+                done += os.write(self._master, data[done:])
+            except BlockingIOError:
+                left = deadline - time.monotonic()
+                if left <= 0 or not select.select([], [self._master], [], left)[1]:
+                    break
+            except OSError as err:
+                log.debug("pty write: %s", err)
+                break
+        return done
 
     def _emit(self, t: float) -> None:
         f, rng = self.faults, self._fault_rng

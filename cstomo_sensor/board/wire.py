@@ -8,7 +8,6 @@ Decoders are fed bytes in any chunking, never raise, and count what they drop in
 """
 from __future__ import annotations
 
-import math
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -301,14 +300,11 @@ class DecoderStats:
         return self.crc_errors + self.bad_length + self.unknown_type + self.bad_version + self.bad_values
 
 
-class Decoder:
-    """Binary-mode decoder: feed bytes in any chunking, get the complete valid messages.
+class _Splitter:
+    """Shared buffering: split the byte stream at ``DELIM``, drop a piece longer than ``MAX_PIECE``."""
 
-    Frames are split at every 0x00; empty frames are ignored. A frame is dropped and counted when
-    its COBS coding or length is wrong (``bad_length``), its CRC-32 fails (``crc_errors``), its
-    version is not :data:`PROTOCOL_VERSION` (``bad_version``), its type is unknown
-    (``unknown_type``), or a data frame holds a non-finite value (``bad_values``).
-    """
+    DELIM: ClassVar[bytes]
+    MAX_PIECE: ClassVar[int]
 
     def __init__(self) -> None:
         self.stats = DecoderStats()
@@ -318,22 +314,32 @@ class Decoder:
         """Forget a partial frame (after a reconnect); the counts stay."""
         self._buf.clear()
 
-    def feed(self, data: bytes) -> list[Message]:
+    def feed(self, data: bytes) -> list:
         """Add bytes; return the messages completed by them, in order. Never raises."""
         self.stats.bytes += len(data)
         self._buf += data
-        *frames, rest = self._buf.split(b"\0")
+        *pieces, rest = self._buf.split(self.DELIM)
         self._buf = bytearray(rest)
-        if len(self._buf) > MAX_ENCODED:  # no delimiter for too long: drop it
+        if len(self._buf) > self.MAX_PIECE:  # no delimiter for too long: drop it
             self._buf.clear()
             self.stats.bad_length += 1
-        out = []
-        for f in frames:
-            if f:
-                msg = self._decode(bytes(f))
-                if msg is not None:
-                    out.append(msg)
-        return out
+        return [m for p in pieces if p and (m := self._decode(bytes(p))) is not None]
+
+    def _decode(self, piece: bytes):
+        raise NotImplementedError
+
+
+class Decoder(_Splitter):
+    """Binary-mode decoder: feed bytes in any chunking, get the complete valid messages.
+
+    Frames are split at every 0x00; empty frames are ignored. A frame is dropped and counted when
+    its COBS coding or length is wrong (``bad_length``), its CRC-32 fails (``crc_errors``), its
+    version is not :data:`PROTOCOL_VERSION` (``bad_version``), its type is unknown
+    (``unknown_type``), or a data frame holds a non-finite value (``bad_values``).
+    """
+
+    DELIM = b"\0"
+    MAX_PIECE = MAX_ENCODED
 
     def _decode(self, frame: bytes) -> Message | None:
         st = self.stats
@@ -363,7 +369,7 @@ class Decoder:
         return msg
 
 
-class TextDecoder:
+class TextDecoder(_Splitter):
     """Text-mode decoder: one frame per ``\\n``-terminated line of 208 comma-separated volts.
 
     Blank lines and lines starting with ``#`` are skipped; a line with the wrong count
@@ -371,39 +377,23 @@ class TextDecoder:
     non-finite value (``bad_values``) is dropped and counted. Never raises.
     """
 
-    def __init__(self) -> None:
-        self.stats = DecoderStats()
-        self._buf = bytearray()
+    DELIM = b"\n"
+    MAX_PIECE = MAX_TEXT_LINE
 
-    def reset(self) -> None:
-        """Forget a partial line (after a reconnect); the counts stay."""
-        self._buf.clear()
-
-    def feed(self, data: bytes) -> list[DataFrame]:
-        """Add bytes; return the frames completed by them, in order. Never raises."""
-        self.stats.bytes += len(data)
-        self._buf += data
-        *lines, rest = self._buf.split(b"\n")
-        self._buf = bytearray(rest)
-        if len(self._buf) > MAX_TEXT_LINE:
-            self._buf.clear()
+    def _decode(self, raw: bytes) -> DataFrame | None:
+        line = raw.strip()
+        if not line or line.startswith(b"#"):
+            return None
+        if line.count(b",") != N_VALUES - 1:
             self.stats.bad_length += 1
-        out = []
-        for raw in lines:
-            line = raw.strip()
-            if not line or line.startswith(b"#"):
-                continue
-            if len(line) > MAX_TEXT_LINE or line.count(b",") != N_VALUES - 1:
-                self.stats.bad_length += 1
-                continue
-            try:
-                values = np.array([float(t) for t in line.split(b",")])
-            except ValueError:
-                self.stats.bad_values += 1
-                continue
-            if not all(map(math.isfinite, values)):
-                self.stats.bad_values += 1
-                continue
-            self.stats.messages += 1
-            out.append(DataFrame(None, None, values))
-        return out
+            return None
+        try:
+            values = np.array([float(t) for t in line.split(b",")])
+        except ValueError:
+            self.stats.bad_values += 1
+            return None
+        if not np.isfinite(values).all():
+            self.stats.bad_values += 1
+            return None
+        self.stats.messages += 1
+        return DataFrame(None, None, values)
