@@ -1,0 +1,170 @@
+"""``cstomo replay``: run a recorded rosbag2 of raw voltages through the node's frame path offline.
+
+Reads every message of the topic ending in ``raw_voltages`` (std_msgs/Float32MultiArray, sqlite3 or
+mcap storage) with the ``rosbags`` library and writes a new bag with the node's output topics
+(``wrench``, ``force_magnitude``, ``force_elevation``, ``force_azimuth`` and, if asked,
+``stress_field``) under the same namespace as the input topic, with the same message types and
+the same numbers the live node publishes: both go through
+:class:`~cstomo_sensor.messages.FrameProcessor` and :class:`~cstomo_sensor.messages.OutputMessages`.
+
+Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>.csv``) that frame
+(the mean of its rows) is the reference; without it, the first ``tare_frames`` frames of the bag
+are averaged into the reference and give no output, exactly as the node in topic mode with
+``tare_on_start: true``. Stamps: each output carries the bag's receive time of its input frame,
+as the topic-mode node stamps with the host time on reception.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError, CstomoError, FrameError
+from .messages import FORCE_TOPICS, RAW_TOPIC, STRESS_TOPIC, TOPIC_TYPES, FrameProcessor, OutputMessages, values_from_raw_msg
+from .pipeline import PipelineConfig
+
+log = logging.getLogger(__name__)
+
+STORAGES = ("sqlite3", "mcap")
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """What a replay did: input frames, results written, frames dropped as malformed, topics."""
+
+    frames_in: int
+    results: int
+    corrupt: int
+    input_topic: str
+    output_topics: tuple[str, ...]
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    store = getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST
+    return get_typestore(store)
+
+
+def find_raw_topic(connections, topic: str | None = None) -> str:
+    """The input topic: ``topic`` if given, else the one topic whose name ends in ``raw_voltages``."""
+    names = sorted({c.topic for c in connections})
+    if topic is not None:
+        if topic not in names:
+            raise ConfigError(f"topic={topic!r}: not in the bag; it holds {names}")
+        return topic
+    raw = [n for n in names if n.rstrip("/").endswith(RAW_TOPIC)]
+    if len(raw) != 1:
+        raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
+    return raw[0]
+
+
+def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
+           tare_frames: int = 50, stress_field_every: int = 0, frame_id: str = "cstomo_socket",
+           topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None) -> ReplaySummary:
+    """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
+
+    Parameters
+    ----------
+    config : PipelineConfig
+        The reconstruction settings (as the node's parameters give them).
+    reference : path or None
+        Frames file whose mean is the reference; None tares on the first ``tare_frames`` frames.
+    stress_field_every : int
+        Write ``stress_field`` for every N-th result (the first included); 0 = never.
+    pipeline : Pipeline or None
+        An already built pipeline for ``config`` (its reference and mask are reset here).
+    storage : {'sqlite3', 'mcap'}
+        Storage plugin of the output bag.
+    """
+    from rclpy.serialization import deserialize_message, serialize_message
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+    from std_msgs.msg import Float32MultiArray
+
+    from .pipeline import Pipeline
+
+    if storage not in STORAGES:
+        raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
+    pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
+    pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
+    proc = FrameProcessor(pipe, layers=pipe.geometry.layers, stress_field_every=stress_field_every)
+    if reference is not None:
+        from .frames_io import read_frames
+
+        pipe.set_reference(read_frames(reference, pipe.n_meas).mean(axis=0))
+    else:
+        proc.start_tare(tare_frames)
+    out = OutputMessages(pipe.centers, frame_id)
+    store = _typestore()
+    n_in = n_out = corrupt = 0
+    with Reader(in_bag) as reader:
+        raw_topic = find_raw_topic(reader.connections, topic)
+        prefix = raw_topic[: -len(RAW_TOPIC)]
+        names = list(FORCE_TOPICS) + ([STRESS_TOPIC] if stress_field_every else [])
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        with Writer(out_bag, version=9, storage_plugin=plugin) as writer:
+            conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
+            inputs = [c for c in reader.connections if c.topic == raw_topic]
+            for _conn, t_ns, raw in reader.messages(connections=inputs):
+                n_in += 1
+                try:
+                    values = values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray))
+                    result = proc.process(values)
+                except FrameError as err:
+                    corrupt += 1
+                    log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
+                    continue
+                if result is None:
+                    continue
+                n_out += 1
+                for name, msg in out.build(result, t_ns).items():
+                    writer.write(conns[name], t_ns, serialize_message(msg))
+    if proc.taring:
+        log.warning("the bag ended during the tare (%d frames): no output", n_in)
+    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names))
+
+
+def _parser() -> argparse.ArgumentParser:
+    from .cli import _recon_args
+
+    p = argparse.ArgumentParser(prog="cstomo replay", description=__doc__.split("\n\n")[0])
+    p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
+    p.add_argument("--out", required=True, help="output bag directory (must not exist)")
+    p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
+    _recon_args(p)
+    p.add_argument("--estimator", default="linear", help="linear or model (default %(default)s)")
+    p.add_argument("--reference", help="frames file used as the reference (else: tare on the first frames)")
+    p.add_argument("--tare-frames", type=int, default=50, help="frames averaged by the tare (default 50)")
+    p.add_argument("--stress-field-every", type=int, default=0, help="write stress_field every N results")
+    p.add_argument("--frame-id", default="cstomo_socket")
+    p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``cstomo replay IN_BAG --out OUT_BAG [...]``; prints a one-line summary."""
+    args = _parser().parse_args(argv)
+    from rosbags.rosbag2 import ReaderError, WriterError
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        from .cli import _config
+
+        cfg = _config(args)
+        s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
+                   stress_field_every=args.stress_field_every, frame_id=args.frame_id, topic=args.topic,
+                   storage=args.storage, progress=lambda m: print(f"model: {m}", file=sys.stderr))
+    except (CstomoError, OSError, ReaderError, WriterError) as err:
+        print(f"cstomo replay: {err}", file=sys.stderr)
+        return 2
+    print(f"{s.frames_in} frames from {s.input_topic}: {s.results} results written to {args.out} "
+          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
