@@ -16,11 +16,10 @@ from typing import Literal
 import serial
 
 from ..errors import ConfigError
-from .wire import DataFrame, Decoder, Error, Identify, Identity, Start, TextDecoder, encode
+from .wire import PROTOCOLS, DataFrame, Decoder, Error, Identify, Identity, Start, TextDecoder, encode
 
 log = logging.getLogger(__name__)
 
-PROTOCOLS = ("binary", "text")
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from .wire import (
     DRIVE_CURRENT_A,
     N_ELECTRODES,
     N_VALUES,
+    PROTOCOLS,
     Ack,
     DataFrame,
     Decoder,
@@ -44,7 +45,6 @@ from .wire import (
 
 log = logging.getLogger(__name__)
 
-PROTOCOLS = ("binary", "text")
 FIRMWARE = "cstomo-sim 1.0"
 _RESYNC_S = 0.1  # a board more than this late skips the missed slots instead of bursting
 
@@ -469,13 +469,14 @@ def main(argv: list[str] | None = None) -> int:
     except CstomoError as err:
         print(f"cstomo board-sim: {err}", file=sys.stderr)
         return 2
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: board.stop())
+    previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"device: {board.device}", flush=True)
     try:
         board.run()
     finally:
         board.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     st = board.stats()
     print(f"sent {st.sent} frames; injected {st.injected}", file=sys.stderr)
     return 0

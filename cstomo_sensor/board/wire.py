@@ -17,6 +17,7 @@ from typing import ClassVar, Union
 import numpy as np
 
 PROTOCOL_VERSION = 1
+PROTOCOLS = ("binary", "text")  # the two wire modes a board may speak
 N_VALUES = 208
 N_ELECTRODES = 16
 DRIVE_CURRENT_A = 0.008
