@@ -141,7 +141,8 @@ class NodeConfig:
                                   mesh_size=get("mesh_size"), grid=tuple(get("grid")),
                                   iterations=get("iterations"), damping=get("damping"))
         except (ConfigError, TypeError, ValueError) as err:
-            raise ConfigError(f"parameter {err}") from err
+            name, eq, rest = str(err).partition("=")
+            raise ConfigError(f"parameter '{name}'={rest}" if eq and name.isidentifier() else f"parameter {err}") from err
         names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
         return cls(pipeline=pipe, **{n: get(n) for n in names})
 
