@@ -247,6 +247,15 @@ def electrode_patches(mesh: TetMesh, geometry: SensorGeometry) -> tuple[Electrod
     return tuple(out)
 
 
+def face_patch(mesh: TetMesh, facets: np.ndarray, name: str) -> ElectrodePatch:
+    """An electrode covering whole boundary triangles (``facets``: boolean mask or indices into
+    :attr:`TetMesh.boundary`), with exact P1 integrals."""
+    tri = mesh.boundary[facets]
+    _, _, area = mesh.boundary_geometry()
+    a = area[facets]
+    return ElectrodePatch(name, tri, _P1_MASS * a[:, None, None], np.repeat(a[:, None] / 3.0, 3, axis=1))
+
+
 # -- building ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class MeshSpec:
@@ -312,7 +321,7 @@ def _sizing_field(geometry: SensorGeometry, spec: MeshSpec):
 
 
 def _mesh_inputs(geometry: SensorGeometry, spec: MeshSpec) -> dict:
-    import pytetwild
+    from importlib.metadata import version
 
     return {
         "format": MESH_FORMAT,
@@ -323,7 +332,7 @@ def _mesh_inputs(geometry: SensorGeometry, spec: MeshSpec) -> dict:
         "h": spec.h,
         "he": spec.he,
         "refine_socket": spec.refine_socket,
-        "pytetwild": getattr(pytetwild, "__version__", "?"),
+        "pytetwild": version("pytetwild"),
     }
 
 

@@ -1,0 +1,175 @@
+"""The ``cstomo`` command line: every thing the node does, without ROS.
+
+Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
+``board-sim``, ``replay``, ``demo``.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import resource
+import sys
+import time
+
+import numpy as np
+
+from .errors import CstomoError
+
+
+def _recon_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sensor", default="cuboid_joint", help="preset name or geometry YAML path")
+    p.add_argument("--mesh-size", type=float, default=4.0, help="forward mesh edge length, mm (default 4)")
+    p.add_argument("--grid", type=int, nargs=3, default=(8, 8, 4), metavar=("NX", "NY", "NZ"),
+                   help="reconstruction voxel grid (default 8 8 4)")
+    p.add_argument("--iterations", type=int, default=0, help="Landweber iterations (0 = discrepancy rule)")
+    p.add_argument("--damping", type=float, default=0.0, help="Tikhonov damping relative to s_max^2")
+    p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
+
+
+def _config(a):
+    from .pipeline import PipelineConfig
+
+    return PipelineConfig(sensor=a.sensor, cache_dir=a.cache_dir, estimator=getattr(a, "estimator", "linear"),
+                          mesh_size=a.mesh_size * 1e-3, grid=tuple(a.grid), iterations=a.iterations,
+                          damping=a.damping)
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cmd_model_build(a) -> int:
+    from .fem import ForwardModel
+    from .geometry import load_sensor
+    from .mesh import MeshSpec, build_mesh
+
+    g = load_sensor(a.sensor)
+    t = time.perf_counter()
+    mesh = build_mesh(g, MeshSpec(h=a.mesh_size * 1e-3), a.cache_dir or None)
+    t_mesh = time.perf_counter() - t
+    fm = ForwardModel(g, mesh)
+    sol = fm.solve()
+    t = time.perf_counter()
+    fm.jacobian(solution=sol)
+    t_jac = time.perf_counter() - t
+    s = mesh.summary()
+    print(f"sensor {g.name}: mesh h = {a.mesh_size:.2f} mm ({'cached' if mesh.info.get('cache_hit') else 'built'})")
+    print(f"  nodes {s['nodes']}, cells {s['cells']}, volume {s['volume_m3'] * 1e9:.1f} mm^3 "
+          f"(body {g.volume * 1e9:.1f}), min quality {s['min_quality']:.3f}")
+    areas = np.array([p.area for p in fm.patches]) / (np.pi * np.array([e.radius for e in g.electrodes]) ** 2)
+    tris = [p.n_triangles for p in fm.patches]
+    print(f"  electrode patch area / disc area: {areas.min():.4f} .. {areas.max():.4f}; "
+          f"triangles per electrode {min(tris)} .. {max(tris)}")
+    print(f"  seconds: mesh {t_mesh:.3f}, assembly {fm.seconds['assembly']:.3f}, factorisation "
+          f"{sol.seconds['factorisation']:.3f}, 16 solves {sol.seconds['solves']:.3f}, jacobian {t_jac:.3f}")
+    v = sol.voltages
+    print(f"  unloaded voltages at {g.drive_current * 1e3:.1f} mA: {v.min():.5f} .. {v.max():.5f} V "
+          f"(|V| from {np.abs(v).min():.5f} V)")
+    print(f"  peak memory {_peak_mb():.0f} MB")
+    return 0
+
+
+def cmd_model_voltages(a) -> int:
+    from .fem import ForwardModel
+    from .frames_io import write_frames
+    from .geometry import load_sensor
+    from .mesh import MeshSpec, build_mesh
+
+    g = load_sensor(a.sensor)
+    fm = ForwardModel(g, build_mesh(g, MeshSpec(h=a.mesh_size * 1e-3), a.cache_dir or None))
+    write_frames(a.out, fm.voltages()[None], comment=f"model prediction, {g.name}, unloaded, h={a.mesh_size} mm")
+    print(f"wrote {a.out}")
+    return 0
+
+
+def cmd_reconstruct(a) -> int:
+    from .frames_io import read_frames
+    from .geometry import load_sensor
+    from .reconstruction import build_model
+
+    cfg = _config(a)
+    g = load_sensor(cfg.sensor)
+    model = build_model(g, cfg.recon_spec, cfg.cache_dir or None)
+    ref = read_frames(a.reference, model.n_meas)
+    frames = read_frames(a.frames, model.n_meas)
+    dsigma = model.reconstruct(frames, ref.mean(axis=0))
+    np.savez(a.out, centers=model.centers, volumes=model.volumes, conductivity_change=dsigma)
+    print(f"wrote {a.out}: {len(frames)} frames x {model.n_cells} cells (k = {model.iterations})")
+    return 0
+
+
+def cmd_estimate(a) -> int:
+    from .frames_io import read_frames, write_forces
+    from .pipeline import Pipeline
+
+    pipe = Pipeline.build(_config(a))
+    pipe.set_reference(read_frames(a.reference, pipe.n_meas).mean(axis=0))
+    frames = read_frames(a.frames, pipe.n_meas)
+    forces = np.array([pipe.process(f, with_field=False).force for f in frames])
+    write_forces(a.out, forces)
+    print(f"wrote {a.out}: {len(forces)} forces ({a.estimator} estimator)")
+    return 0
+
+
+def cmd_simulate(a) -> int:
+    from .simulate import simulate_scene_files
+
+    simulate_scene_files(a.scene, a.out, cache_dir=a.cache_dir or None)
+    print(f"wrote {a.out}/reference.csv, frames.csv, truth.csv")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # commands that own their argument parsing
+    if argv and argv[0] == "board-sim":
+        from .board.sim import main as board_main
+
+        return board_main(argv[1:])
+    if argv and argv[0] == "replay":
+        from .replay import main as replay_main
+
+        return replay_main(argv[1:])
+    if argv and argv[0] == "demo":
+        from .demo import main as demo_main
+
+        return demo_main(argv[1:])
+    p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    model = sub.add_parser("model", help="forward model").add_subparsers(dest="what", required=True)
+    b = model.add_parser("build", help="build (or load) the forward model and print a summary")
+    v = model.add_parser("voltages", help="write the model's predicted unloaded frame")
+    v.add_argument("--out", required=True)
+    r = sub.add_parser("reconstruct", help="per-cell conductivity change for each frame (npz)")
+    r.add_argument("--reference", required=True)
+    r.add_argument("--frames", required=True)
+    r.add_argument("--out", required=True)
+    e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
+    e.add_argument("--reference", required=True)
+    e.add_argument("--frames", required=True)
+    e.add_argument("--out", required=True)
+    e.add_argument("--estimator", default="linear", choices=["linear", "model"])
+    for q in (b, v, r, e):
+        _recon_args(q)
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file")
+    s.add_argument("--scene", required=True)
+    s.add_argument("--out", required=True)
+    s.add_argument("--cache-dir", default="")
+    sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
+    sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
+    sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    handlers = {("model", "build"): cmd_model_build, ("model", "voltages"): cmd_model_voltages}
+    fn = handlers.get((a.cmd, getattr(a, "what", None))) or {
+        "reconstruct": cmd_reconstruct, "estimate": cmd_estimate, "simulate": cmd_simulate}[a.cmd]
+    try:
+        return fn(a)
+    except (CstomoError, OSError) as err:
+        print(f"cstomo {a.cmd}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

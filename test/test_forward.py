@@ -1,0 +1,137 @@
+"""Forward model: exact checks, reciprocity, conservation, symmetry, convergence, caching."""
+import numpy as np
+import pytest
+
+from cstomo_sensor.fem import CEMSystem, ForwardModel, local_stiffness
+from cstomo_sensor.mesh import MeshSpec, TetMesh, build_mesh, cache_load, cache_save, face_patch
+
+from conftest import MODEL_H, TRUTH_H
+
+
+def box_mesh(lx, ly, lz, n):
+    """Structured tetrahedral mesh of a box: n cubes per axis, 6 tetrahedra each (Kuhn)."""
+    ax = [np.linspace(0, L, n + 1) for L in (lx, ly, lz)]
+    P = np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    idx = np.arange((n + 1) ** 3).reshape((n + 1,) * 3)
+    tets = []
+    paths = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+    for i in range(n):
+        for j in range(n):
+            for k in range(n):
+                for path in paths:
+                    v = np.array([i, j, k])
+                    chain = [idx[tuple(v)]]
+                    for axis in path:
+                        v = v.copy()
+                        v[axis] += 1
+                        chain.append(idx[tuple(v)])
+                    tets.append(chain)
+    tets = np.array(tets)
+    m = TetMesh(P, tets)
+    neg = m.volumes < 0
+    tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+    return TetMesh(P, tets)
+
+
+def test_unit_tetrahedron_stiffness():
+    m = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]]))
+    expected = np.array([[3, -1, -1, -1], [-1, 1, 0, 0], [-1, 0, 1, 0], [-1, 0, 0, 1]]) / 6.0
+    np.testing.assert_allclose(local_stiffness(m)[0], expected, rtol=1e-14, atol=1e-15)
+
+
+def test_two_full_face_electrodes_give_exact_resistance():
+    lx, ly, lz, rho, z, current = 0.03, 0.02, 0.01, 0.361, 1.0e-5, 8e-3
+    mesh = box_mesh(lx, ly, lz, 4)
+    cen, _, _ = mesh.boundary_geometry()
+    left = face_patch(mesh, np.abs(cen[:, 0]) < 1e-12, "left")
+    right = face_patch(mesh, np.abs(cen[:, 0] - lx) < 1e-12, "right")
+    area = ly * lz
+    assert left.area == pytest.approx(area, rel=1e-12)
+    cem = CEMSystem(mesh, [left, right], z)
+    f = cem.solve(np.full(mesh.n_cells, 1 / rho), np.array([current, -current]))
+    resistance = (f.U[0, 0] - f.U[1, 0]) / current
+    assert resistance == pytest.approx(rho * lx / area + 2 * z / area, rel=1e-9)
+
+
+def test_electrode_patches_match_disc_area(cuboid_forward):
+    for p, e in zip(cuboid_forward.patches, cuboid_forward.geometry.electrodes):
+        assert p.area == pytest.approx(np.pi * e.radius**2, rel=0.02), p.name
+        assert p.n_triangles >= 12, p.name
+
+
+def test_mesh_quality_bounded(cuboid_forward):
+    m = cuboid_forward.mesh
+    assert np.all(m.volumes > 0)
+    assert m.quality.min() > 0.05
+    assert m.volumes.sum() == pytest.approx(cuboid_forward.geometry.volume, rel=2e-3)
+
+
+def test_reciprocity(cuboid_forward, cuboid_solution):
+    V = cuboid_solution.voltages
+    rows = cuboid_forward.pattern.rows
+    where = {tuple(r): i for i, r in enumerate(rows)}
+    err = max(abs(V[i] - V[where[(m, d)]]) for (d, m), i in where.items())
+    assert err <= 1e-9 * np.abs(V).max()
+
+
+def test_zero_net_current_and_applied_currents(cuboid_forward, cuboid_solution):
+    f = cuboid_solution.fields
+    cem = cuboid_forward.cem
+    # current through each electrode from the contact law: I_l = (A_l U_l - int u) / z_l
+    I = np.array([(p.area * f.U[l] - np.einsum("ki,kip->p", p.load, f.u[p.nodes])) / cem.z[l]
+                  for l, p in enumerate(cuboid_forward.patches)])
+    np.testing.assert_allclose(I.sum(axis=0), 0.0, atol=1e-12)
+    np.testing.assert_allclose(I, cuboid_forward.drive_currents, atol=1e-9 * 8e-3 * 1e3)
+
+
+def _any_voltage(pattern, U, a, b, m, n):
+    """V of driving a->b and measuring m-n from the pair-drive potentials U (pairs, electrodes)."""
+    pairs = [tuple(p) for p in pattern.pairs]
+    sign, d = (1.0, pairs.index((a, b))) if (a, b) in pairs else (-1.0, pairs.index((b, a)))
+    return sign * (U[d, m] - U[d, n])
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_mirror_symmetry_maps_reference_frame_onto_itself(cuboid_forward, cuboid_solution, axis):
+    g = cuboid_forward.geometry
+    c = g.electrode_centers()
+    mirrored = c.copy()
+    mirrored[:, axis] *= -1
+    perm = np.array([np.argmin(np.linalg.norm(c - q, axis=1)) for q in mirrored])
+    assert np.allclose(c[perm], mirrored)
+    U = cuboid_solution.fields.U.T
+    p = cuboid_forward.pattern
+    V = cuboid_solution.voltages
+    Vm = np.array([_any_voltage(p, U, perm[a], perm[b], perm[m], perm[n])
+                   for (a, b), (m, n) in zip(p.drive, p.measure)])
+    # the tetrahedral mesh is not symmetric: agreement to discretisation accuracy (stated: 2 %
+    # of the largest voltage at h = 4 mm)
+    assert np.abs(Vm - V).max() < 0.02 * np.abs(V).max()
+
+
+def test_reference_frame_converges_with_mesh_size(cuboid):
+    frames = {h: ForwardModel(cuboid, build_mesh(cuboid, MeshSpec(h=h))).voltages() for h in (6e-3, MODEL_H, TRUTH_H)}
+    best = frames[TRUTH_H]
+    err = {h: np.linalg.norm(frames[h] - best) / np.linalg.norm(best) for h in (6e-3, MODEL_H)}
+    assert err[MODEL_H] < err[6e-3]
+    assert err[MODEL_H] < 0.02  # stated tolerance at h = 4 mm against h = 3 mm
+
+
+def test_stale_cache_entry_is_rebuilt_not_used(tmp_path):
+    path = tmp_path / "entry.npz"
+    cache_save(path, "key-a", x=np.arange(3))
+    assert cache_load(path, "key-b") is None
+    np.testing.assert_array_equal(cache_load(path, "key-a")["x"], np.arange(3))
+    path.write_bytes(b"not an npz")
+    assert cache_load(path, "key-a") is None
+
+
+def test_cache_key_changes_with_every_mesh_input(cuboid):
+    from cstomo_sensor.mesh import _mesh_inputs, input_hash
+
+    base = input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3)))
+    moved = cuboid.with_electrodes((cuboid.electrodes[0].__class__(
+        "e1", (0.02, -0.0099, 0.005), (1.0, 0.0, 0.0), 0.0015),) + cuboid.electrodes[1:])
+    assert input_hash(_mesh_inputs(moved, MeshSpec(h=4e-3))) != base
+    assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4.1e-3))) != base
+    assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3, refine_socket=False))) != base
