@@ -77,6 +77,8 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     "iterations": (0, _d("Landweber iterations; 0 = discrepancy rule", read_only=True, lo=0, hi=1_000_000_000)),
     "damping": (0.0, _d("Landweber damping relative to s_max^2", read_only=True, lo=0.0, hi=1.0e6)),
     "tare_frames": (50, _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000)),
+    "tare_file": ("", _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>.csv",
+                         read_only=True)),
     "tare_on_start": (False, _d("Tare on the first tare_frames frames at start (else the saved tare, "
                                 "else the model reference)", read_only=True)),
     "frame_id": ("cstomo_socket", _d("frame_id of the wrench and the stress cloud (the wrench frame)",
@@ -110,6 +112,7 @@ class NodeConfig:
     protocol: str = "binary"
     rate_hz: float = 0.0
     tare_frames: int = 50
+    tare_file: str = ""
     tare_on_start: bool = False
     frame_id: str = "cstomo_socket"
     stress_field_every: int = 10
@@ -161,6 +164,8 @@ class NodeConfig:
     @property
     def tare_path(self) -> Path:
         """Where the tare of this sensor is saved (frames-file format) and read back at start."""
+        if self.tare_file:
+            return Path(self.tare_file)
         return self.cache_path / f"tare_{self.sensor_name}.csv"
 
     def qos(self) -> QoSProfile:
@@ -206,7 +211,7 @@ class CstomoSensorNode(LifecycleNode):
         self._stats = _Stats()
         self._proc_lock = threading.Lock()  # one frame at a time through the processor
         self._tare_done = threading.Event()
-        self._clock = ClockMapper()
+        self._board_clock = ClockMapper()
         self._last_diag = time.monotonic()
         self._last_corrupt = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
@@ -239,7 +244,7 @@ class CstomoSensorNode(LifecycleNode):
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
         self.config, self.pipe = cfg, pipe
-        self._clock = ClockMapper(cfg.clock_window)
+        self._board_clock = ClockMapper(cfg.clock_window)
         self._stats = _Stats()
         self.processor = FrameProcessor(pipe, layers=pipe.geometry.layers,
                                         stress_field_every=cfg.stress_field_every, on_tare=self._save_tare)
@@ -380,7 +385,7 @@ class CstomoSensorNode(LifecycleNode):
                 continue
             host_ns = self.get_clock().now().nanoseconds
             if frame.board_time_us is not None:
-                stamp_ns = self._clock.stamp_ns(frame.board_time_us, host_ns)
+                stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
             else:
                 stamp_ns = host_ns  # text mode: no board clock
             self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
