@@ -485,7 +485,7 @@ def solve_patch_load(
     if len(top) == 0:
         raise ConfigError(f"mesh: no boundary facet on the top face z = {geometry.height} m")
     fb = prob.facet_basis(top, _PATCH_INTORDER)
-    X = fb.global_coordinates().value  # (3, nf, nq)
+    X = np.asarray(fb.global_coordinates())  # (3, nf, nq)
     inside = np.zeros(fb.dx.shape, dtype=bool)
     for i, q in enumerate(patches):
         mask = _patch_mask(q, X[0], X[1], i)
