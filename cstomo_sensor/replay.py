@@ -89,6 +89,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
 
     if storage not in STORAGES:
         raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
+    with Reader(in_bag) as reader:  # the input is checked before any model is loaded
+        raw_topic = find_raw_topic(reader.connections, topic)
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
     proc = FrameProcessor(pipe, layers=pipe.geometry.layers, stress_field_every=stress_field_every)
@@ -102,7 +104,6 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     store = _typestore()
     n_in = n_out = corrupt = 0
     with Reader(in_bag) as reader:
-        raw_topic = find_raw_topic(reader.connections, topic)
         prefix = raw_topic[: -len(RAW_TOPIC)]
         names = list(FORCE_TOPICS) + ([STRESS_TOPIC] if stress_field_every else [])
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3

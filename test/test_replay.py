@@ -1,0 +1,169 @@
+"""``cstomo replay`` on the committed rosbag2 (test/data/raw_voltages_bag, made by make_bag.py), and
+the same bag played message by message, with its timing, into the node in topic mode: the node's
+outputs equal replay's frame by frame (stamps aside)."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+rclpy = pytest.importorskip("rclpy")
+pytest.importorskip("rosbags")
+
+from test_node import PIPE, Harness, wait_for  # noqa: E402
+
+BAG = Path(__file__).resolve().parent / "data" / "raw_voltages_bag"
+TARE = 10
+EVERY = 5
+FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
+
+
+@pytest.fixture(scope="module")
+def config():
+    from cstomo_sensor.pipeline import PipelineConfig
+
+    return PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
+
+
+@pytest.fixture(scope="module")
+def pipe(config):
+    from cstomo_sensor.pipeline import Pipeline
+
+    return Pipeline.build(config)
+
+
+def read_bag(path):
+    """topic -> list of (timestamp ns, deserialised message), in bag order."""
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import Reader
+
+    from cstomo_sensor.messages import TOPIC_TYPES
+    from cstomo_sensor.node import _msg_class
+
+    out: dict[str, list] = {}
+    with Reader(path) as r:
+        for c, t, raw in r.messages():
+            cls = _msg_class(TOPIC_TYPES[c.topic.rsplit("/", 1)[-1]])
+            out.setdefault(c.topic, []).append((t, deserialize_message(bytes(raw), cls)))
+    return out
+
+
+def force_rows(msgs: dict, ns: str = "/cstomo_sensor/") -> np.ndarray:
+    """(n, 6) fx, fy, fz, magnitude, elevation, azimuth of each result."""
+    w = np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z] for _, m in msgs[ns + "wrench"]])
+    a = [np.array([m.data for _, m in msgs[ns + t]]) for t in FORCE_TOPICS[1:]]
+    return np.column_stack([w, *a])
+
+
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory, config, pipe):
+    from cstomo_sensor.replay import replay
+
+    out = tmp_path_factory.mktemp("replay") / "out"
+    s = replay(BAG, out, config, tare_frames=TARE, stress_field_every=EVERY, pipeline=pipe)
+    return s, read_bag(out)
+
+
+def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
+    s, msgs = replayed
+    inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
+    assert s.frames_in == len(inputs) and s.corrupt == 0 and s.results == len(inputs) - TARE
+    assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field",)}
+    rows = force_rows(msgs)
+    assert rows.shape == (s.results, 6) and np.isfinite(rows).all()
+    # stamps: the bag time of the input frame (the first TARE frames give no output)
+    assert [t for t, _ in msgs["/cstomo_sensor/wrench"]] == [t for t, _ in inputs[TARE:]]
+    w = msgs["/cstomo_sensor/wrench"][0][1]
+    assert w.header.frame_id == "cstomo_socket" and w.header.stamp.sec * 10**9 + w.header.stamp.nanosec == inputs[TARE][0]
+    clouds = msgs["/cstomo_sensor/stress_field"]
+    assert len(clouds) == -(-s.results // EVERY)
+    c = clouds[0][1]
+    assert [f.name for f in c.fields] == ["x", "y", "z", "conductivity_change", "volumetric_compression", "pressure"]
+    assert c.point_step == 24 and c.width * c.point_step == len(c.data)
+
+
+def test_replay_with_a_reference_file_equals_the_tare_on_the_first_frames(tmp_path, replayed, config, pipe):
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import Float32MultiArray
+
+    from cstomo_sensor.frames_io import write_frames
+    from cstomo_sensor.replay import replay
+
+    with Reader(BAG) as r:
+        first = [np.asarray(deserialize_message(bytes(raw), Float32MultiArray).data, float)
+                 for _, _, raw in r.messages()][:TARE]
+    write_frames(tmp_path / "ref.csv", np.mean(first, axis=0))
+    s = replay(BAG, tmp_path / "out", config, reference=tmp_path / "ref.csv", pipeline=pipe)
+    rows = force_rows(read_bag(tmp_path / "out"))
+    assert s.results == s.frames_in  # no tare: every frame gives a result
+    np.testing.assert_allclose(rows[TARE:], force_rows(replayed[1]), rtol=1e-6, atol=1e-9)
+
+
+def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config, capsys):
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.replay import main, replay
+
+    mcap = tmp_path / "mcap_in"
+    with Reader(BAG) as r, Writer(mcap, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest) for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    args = [str(mcap), "--out", str(tmp_path / "out"), "--mesh-size", str(PIPE["mesh_size"] * 1e3),
+            "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE), "--storage", "mcap"]
+    assert main(args) == 0
+    assert "results written" in capsys.readouterr().out
+    np.testing.assert_array_equal(force_rows(read_bag(tmp_path / "out")), force_rows(replayed[1]))
+    assert main(args) == 2  # the output exists: refused with a message, no traceback
+    assert "cstomo replay:" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="raw_voltages"):  # a bag without an input topic
+        replay(tmp_path / "out", tmp_path / "out2", config)
+
+
+def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
+    """The bag is played with its own timing by a test publisher into ~/raw_voltages_in."""
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from std_msgs.msg import Float32MultiArray, Float64
+
+    s, want = replayed
+    inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    params = dict(PIPE, input="topic", tare_on_start=True, tare_frames=TARE, stress_field_every=EVERY,
+                  qos_reliability="reliable", qos_depth=1000, tare_file=str(tmp_path / "tare.csv"), stale_timeout=2.0)
+    h = Harness(ctx, params)
+    try:
+        got = {t: h.record(f"/cstomo_sensor/{t}", Float64) for t in FORCE_TOPICS[1:]}
+        got["wrench"] = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        got["stress_field"] = h.record("/cstomo_sensor/stress_field", PointCloud2)
+        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+                                       QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
+                        and all(h.probe.count_publishers(f"/cstomo_sensor/{t}") for t in got))
+        t_bag0, t0 = inputs[0][0], time.monotonic()
+        for t_ns, msg in inputs:
+            delay = (t_ns - t_bag0) * 1e-9 - (time.monotonic() - t0)
+            if delay > 0:
+                time.sleep(delay)
+            pub.publish(msg)
+        assert wait_for(lambda: len(got["wrench"]) >= s.results, 10.0), len(got["wrench"])
+        time.sleep(0.2)
+        assert Path(tmp_path / "tare.csv").is_file()
+    finally:
+        h.close()
+        rclpy.try_shutdown(context=ctx)
+    node_msgs = {f"/cstomo_sensor/{t}": [(0, m) for _, m in v] for t, v in got.items()}
+    np.testing.assert_array_equal(force_rows(node_msgs), force_rows(want))
+    clouds_node = [m.data for _, m in got["stress_field"]]
+    clouds_replay = [m.data for _, m in want["/cstomo_sensor/stress_field"]]
+    assert len(clouds_node) == len(clouds_replay) and all(a == b for a, b in zip(clouds_node, clouds_replay))
