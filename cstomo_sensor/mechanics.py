@@ -406,14 +406,24 @@ def solve_socket_load(
             f"force={tuple(F.tolist())} N (elevation {elevation:.2f} deg): the socket cannot carry a force "
             f"that does not push into it; expected elevation {lo:g}..{hi:g} deg (solvable above 0 deg)"
         )
-    if elevation < lo:
+    fb = prob.facet_basis(facets, _SOCKET_INTORDER)
+    n = fb.normals.reshape(3, -1)
+    w = fb.dx.reshape(-1)
+    from scipy.optimize import nnls
+
+    _, miss = nnls(-n, F)  # is F in the cone of the facets' inward pushes -n?
+    if miss > 1e-9 * fnorm:
+        lowest = float(np.degrees(np.arctan2(n[2], np.hypot(n[0], n[1]))).min())
+        raise ConfigError(
+            f"force={tuple(F.tolist())} N (elevation {elevation:.2f} deg): the faceted socket of this mesh "
+            f"cannot carry it (its facets carry elevations down to about {lowest:.1f} deg; a finer mesh "
+            f"reaches lower); expected elevation {lo:g}..{hi:g} deg"
+        )
+    if elevation < lo - 1e-9:
         log.warning(
             "force %s N: elevation %.1f deg is below the carried range %g..%g deg; rim contact, "
             "mesh-dependent stresses", F.tolist(), elevation, lo, hi,
         )
-    fb = prob.facet_basis(facets, _SOCKET_INTORDER)
-    n = fb.normals.reshape(3, -1)
-    w = fb.dx.reshape(-1)
     a = _socket_contact(n, w, F)
     pres = np.maximum(0.0, -(a @ fb.normals.reshape(3, -1))).reshape(fb.dx.shape)  # (nf, nq)
     traction = -pres[None] * fb.normals  # (3, nf, nq)

@@ -230,3 +230,12 @@ def test_patch_errors(coarse):
 def test_package_does_not_import_skfem():
     code = "import sys, cstomo_sensor, cstomo_sensor.material; assert 'skfem' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
+    # flat facets tilt the rim's normals: the coarse mesh cannot carry 15 deg exactly, the medium can
+    F = force_from(elevation_deg=15.0, azimuth_deg=20.0)
+    with pytest.raises(ConfigError, match=r"elevation 15\.00 deg.*faceted socket"):
+        solve_socket_load(*coarse, GEOM, F)
+    sol = solve_socket_load(*medium, GEOM, F)
+    np.testing.assert_allclose(sol.resultant, F, rtol=0, atol=1e-9 * 20.0)
