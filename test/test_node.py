@@ -182,3 +182,194 @@ def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_re
         assert node.describe_parameter("stale_timeout").floating_point_range[0].from_value > 0
     finally:
         node.destroy_node()
+
+
+# --- end to end: simulated board on a pty -> node -> subscriber ------------------------------------
+
+DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
+BAG_RATE = 50.0  # frames per second of the committed bag (test/data/make_bag.py)
+
+
+class BagSource:
+    """The simulated board measures the committed bag's frames (honest simulation of a scripted
+    load, test/data/make_bag.py) at their own time, looping; ``truth`` is the scripted force."""
+
+    def __init__(self):
+        from rclpy.serialization import deserialize_message
+        from rosbags.rosbag2 import Reader
+        from std_msgs.msg import Float32MultiArray
+
+        from cstomo_sensor.frames_io import read_forces
+
+        with Reader(os.path.join(DATA, "raw_voltages_bag")) as r:
+            self.frames = np.array([deserialize_message(bytes(raw), Float32MultiArray).data
+                                    for _, _, raw in r.messages()], dtype=float)
+        self.forces = read_forces(os.path.join(DATA, "raw_voltages_truth.csv"))
+
+    def _i(self, t):
+        return int(round(t * BAG_RATE)) % len(self.frames)
+
+    def frame(self, t, rng):
+        return self.frames[self._i(t)]
+
+    def truth(self, t):
+        return self.forces[self._i(t)]
+
+
+@pytest.fixture(scope="module")
+def source():
+    pytest.importorskip("rosbags")
+    return BagSource()
+
+
+@pytest.fixture(scope="module")
+def warm_model():
+    """Build the Pipeline once (into the test cache); every node below loads it in well under a second."""
+    from cstomo_sensor.pipeline import Pipeline, PipelineConfig
+
+    return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
+
+
+def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, **params):
+    """A simulated board on a pty (link in tmp_path) and the node reading it; returns (harness, board)."""
+    from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
+
+    board = SimulatedBoard(source, rate_hz=rate, link=tmp_path / "board", faults=faults or FaultConfig(), seed=2)
+    p = dict(PIPE, port=str(tmp_path / "board"), tare_file=str(tmp_path / "tare.csv"), stale_timeout=0.3)
+    p.update(params)
+    h = Harness(ros, p)
+    assert wait_for(lambda: h.state() == "active", 20.0), h.state()
+    return h, board
+
+
+def diag_records(h):
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    return h.record("/diagnostics", DiagnosticArray)
+
+
+def diag(msg) -> tuple[int, str, dict]:
+    s = msg.status[0]
+    return s.level[0], s.message, {kv.key: kv.value for kv in s.values}
+
+
+def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model):
+    """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared
+    with the scripted force of its frame (found by its stamp)."""
+    from geometry_msgs.msg import WrenchStamped
+    from std_msgs.msg import Float64
+
+    h, board = None, None
+    try:
+        h, board = start(ros, tmp_path, source, tare_on_start=True, tare_frames=10)
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        el = h.record("/cstomo_sensor/force_elevation", Float64)
+        t_start = h.node.get_clock().now().nanoseconds
+        board.start()
+        assert wait_for(lambda: len(wr) >= 180, 15.0), len(wr)
+    finally:
+        if board is not None:
+            board.close()
+        if h is not None:
+            h.close()
+    stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in wr])
+    assert np.all(np.diff(stamps) > 0) and stamps[0] > t_start
+    # board clock mapped onto ROS time: frame spacing follows the board's 20 ms schedule closely
+    assert np.median(np.diff(stamps)) == pytest.approx(20e6, rel=0.05)
+    forces = np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z] for _, m in wr])
+    assert all(m.wrench.torque.x == m.wrench.torque.y == m.wrench.torque.z == 0 for _, m in wr)
+    assert len(el) >= len(wr) - 5
+    # frame index of each result: frames 0..9 were the tare; result k is frame 10 + k
+    truth = np.array([source.forces[(10 + k) % len(source.forces)] for k in range(len(wr))])
+    loaded = np.linalg.norm(truth, axis=1) > 1
+    err = np.linalg.norm(forces - truth, axis=1)
+    print(f"force error over {loaded.sum()} loaded frames: median {np.median(err[loaded]):.2f} N, "
+          f"max {err[loaded].max():.2f} N; unloaded: max {err[~loaded].max():.2f} N")
+    assert np.median(err[loaded]) < FORCE_TOL_N
+    assert np.median(err[~loaded]) < FORCE_TOL_N
+
+
+FORCE_TOL_N = 5.0  # median |F_est - F_true| over 20..27 N loads (linear estimator, coarse 6x6x3 test model)
+
+
+def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source, warm_model):
+    from cstomo_sensor.frames_io import read_frames
+
+    h, board = start(ros, tmp_path, source, rate=100.0)
+    try:
+        assert h.node.reference_source.startswith("model")  # no tare yet: the model's frame, with a WARN
+        board.start()
+        r = h.call_tare()
+        assert r.success, r.message
+        saved = read_frames(tmp_path / "tare.csv")
+        assert saved.shape == (1, 208)
+        np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-8)
+        assert not np.allclose(saved[0], h.node.pipe.model_reference, rtol=1e-3)
+    finally:
+        board.close()
+        h.close()
+    # next start: the saved tare is the reference
+    h = Harness(ros, dict(PIPE, input="topic", tare_file=str(tmp_path / "tare.csv")))
+    try:
+        assert wait_for(lambda: h.state() == "active", 20.0)
+        assert h.node.reference_source.startswith("saved tare")
+        np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-12)
+    finally:
+        h.close()
+
+
+def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path, source, warm_model):
+    from cstomo_sensor.board.sim import FaultConfig
+    from geometry_msgs.msg import WrenchStamped
+
+    h, board = start(ros, tmp_path, source, faults=FaultConfig(stall_at=1.5, stall_for=2.5), rate=100.0,
+                     tare_on_start=True, tare_frames=5)
+    try:
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        dg = diag_records(h)
+        board.start()
+        assert wait_for(lambda: len(wr) > 50, 10.0)
+        assert wait_for(lambda: any("stale" in diag(m)[1] for _, m in dg), 6.0)
+        n_stale = len(wr)
+        assert wait_for(lambda: len(wr) > n_stale + 30, 10.0)  # the stream comes back by itself
+    finally:
+        board.close()
+        h.close()
+    times = np.array([t for t, _ in wr])
+    assert np.diff(times).max() > 1.5  # one long silence, no stale repeats inside it
+    level, message, values = next(diag(m) for _, m in dg if "stale" in diag(m)[1])
+    assert level >= 1 and "no frames for" in values["stale_reason"]
+
+
+def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, warm_model):
+    """The board disappears and returns, flips bits, sends garbage, saturates a channel and loses an
+    electrode: diagnostics report each, the node recovers without a restart and keeps publishing."""
+    from cstomo_sensor.board.sim import FaultConfig
+    from cstomo_sensor.pattern import MeasurementPattern
+    from geometry_msgs.msg import WrenchStamped
+
+    faults = FaultConfig(disconnect_at=1.5, reappear_after=0.8, bit_flip=0.05, garbage=0.05,
+                         saturate_channel=7, dead_electrode=3)
+    h, board = start(ros, tmp_path, source, faults=faults, rate=100.0, tare_on_start=True, tare_frames=5)
+    try:
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        dg = diag_records(h)
+        board.start()
+        assert wait_for(lambda: any(diag(m)[2].get("connected") == "False" for _, m in dg), 8.0)
+        n_down = len(wr)
+        assert wait_for(lambda: any(diag(m)[2].get("reconnects") == "1" and diag(m)[2]["stale_reason"] == ""
+                                    for _, m in dg), 10.0)
+        assert wait_for(lambda: len(wr) > n_down + 50, 10.0)
+        bad = h.node.pipe.bad_channels.copy()
+    finally:
+        board.close()
+        h.close()
+    down = next(diag(m) for _, m in dg if diag(m)[2].get("connected") == "False")
+    assert down[0] == 2 and "disconnected" in down[1]
+    level, message, v = diag(dg[-1][1])
+    assert int(v["corrupt"]) > 0 and int(v["seq_gaps"]) >= 0
+    assert v["saturated_channels"] == "1" and v["dead_electrodes"] == "4"
+    rows = MeasurementPattern(16, 2).electrode_rows(3)
+    rows[7] = True
+    assert int(v["excluded_channels"]) == rows.sum()
+    np.testing.assert_array_equal(bad, rows)  # excluded from the reconstruction
