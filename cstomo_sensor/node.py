@@ -28,6 +28,7 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
@@ -215,6 +216,7 @@ class CstomoSensorNode(LifecycleNode):
         self._last_diag = time.monotonic()
         self._last_corrupt = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
+        self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
@@ -225,6 +227,8 @@ class CstomoSensorNode(LifecycleNode):
         self.destroy_timer(self._autostart_timer)
         if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
             self.trigger_activate()
+        else:
+            self.autostart_failed.set_result(True)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
@@ -538,15 +542,18 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     executor = MultiThreadedExecutor(num_threads=2)
     executor.add_node(node)
+    code = 0
     try:
-        executor.spin()
+        executor.spin_until_future_complete(node.autostart_failed)
+        if node.autostart_failed.done():
+            code = 1  # configure refused (the log says why); the parameters are read-only: restart needed
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         node._release()
         node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return code
 
 
 if __name__ == "__main__":

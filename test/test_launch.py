@@ -22,7 +22,7 @@ rclpy = pytest.importorskip("rclpy")
 ROOT = Path(__file__).resolve().parent.parent
 LAUNCH = ROOT / "launch" / "cstomo_sensor.launch.py"
 CONFIG = ROOT / "config" / "cstomo_sensor.yaml"
-LAUNCH_ONLY = {"config", "sim", "namespace"}  # arguments of the launch itself, not node parameters
+LAUNCH_ONLY = {"config", "sim", "sim_load_script", "namespace"}  # arguments of the launch itself, not node parameters
 
 
 @pytest.fixture(scope="module")
