@@ -21,7 +21,7 @@ setup(
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
-        "full": ["pyvista", "pytetwild", "scikit-fem", "rosbags", "matplotlib"],
+        "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
         "test": ["pytest", "hypothesis"],
     },
     zip_safe=True,

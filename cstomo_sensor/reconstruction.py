@@ -33,7 +33,7 @@ from .mesh import MeshSpec, TetMesh, build_mesh, cache_load, cache_save, default
 
 log = logging.getLogger(__name__)
 
-RECON_FORMAT = 2
+RECON_FORMAT = 3
 V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation is floored
 
 
@@ -220,7 +220,7 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
         k = int(spec.iterations)
     R = svd.matrix(k, step, lam, dtype=np.float32)
     seconds["landweber"] = time.perf_counter() - t
-    meta = {"seconds": seconds, "mesh": mesh.summary(), "rank": svd.rank, "condition": svd.condition,
+    meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,
             "n_voxels": len(volumes), "cache_hit": False}
     say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}")
     model = ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,

@@ -1,0 +1,174 @@
+"""Force estimators, calibrated on simulated socket loads through the model's own physics.
+
+Calibration (once per sensor and reconstruction model, cached): forces on a Fibonacci set of
+directions (elevation 15..90 deg, every azimuth) and several magnitudes (5..40 N) are pushed through
+the mechanics (frictionless socket contact; one solve per direction, as the contact problem is
+positively homogeneous in the force), the material law and the forward model on the
+reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md, reconstruction
+module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
+
+- ``linear`` (fast): F = W y + b, ridge regression on the calibration set with 60 dB noise
+  augmentation. One 3 x 208 product per frame (about a microsecond of arithmetic).
+- ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a radial-basis
+  surrogate of the forward + mechanical model y(F) built on the calibration set, started from the
+  linear estimate; a few milliseconds per frame.
+
+Both honour the bad-channel mask (``masked``), which refits the ridge map on the kept channels.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+from .fem import ForwardModel
+from .geometry import SensorGeometry
+from .material import conductivity_of_theta
+from .mesh import MeshSpec, build_mesh, cache_load, cache_save, default_cache_dir, input_hash
+from .reconstruction import ReconstructionModel
+
+log = logging.getLogger(__name__)
+
+CALIB_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class CalibrationSpec:
+    n_directions: int = 40
+    magnitudes: tuple[float, ...] = (5.0, 12.0, 22.0, 40.0)
+    min_elevation_deg: float = 15.0
+    mechanics_mesh_size: float = 6e-3
+    ridge: float = 1e-3
+    noise_db: float = 60.0
+
+
+def calibration_directions(n: int, min_elevation_deg: float) -> np.ndarray:
+    """(n, 3) unit force directions pushing into the socket: a Fibonacci spiral on the band of
+    elevations [min_elevation, 90] deg, plus the vertical."""
+    s_lo = np.sin(np.radians(min_elevation_deg))
+    i = np.arange(n - 1) + 0.5
+    sin_el = s_lo + (1 - s_lo) * i / (n - 1)  # uniform in area on the band
+    az = np.pi * (3 - np.sqrt(5)) * i
+    c = np.sqrt(1 - sin_el**2)
+    d = np.column_stack([c * np.cos(az), c * np.sin(az), -sin_el])
+    return np.vstack([d, [0.0, 0.0, -1.0]])
+
+
+def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
+                    cache_dir=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """(forces (n, 3), y (n, n_meas)) noise-free, through the model's mesh (cached)."""
+    from . import mechanics
+
+    say = progress or (lambda m: log.info("%s", m))
+    key = input_hash({"format": CALIB_FORMAT, "model": model.key, "spec": spec.__dict__})
+    path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-{key}.npz"
+    hit = cache_load(path, key)
+    if hit is not None:
+        return hit["forces"], hit["y"]
+    t0 = time.perf_counter()
+    fwd_mesh = build_mesh(geometry, MeshSpec(h=model.meta["mesh_h"]), cache_dir)
+    fm = ForwardModel(geometry, fwd_mesh)
+    mech = build_mesh(geometry, MeshSpec(h=spec.mechanics_mesh_size, h_electrode=spec.mechanics_mesh_size), cache_dir)
+    dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
+    forces, ys = [], []
+    for i, d in enumerate(dirs):
+        sol = mechanics.solve_socket_load(mech.points, mech.tets, geometry, d)
+        theta1 = sol.theta_at(fwd_mesh.centers)  # per newton
+        for m in spec.magnitudes:
+            sigma, _ = conductivity_of_theta(m * theta1, geometry.material)
+            v = fm.voltages(sigma)
+            forces.append(m * d)
+            ys.append((v - model.model_reference) / model.v_scale)
+        if i % 10 == 0:
+            say(f"calibrating force estimators: direction {i + 1}/{len(dirs)}")
+    forces, ys = np.array(forces), np.array(ys)
+    cache_save(path, key, forces=forces, y=ys)
+    log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)
+    return forces, ys
+
+
+def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
+    """Per-channel std of the normalised noise at ``db``."""
+    ref = model.model_reference
+    return np.sqrt(np.mean(ref**2)) * 10 ** (-db / 20) / model.v_scale
+
+
+class LinearEstimator:
+    """F = W y + b (ridge regression on the calibration set, kept channels only)."""
+
+    def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
+                 keep: np.ndarray | None = None) -> None:
+        self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
+        self.keep = np.ones(y.shape[1], bool) if keep is None else keep
+        Y = y[:, self.keep]
+        # noise augmentation in expectation: adds n * diag(noise^2) to the normal matrix
+        mu = Y.mean(axis=0)
+        Yc = Y - mu
+        A = Yc.T @ Yc + len(Y) * np.diag(self.noise[self.keep] ** 2)
+        A += ridge * np.trace(A) / len(A) * np.eye(len(A))
+        Wk = np.linalg.solve(A, Yc.T @ (forces - forces.mean(axis=0))).T  # (3, n_keep)
+        self.W = np.zeros((3, y.shape[1]))
+        self.W[:, self.keep] = Wk
+        self.b = forces.mean(axis=0) - Wk @ mu
+        self.W32 = self.W.astype(np.float32)
+
+    def estimate(self, y: np.ndarray) -> np.ndarray:
+        return self.W @ y + self.b
+
+    def masked(self, keep: np.ndarray) -> "LinearEstimator":
+        return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
+
+
+class ModelEstimator:
+    """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics."""
+
+    def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
+                 keep: np.ndarray | None = None, iterations: int = 6) -> None:
+        from scipy.interpolate import RBFInterpolator
+
+        self.linear = LinearEstimator(forces, y, noise, ridge, keep)
+        self.keep = self.linear.keep
+        self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
+        self.iterations = iterations
+        self.scale = 10.0  # N: forces enter the surrogate in units of 10 N
+        yk = y[:, self.keep]
+        self.surrogate = RBFInterpolator(forces / self.scale, yk, kernel="thin_plate_spline", degree=1)
+        self.w = 1.0 / self.noise[self.keep]
+
+    def _predict(self, F: np.ndarray) -> np.ndarray:
+        return self.surrogate(np.atleast_2d(F) / self.scale)
+
+    def estimate(self, y: np.ndarray) -> np.ndarray:
+        F = self.linear.estimate(y)
+        target = y[self.keep] * self.w
+        h = 0.05
+        for _ in range(self.iterations):
+            pts = np.vstack([F, F + h * np.eye(3)])
+            pred = self._predict(pts) * self.w
+            r = target - pred[0]
+            Jm = (pred[1:] - pred[0]).T / h  # (n_keep, 3)
+            step, *_ = np.linalg.lstsq(Jm, r, rcond=None)
+            F = F + step
+            if np.linalg.norm(step) < 1e-4:
+                break
+        return F
+
+    def masked(self, keep: np.ndarray) -> "ModelEstimator":
+        return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+
+
+def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionModel, cache_dir=None,
+                    progress=None, spec: CalibrationSpec = CalibrationSpec()):
+    """The estimator called ``name`` ('linear' or 'model'), calibrated (cached) for ``model``."""
+    classes = {"linear": LinearEstimator, "model": ModelEstimator}
+    if name not in classes:
+        raise ConfigError(f"estimator={name!r}: expected one of {sorted(classes)}")
+    if geometry.socket_radius <= 0:
+        raise ConfigError(f"sensor {geometry.name!r} has no socket: force estimation needs one")
+    forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
+    return classes[name](forces, y, _noise_y(model, spec.noise_db), spec.ridge)
+

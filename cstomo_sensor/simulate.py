@@ -1,0 +1,300 @@
+"""Honest simulation (REFERENCE_SENSOR.md section 7) and scene files.
+
+The truth is simulated on an independent tetrahedralisation finer than any model mesh, with
+electrode positions jittered by up to 0.2 mm and contact impedances varied by +-20 % per electrode
+(seeded), plus white noise at the scene's SNR. Loads go through the mechanics (only when the scene
+has mechanical loads), the material law (volumetric compression -> conductivity) and the forward
+model. The reference frame is the same simulated device, unloaded.
+
+Scene file (YAML)::
+
+    sensor: cuboid_joint          # preset or geometry file
+    snr_db: 60                    # noise (section 5); omit or null for none
+    seed: 1
+    truth_mesh_size: 0.003        # m; the independent mesh
+    mechanics_mesh_size: 0.004    # m
+    mismatch: {contact_impedance: 0.2, electrode_jitter: 0.0002}
+    frames_per_load: 1
+    loads:
+      - {socket: {magnitude: 20, elevation_deg: 30, azimuth_deg: 0}}
+      - {socket: {force: [0, 0, -20]}}
+      - {patches: [{shape: square, size: 0.01, center: [0, 0]}], total_force: 20}
+      - {inclusion: {center: [0, 0, 0.01], radius: 0.003, contrast: 0.5}}   # no mechanics
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, replace
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from .angles import force_from_angles
+from .errors import ConfigError
+from .fem import ForwardModel
+from .geometry import Electrode, SensorGeometry, load_sensor
+from .material import conductivity_of_theta
+from .mesh import MeshSpec, TetMesh, build_mesh
+
+log = logging.getLogger(__name__)
+
+
+def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
+    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (section 5); None = no noise."""
+    if snr_db is None:
+        return np.array(v, dtype=float)
+    std = np.sqrt(np.mean(np.asarray(reference) ** 2)) * 10 ** (-snr_db / 20)
+    return v + rng.normal(0.0, std, np.shape(v))
+
+
+def mismatched(geometry: SensorGeometry, rng: np.random.Generator, z_rel: float = 0.2,
+               jitter: float = 2e-4) -> tuple[SensorGeometry, np.ndarray]:
+    """The geometry with each electrode moved by up to ``jitter`` m within its face, and
+    per-electrode contact impedances scaled by U(1 - z_rel, 1 + z_rel)."""
+    out = []
+    for e in geometry.electrodes:
+        n = np.asarray(e.normal)
+        t1 = np.cross(n, [0, 0, 1.0])
+        t1 /= np.linalg.norm(t1)
+        r, a = jitter * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+        c = np.asarray(e.center) + r * (np.cos(a) * t1 + np.sin(a) * np.array([0, 0, 1.0]))
+        if geometry.shape == "cylinder":  # stay on the wall
+            c[:2] *= geometry.size[0] / np.hypot(c[0], c[1])
+        out.append(Electrode(e.name, tuple(c), e.normal, e.radius))
+    z = geometry.contact_impedance * rng.uniform(1 - z_rel, 1 + z_rel, geometry.n_electrodes)
+    return geometry.with_electrodes(tuple(out)), z
+
+
+@dataclass(frozen=True)
+class Load:
+    """One load: a socket force (N, wrench frame), pressure patches, or a conductivity inclusion."""
+
+    kind: str  # "socket" | "patches" | "inclusion" | "none"
+    force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    patches: tuple = ()
+    inclusion: tuple = ()  # (cx, cy, cz, radius, contrast)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Load":
+        if not isinstance(d, dict) or len(d.keys() - {"total_force"}) != 1:
+            raise ConfigError(f"load {d!r}: expected one of socket:, patches: (+ total_force:), inclusion:")
+        if "socket" in d:
+            s = d["socket"]
+            if "force" in s:
+                f = tuple(float(v) for v in s["force"])
+            else:
+                f = tuple(force_from_angles(float(s["magnitude"]), np.radians(float(s["elevation_deg"])),
+                                            np.radians(float(s.get("azimuth_deg", 0.0)))))
+            return cls("socket", force=f)
+        if "patches" in d:
+            total = float(d.get("total_force", 0.0))
+            if total <= 0:
+                raise ConfigError(f"total_force={d.get('total_force')!r}: expected a positive force in N")
+            return cls("patches", force=(0.0, 0.0, -total), patches=tuple(
+                (p["shape"], float(p.get("size", p.get("radius", 0.0))), tuple(p.get("center", (0, 0))))
+                for p in d["patches"]))
+        if "inclusion" in d:
+            i = d["inclusion"]
+            return cls("inclusion", inclusion=(*map(float, i["center"]), float(i["radius"]), float(i["contrast"])))
+        raise ConfigError(f"load {d!r}: unknown kind; expected socket, patches or inclusion")
+
+    @property
+    def force_vector(self) -> np.ndarray:
+        return np.asarray(self.force, dtype=float)
+
+
+class Truth:
+    """The simulated device: an independent mesh, mismatched electrodes, mechanics on demand.
+
+    Ready when constructed; nothing is built before a load needs it (the forward model on the
+    first voltage, the mechanics mesh on the first mechanical load).
+    """
+
+    def __init__(self, geometry: SensorGeometry, truth_h: float = 3e-3, mechanics_h: float = 4e-3,
+                 z_rel: float = 0.2, jitter: float = 2e-4, seed: int = 0, cache_dir=None) -> None:
+        self.geometry = geometry
+        self.truth_h, self.mechanics_h = truth_h, mechanics_h
+        self.cache_dir = cache_dir
+        self.device, self.z = mismatched(geometry, np.random.default_rng(seed), z_rel, jitter)
+        self._theta_cache: dict[tuple, np.ndarray] = {}
+
+    @cached_property
+    def forward(self) -> ForwardModel:
+        mesh = build_mesh(self.geometry, MeshSpec(h=self.truth_h), self.cache_dir)
+        return ForwardModel(self.device, mesh, contact_impedance=self.z)
+
+    @cached_property
+    def mechanics_mesh(self) -> TetMesh:
+        return build_mesh(self.geometry, MeshSpec(h=self.mechanics_h, h_electrode=self.mechanics_h), self.cache_dir)
+
+    @cached_property
+    def reference(self) -> np.ndarray:
+        """Noise-free unloaded frame of the simulated device."""
+        return self.forward.voltages()
+
+    def theta(self, load: Load) -> np.ndarray:
+        """Volumetric compression at the truth mesh's cell centres."""
+        from . import mechanics
+
+        key = (load.kind, load.force, load.patches)
+        if key not in self._theta_cache:
+            m = self.mechanics_mesh
+            if load.kind == "socket":
+                sol = mechanics.solve_socket_load(m.points, m.tets, self.geometry, load.force_vector)
+            else:
+                patches = [{"shape": s, ("size" if s == "square" else "radius"): v, "center": c}
+                           for s, v, c in load.patches]
+                sol = mechanics.solve_patch_load(m.points, m.tets, self.geometry, patches, -load.force[2])
+            self._theta_cache[key] = sol.theta_at(self.forward.mesh.centers)
+        return self._theta_cache[key]
+
+    def conductivity(self, load: Load) -> np.ndarray:
+        """Per-cell conductivity of the truth mesh under ``load``."""
+        fm = self.forward
+        if load.kind == "none" or (load.kind == "socket" and not any(load.force)):
+            return fm.sigma0
+        if load.kind == "inclusion":
+            cx, cy, cz, r, contrast = load.inclusion
+            inside = np.linalg.norm(fm.mesh.centers - [cx, cy, cz], axis=1) <= r
+            return fm.sigma0 * np.where(inside, 1.0 + contrast, 1.0)
+        sigma, broken = conductivity_of_theta(self.theta(load), self.geometry.material)
+        if broken.any():
+            log.warning("%d cells beyond the percolation limit (clipped)", int(broken.sum()))
+        return sigma
+
+    def voltages(self, load: Load) -> np.ndarray:
+        """Noise-free frame under ``load``."""
+        return self.forward.voltages(self.conductivity(load))
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A scene file's content (see the module docstring)."""
+
+    sensor: str
+    loads: tuple[Load, ...]
+    snr_db: float | None = 60.0
+    seed: int = 0
+    truth_mesh_size: float = 3e-3
+    mechanics_mesh_size: float = 4e-3
+    z_rel: float = 0.2
+    jitter: float = 2e-4
+    frames_per_load: int = 1
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Scene":
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"scene file {str(p)!r}: not found")
+        d = yaml.safe_load(p.read_text()) or {}
+        if "loads" not in d:
+            raise ConfigError(f"{p}: missing key 'loads'")
+        mm = d.get("mismatch") or {}
+        sensor = str(d.get("sensor", "cuboid_joint"))
+        if not Path(sensor).is_absolute() and Path(sensor).suffix in (".yaml", ".yml"):
+            sensor = str(p.parent / sensor)
+        return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d["loads"]),
+                   snr_db=d.get("snr_db", 60.0), seed=int(d.get("seed", 0)),
+                   truth_mesh_size=float(d.get("truth_mesh_size", 3e-3)),
+                   mechanics_mesh_size=float(d.get("mechanics_mesh_size", 4e-3)),
+                   z_rel=float(mm.get("contact_impedance", 0.2)), jitter=float(mm.get("electrode_jitter", 2e-4)),
+                   frames_per_load=int(d.get("frames_per_load", 1)))
+
+    def truth(self, cache_dir=None) -> Truth:
+        return Truth(load_sensor(self.sensor), self.truth_mesh_size, self.mechanics_mesh_size, self.z_rel,
+                     self.jitter, self.seed, cache_dir)
+
+
+def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(reference (n_meas,), frames (n, n_meas), true forces (n, 3)) of a scene, noise included."""
+    truth = scene.truth(cache_dir)
+    rng = np.random.default_rng(scene.seed + 1)
+    ref = add_noise(truth.reference, truth.reference, scene.snr_db, rng)
+    frames, forces = [], []
+    for load in scene.loads:
+        v = truth.voltages(load)
+        for _ in range(scene.frames_per_load):
+            frames.append(add_noise(v, truth.reference, scene.snr_db, rng))
+            forces.append(load.force_vector)
+    return ref, np.array(frames), np.array(forces)
+
+
+def simulate_scene_files(scene_path, out_dir, cache_dir=None) -> None:
+    """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (section 6)."""
+    from .frames_io import write_forces, write_frames
+
+    scene = Scene.load(scene_path)
+    ref, frames, forces = simulate(scene, cache_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    note = f"simulated from {scene_path} (honest: independent mesh, mismatch, SNR {scene.snr_db} dB)"
+    write_frames(out / "reference.csv", ref[None], comment=note + ", unloaded")
+    write_frames(out / "frames.csv", frames, comment=note)
+    write_forces(out / "truth.csv", forces)
+
+
+class VoltageSource:
+    """Frames of a simulated device following a load script or a scene, for the simulated board.
+
+    ``frame(t, rng)`` gives the noisy frame at time t (seconds from start); ``truth(t)`` the force.
+    Every distinct load is computed once, up front (so streaming never stalls on a solve).
+    """
+
+    def __init__(self, truth: Truth, times: np.ndarray, loads: list[Load], snr_db: float | None,
+                 period: float | None = None) -> None:
+        self.truth_model = truth
+        self.times = np.asarray(times, dtype=float)
+        self.loads = loads
+        self.snr_db = snr_db
+        self.period = period
+        self._frames = [truth.voltages(ld) for ld in loads]
+        self._ref = truth.reference
+
+    @classmethod
+    def from_args(cls, sensor: str = "cuboid_joint", scene: str | None = None, load_script: str | None = None,
+                  snr_db: float | None = 60.0, seed: int = 0, cache_dir=None,
+                  hold: float = 1.0) -> "VoltageSource":
+        """From a load script (``time,fx,fy,fz``) or a scene (each load held ``hold`` seconds)."""
+        if (scene is None) == (load_script is None):
+            raise ConfigError("give exactly one of scene=FILE or load_script=FILE.csv")
+        if scene is not None:
+            sc = Scene.load(scene)
+            truth = sc.truth(cache_dir)
+            return cls(truth, hold * np.arange(len(sc.loads)), list(sc.loads),
+                       sc.snr_db if snr_db is None else snr_db)
+        from .frames_io import read_load_script
+
+        times, forces = read_load_script(load_script)
+        truth = Truth(load_sensor(sensor), seed=seed, cache_dir=cache_dir)
+        return cls(truth, times, [Load("socket", force=tuple(f)) for f in forces], snr_db)
+
+    def _index(self, t: float) -> int:
+        if t < self.times[0]:
+            return -1
+        return int(np.searchsorted(self.times, t, side="right")) - 1
+
+    def truth(self, t: float) -> np.ndarray:
+        i = self._index(t)
+        return np.zeros(3) if i < 0 else self.loads[i].force_vector
+
+    def frame(self, t: float, rng: np.random.Generator) -> np.ndarray:
+        i = self._index(t)
+        v = self._ref if i < 0 else self._frames[i]
+        return add_noise(v, self._ref, self.snr_db, rng)
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1]) if len(self.times) else 0.0
+
+
+def load_dicts(forces: np.ndarray) -> list[dict[str, Any]]:
+    """Scene ``loads`` entries for socket force vectors."""
+    return [{"socket": {"force": [float(v) for v in f]}} for f in np.atleast_2d(forces)]
+
+
+def scene_with(scene: Scene, **changes) -> Scene:
+    return replace(scene, **changes)
