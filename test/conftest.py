@@ -34,3 +34,19 @@ def cuboid_forward(cuboid):
 @pytest.fixture(scope="session")
 def cuboid_solution(cuboid_forward):
     return cuboid_forward.solve()
+
+
+@pytest.fixture(scope="session")
+def cuboid_model(cuboid):
+    """The default reconstruction model (h = 4 mm, 8 x 8 x 4 voxels, k by the discrepancy rule)."""
+    from cstomo_sensor.reconstruction import ReconSpec, build_model
+
+    return build_model(cuboid, ReconSpec(mesh_size=MODEL_H))
+
+
+@pytest.fixture(scope="session")
+def cuboid_truth(cuboid):
+    """The honestly simulated device: independent finer mesh, mismatched electrodes (seed 3)."""
+    from cstomo_sensor.simulate import Truth
+
+    return Truth(cuboid, truth_h=TRUTH_H, seed=3)
