@@ -1,7 +1,7 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``board-sim``, ``replay``, ``demo``.
+``board-sim``, ``replay``, ``demo``, ``bench``, ``render``.
 """
 from __future__ import annotations
 
@@ -134,6 +134,10 @@ def main(argv: list[str] | None = None) -> int:
         from .demo import main as demo_main
 
         return demo_main(argv[1:])
+    if argv and argv[0] in ("bench", "render"):
+        from importlib import import_module
+
+        return import_module(f".{argv[0]}", __package__).main(argv[1:])
     p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -159,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
+    sub.add_parser("bench", help="speed and accuracy of every knob on honest scenes (see cstomo bench -h)")
+    sub.add_parser("render", help="off-screen pictures of mesh, stress and image (see cstomo render -h)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     handlers = {("model", "build"): cmd_model_build, ("model", "voltages"): cmd_model_voltages}
