@@ -283,13 +283,22 @@ def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model):
     truth = np.array([source.forces[(10 + k) % len(source.forces)] for k in range(len(wr))])
     loaded = np.linalg.norm(truth, axis=1) > 1
     err = np.linalg.norm(forces - truth, axis=1)
+    from cstomo_sensor.angles import angle_between
+
+    ang = np.degrees(angle_between(forces[loaded], truth[loaded]))
     print(f"force error over {loaded.sum()} loaded frames: median {np.median(err[loaded]):.2f} N, "
-          f"max {err[loaded].max():.2f} N; unloaded: max {err[~loaded].max():.2f} N")
-    assert np.median(err[loaded]) < FORCE_TOL_N
-    assert np.median(err[~loaded]) < FORCE_TOL_N
+          f"max {err[loaded].max():.2f} N, direction median {np.median(ang):.1f} deg max {ang.max():.1f} deg; "
+          f"unloaded: max {err[~loaded].max():.2f} N")
+    assert np.median(err[loaded]) < FORCE_TOL_N and np.percentile(err[loaded], 90) < 2 * FORCE_TOL_N
+    assert np.median(err[~loaded]) < FORCE_TOL_N / 2
+    assert np.median(ang) < ANGLE_TOL_DEG
 
 
-FORCE_TOL_N = 5.0  # median |F_est - F_true| over 20..27 N loads (linear estimator, coarse 6x6x3 test model)
+# Stated tolerances for 20..27 N socket loads at 45..90 deg elevation (linear estimator, coarse
+# 6x6x3 test model, honest simulation at 60 dB); measured: median 0.9 N (max 1.4 N), direction
+# median 0.6 deg (max 2.5 deg).
+FORCE_TOL_N = 2.5
+ANGLE_TOL_DEG = 5.0
 
 
 def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source, warm_model):
