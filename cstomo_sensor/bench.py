@@ -317,6 +317,7 @@ STAB_COLS = ["setting", "case", "value", "n_frames", "finite", "bounded", "max_f
 def measure(s: Setting, builder: Builder, scenes: SceneSet, ref, frames, true, n_time: int) -> dict:
     pipe, build_s, mb = builder.pipeline(s)
     forces, images, _ = run_frames(pipe, ref, frames)
+    s.row["forces"] = forces
     ang, mag = errors(forces, true)
     reps = len(frames) // len(scenes.forces)
     tv = np.repeat(scenes.truth_on_voxels(pipe.model.centers), reps, axis=0)
@@ -362,7 +363,7 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
     d = force_from_angles(1.0, np.radians(90 if mode == "smoke" else 60), np.radians(0 if mode == "smoke" else 30))
     mags = [0.0, 5.0, 40.0] if mode == "smoke" else [0.0, 1.0, 5.0, 10.0, 20.0, 30.0, 40.0]
     ref, _ = scenes.noisy(scenes.ref_clean, 1, None, 0)
-    record("force_N (noise-free, frame == reference)", 0.0, ref, ref[None].copy(), np.zeros((1, 3)))
+    record("force_N noise-free (frame == reference)", 0.0, ref, ref[None].copy(), np.zeros((1, 3)))
     for m in mags:
         v, _ = scenes.frame_of(m * d)
         ref, fr = scenes.noisy(v, reps, 60.0, NOISE_SEED + 10 + int(m))
@@ -386,8 +387,8 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
         bad = pat.electrode_rows(e)
         dead = fr.copy()
         dead[:, bad] = 0.0
-        record("dead electrode, masked", e + 1, ref, dead, true, bad=bad)
-        record("dead electrode, unmasked", e + 1, ref, dead, true)
+        record("dead electrode masked", e + 1, ref, dead, true, bad=bad)
+        record("dead electrode unmasked", e + 1, ref, dead, true)
     say(f"stability ({s.name}): {len(rows)} cases")
     return rows
 
@@ -488,11 +489,12 @@ def run(mode: str, out: str | os.PathLike, cache_dir=None, say=print) -> dict:
     write_forces(out / "truth.csv", true)
     builder = Builder(cache_dir, say)
     rows = []
-    for s in settings_for(mode):
+    settings = settings_for(mode)
+    for s in settings:
         say(f"setting {s.name} ...")
         rows.append(measure(s, builder, scenes, ref, frames, true, n_time))
     stab = []
-    for s in settings_for(mode):
+    for s in settings:
         if s.name == "default" or (mode != "smoke" and s.name == "estimator model"):
             stab += stability(s, builder, scenes, mode, say)
     write_csv(out / "table.csv", rows, TABLE_COLS)
@@ -506,7 +508,7 @@ def run(mode: str, out: str | os.PathLike, cache_dir=None, say=print) -> dict:
     (out / "table.md").write_text(header + "\n\n" + md + "\n")
     say(header)
     say(md)
-    return {"table": rows, "stability": stab, "paths": {k: out / v for k, v in (
+    return {"table": rows, "stability": stab, "default_forces": settings[0].row["forces"], "paths": {k: out / v for k, v in (
         ("table", "table.csv"), ("stability", "stability.csv"), ("plot", "tradeoff.png"),
         ("frames", "frames.csv"), ("reference", "reference.csv"), ("truth", "truth.csv"))}}
 
