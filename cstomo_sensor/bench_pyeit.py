@@ -111,7 +111,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
     # Jacobians (dV/dsigma per cell), homogeneous
     J_ours, tj_ours = _timed(lambda: fm.jacobian())
     (J_py, _), tj_py = _timed(lambda: fwd.compute_jac(perm=np.full(mesh.n_cells, sigma0)))
-    J_py = J_py * I
+    J_py = -J_py * I  # pyEIT's Jacobian is -dV/dsigma (its solve returns -H dv)
     r["jacobian"] = {"ours_s": tj_ours, "pyeit_s": tj_py, "ratio_pyeit_over_ours": tj_py / tj_ours,
                      **_agree(J_ours, J_py),
                      "row_corr_median": float(np.median([np.corrcoef(a, b)[0, 1] for a, b in zip(J_ours, J_py)]))}
