@@ -64,7 +64,10 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     from . import mechanics
 
     say = progress or (lambda m: log.info("%s", m))
-    key = input_hash({"format": CALIB_FORMAT, "model": model.key, "spec": spec.__dict__})
+    # y depends on the forward mesh, the model reference and v_scale, not on the voxel grid or
+    # the Landweber settings: one calibration serves every grid
+    key = input_hash({"format": CALIB_FORMAT, "geometry": geometry.digest(), "mesh_h": model.meta["mesh_h"],
+                      "v_scale": model.v_scale, "reference": model.model_reference, "spec": spec.__dict__})
     path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-{key}.npz"
     hit = cache_load(path, key)
     if hit is not None:
@@ -170,5 +173,7 @@ def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionMo
     if geometry.socket_radius <= 0:
         raise ConfigError(f"sensor {geometry.name!r} has no socket: force estimation needs one")
     forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
+    # the unloaded state is a calibration point too: no load, no change
+    forces, y = np.vstack([np.zeros(3), forces]), np.vstack([np.zeros(y.shape[1]), y])
     return classes[name](forces, y, _noise_y(model, spec.noise_db), spec.ridge)
 
