@@ -79,7 +79,7 @@ def render_mesh(mesh, patches, out: Path) -> Path:
 
 
 def _bar(title: str) -> dict:
-    unit = title.split(",")[1].split()[0] if "," in title else ""
+    unit = title.split(",")[1].split()[0].rstrip(";") if "," in title else ""
     return {"title": unit, "color": "black", "vertical": True, "position_x": 0.85, "position_y": 0.1,
             "height": 0.7, "width": 0.08, "title_font_size": 14, "label_font_size": 12, "fmt": "%.0f"}
 
@@ -103,9 +103,9 @@ def _slices(p, g, name, title, cmap):
     pg = g.cell_data_to_point_data()
     for z in (5.0, 10.0, 15.0):
         p.add_mesh(pg.slice(normal="z", origin=(0, 0, z)), scalars=name, cmap=cmap, clim=[-lim, lim],
-                   scalar_bar_args=_bar(title))
+                   lighting=False, scalar_bar_args=_bar(title))
     p.add_mesh(pg.slice(normal="y", origin=(0, 0, 0)), scalars=name, cmap=cmap, clim=[-lim, lim],
-               show_scalar_bar=False)
+               lighting=False, show_scalar_bar=False)
     p.add_mesh(g.extract_surface(algorithm="dataset_surface").extract_feature_edges(30.0), color="grey")
     p.add_text(title + "  (z = 5, 10, 15 mm; y = 0)", font_size=9, color="black")
     _view(p)
