@@ -1,7 +1,7 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``board-sim``, ``replay``, ``demo``, ``bench``, ``render``.
+``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
 """
 from __future__ import annotations
 
@@ -134,6 +134,10 @@ def main(argv: list[str] | None = None) -> int:
         from .demo import main as demo_main
 
         return demo_main(argv[1:])
+    if argv and argv[0] == "bench-node":
+        from .bench_node import main as bench_node_main
+
+        return bench_node_main(argv[1:])
     if argv and argv[0] in ("bench", "render"):
         from importlib import import_module
 
@@ -163,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
+    sub.add_parser("bench-node", help="latency, CPU and memory of the real node on the simulated board "
+                   "(see cstomo bench-node -h)")
     sub.add_parser("bench", help="speed and accuracy of every knob on honest scenes (see cstomo bench -h)")
     sub.add_parser("render", help="off-screen pictures of mesh, stress and image (see cstomo render -h)")
     a = p.parse_args(argv)
