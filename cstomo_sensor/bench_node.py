@@ -39,7 +39,8 @@ from pathlib import Path
 import numpy as np
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
-           "frames_dropped", "keeps_up", "latency_median_ms", "latency_p99_ms", "latency_max_ms",
+           "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
+           "latency_median_ms", "latency_p99_ms", "latency_max_ms",
            "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb", "processing_mean_ms"]
 
 METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the node's ROS clock) - "
@@ -160,7 +161,6 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             rec.recording, n1 = False, rec.wrenches
             lat = np.array(rec.latencies_ns, float) * 1e-6
         rss, hwm = memory_mb(node.pid)
-        time.sleep(1.1)  # one more diagnostics message covering the window's end
         with rec.lock:
             diags = list(rec.diags)
     finally:
@@ -172,35 +172,41 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
 
     window = t1 - t0
     wrench_rate = (n1 - n0) / window
-    # diagnostics: cumulative counters bracketing the window (last before it, first after it)
+    # diagnostics (1 Hz, cumulative counters): from the last one at or before the window's start to
+    # the last one in the window (at least seconds - 1 s of it)
     before = [(t, d) for t, d in diags if t <= t0]
-    after = [(t, d) for t, d in diags if t >= t1]
-    node_rate, dropped, proc_ms = math.nan, math.nan, math.nan
-    if before and after:
-        (ta, da), (tb, db) = after[0], before[-1]
+    inside = [(t, d) for t, d in diags if t0 < t <= t1]
+    node_rate, proc_ms = math.nan, math.nan
+    parts = {k: math.nan for k in ("dropped_overflow", "seq_gaps", "late_dropped")}
+    if before and inside:
+        (tb, db), (ta, da) = before[-1], inside[-1]
         node_rate = (_num(da, "frames") - _num(db, "frames")) / (ta - tb)
-        dropped = sum(_num(da, k) - _num(db, k) for k in ("dropped_overflow", "late_dropped", "seq_gaps"))
-        inside = [_num(d, "processing_time_mean_ms") for t, d in diags if t0 < t <= t1 + 1.0]
-        inside = [x for x in inside if math.isfinite(x)]
-        proc_ms = float(np.mean(inside)) if inside else math.nan
+        parts = {k: _num(da, k) - _num(db, k) for k in parts}
+        proc = [x for x in (_num(d, "processing_time_mean_ms") for _, d in inside) if math.isfinite(x)]
+        proc_ms = float(np.mean(proc)) if proc else math.nan
+    dropped = sum(parts.values())
     if not math.isfinite(dropped):  # no diagnostics: count the missing wrenches instead
         dropped = max(0.0, rate * window - (n1 - n0))
+        parts = {k: -1 for k in parts}  # unknown
     keeps_up = int(wrench_rate >= 0.98 * rate and dropped == 0)
     pct = lambda q: float(np.percentile(lat, q)) if lat.size else math.nan  # noqa: E731
     return {"rate_hz": rate, "stress_field_every": stress, "window_s": round(window, 3), "wrenches": n1 - n0,
             "wrench_rate_hz": round(wrench_rate, 1), "node_frame_rate_hz": round(node_rate, 1),
-            "frames_dropped": int(dropped), "keeps_up": keeps_up, "latency_median_ms": round(pct(50), 3),
+            "frames_dropped": int(dropped), **{k: int(v) for k, v in parts.items()}, "keeps_up": keeps_up,
+            "latency_median_ms": round(pct(50), 3),
             "latency_p99_ms": round(pct(99), 3), "latency_max_ms": round(float(lat.max()) if lat.size else math.nan, 3),
             "node_cpu_pct": round(100 * (c1 - c0) / window, 1), "board_cpu_pct": round(100 * (b1 - b0) / window, 1),
             "node_vmrss_mb": round(rss, 1), "node_vmhwm_mb": round(hwm, 1), "processing_mean_ms": round(proc_ms, 3)}
 
 
 def markdown(rows: list[dict]) -> str:
-    head = ["fps", "stress", "wrench/s", "node fr/s", "dropped", "keeps up", "lat med ms", "lat p99 ms",
-            "node CPU %", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms"]
-    keys = ["rate_hz", "stress_field_every", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped", "keeps_up",
+    head = ["fps", "stress", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
+            "lat med ms", "lat p99 ms", "node CPU %", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms"]
+    keys = ["rate_hz", "stress_field_every", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
+            "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
             "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb",
             "node_vmhwm_mb", "processing_mean_ms"]
+    assert len(head) == len(keys)
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [("yes" if r[k] else "no") if k == "keeps_up" else f"{r[k]:g}" for k in keys]
@@ -213,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rates", type=float, nargs="+", default=[100.0, 1000.0], help="board frame rates, Hz")
     p.add_argument("--stress", type=int, nargs="+", default=[0, 1], help="stress_field_every values (0 = off)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
-    p.add_argument("--warmup", type=float, default=2.5, help="s after the first wrench before measuring")
+    p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
     p.add_argument("--out", default=".", help="directory for node_bench.csv and the processes' logs")
     p.add_argument("--sensor", default="cuboid_joint")
     p.add_argument("--estimator", default="linear", choices=["linear", "model"])
@@ -227,7 +233,9 @@ def main(argv: list[str] | None = None) -> int:
     from .pipeline import Pipeline, PipelineConfig
 
     print("model and force estimator (built once, then loaded from the cache)", flush=True)
+    t = time.monotonic()
     Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator))
+    print(f"     ready in {time.monotonic() - t:.1f} s", flush=True)
 
     work = Path(tempfile.mkdtemp(prefix="cstomo_bench_node_", dir=out))
     script = work / "load.csv"  # constant load: unloaded 2 s (tare), then 20 N pushing straight down
@@ -244,7 +252,9 @@ def main(argv: list[str] | None = None) -> int:
         for rate in a.rates:
             for stress in a.stress:
                 print(f"run: {rate:g} fps, stress_field_every {stress}, {a.seconds:g} s window ...", flush=True)
+                t = time.monotonic()
                 rows.append(run_one(ros_node, a, rate, stress, work, script))
+                print(f"     done in {time.monotonic() - t:.1f} s", flush=True)
     finally:
         ros_node.destroy_node()
         rclpy.try_shutdown()

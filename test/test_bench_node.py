@@ -1,0 +1,41 @@
+"""``cstomo bench-node`` in a smoke configuration: the real node and the simulated board on a pty,
+one short run; the CSV has the expected columns and finite values (no timing thresholds)."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("rclpy")
+
+from cstomo_sensor.bench_node import COLUMNS, cpu_seconds, markdown, memory_mb  # noqa: E402
+
+
+def test_proc_readers_on_self():
+    assert cpu_seconds(os.getpid()) > 0
+    rss, hwm = memory_mb(os.getpid())
+    assert 0 < rss <= hwm
+
+
+def test_bench_node_smoke(tmp_path):
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
+               ROS_DOMAIN_ID=str(30 + (os.getpid() + 35) % 70))  # a domain of its own, not the suite's
+    r = subprocess.run([sys.executable, "-m", "cstomo_sensor.cli", "bench-node", "--rates", "100", "--stress", "1",
+                        "--seconds", "2", "--warmup", "1", "--out", str(tmp_path)],
+                       env=env, capture_output=True, text=True, timeout=150)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "| fps |" in r.stdout and "minimum transport delay" in r.stdout
+    with open(tmp_path / "node_bench.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == COLUMNS
+        rows = list(reader)
+    assert len(rows) == 1
+    row = {k: float(v) for k, v in rows[0].items()}
+    assert all(math.isfinite(v) for v in row.values()), row
+    assert row["rate_hz"] == 100 and row["stress_field_every"] == 1
+    assert row["wrenches"] > 0 and row["node_vmrss_mb"] > 0 and row["node_vmhwm_mb"] >= row["node_vmrss_mb"]
+    assert markdown([row]).count("\n") == 2
