@@ -41,14 +41,15 @@ import numpy as np
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
            "latency_median_ms", "latency_p99_ms", "latency_max_ms",
-           "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb", "processing_mean_ms"]
+           "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
 
 METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the node's ROS clock) - "
           "wrench header.stamp (board write time mapped to host time by the lower envelope of "
           "host_time - board_time); caveat: the minimum transport delay (pty + driver + queue hand-over) is "
           "absorbed into the clock offset and NOT included. CPU = utime+stime of the process (all threads) "
           "over the window, % of one core. dropped = diagnostics dropped_overflow + late_dropped + seq_gaps "
-          "over the window.")
+          "over the window. load 1m = the host's 1-minute load average at the window's end (2 cores here: "
+          "above ~1.5 the figures include contention with other work).")
 
 _TICK = os.sysconf("SC_CLK_TCK")
 
@@ -107,6 +108,8 @@ def _stop(procs: list[subprocess.Popen]) -> None:
     for pr in procs:  # the node first, so it does not report the board's end as a lost port
         if pr.poll() is None:
             pr.send_signal(signal.SIGINT)
+    for pr in procs:
+        if pr.poll() is None:
             try:
                 pr.wait(5)
             except subprocess.TimeoutExpired:
@@ -161,6 +164,7 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             rec.recording, n1 = False, rec.wrenches
             lat = np.array(rec.latencies_ns, float) * 1e-6
         rss, hwm = memory_mb(node.pid)
+        load = os.getloadavg()[0]  # other work on the host's cores skews every figure: say so
         with rec.lock:
             diags = list(rec.diags)
     finally:
@@ -196,16 +200,17 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             "latency_median_ms": round(pct(50), 3),
             "latency_p99_ms": round(pct(99), 3), "latency_max_ms": round(float(lat.max()) if lat.size else math.nan, 3),
             "node_cpu_pct": round(100 * (c1 - c0) / window, 1), "board_cpu_pct": round(100 * (b1 - b0) / window, 1),
-            "node_vmrss_mb": round(rss, 1), "node_vmhwm_mb": round(hwm, 1), "processing_mean_ms": round(proc_ms, 3)}
+            "node_vmrss_mb": round(rss, 1), "node_vmhwm_mb": round(hwm, 1), "processing_mean_ms": round(proc_ms, 3),
+            "host_loadavg_1m": round(load, 2)}
 
 
 def markdown(rows: list[dict]) -> str:
     head = ["fps", "stress", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
-            "lat med ms", "lat p99 ms", "node CPU %", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms"]
+            "lat med ms", "lat p99 ms", "node CPU %", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms", "load 1m"]
     keys = ["rate_hz", "stress_field_every", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
             "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
             "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb",
-            "node_vmhwm_mb", "processing_mean_ms"]
+            "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
     assert len(head) == len(keys)
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
