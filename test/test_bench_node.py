@@ -25,7 +25,7 @@ def test_bench_node_smoke(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
                ROS_DOMAIN_ID=str(30 + (os.getpid() + 35) % 70))  # a domain of its own, not the suite's
     r = subprocess.run([sys.executable, "-m", "cstomo_sensor.cli", "bench-node", "--rates", "100", "--stress", "1",
-                        "--seconds", "2", "--warmup", "1", "--out", str(tmp_path)],
+                        "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
                        env=env, capture_output=True, text=True, timeout=150)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "| fps |" in r.stdout and "minimum transport delay" in r.stdout
