@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -392,7 +393,12 @@ class CstomoSensorNode(LifecycleNode):
                 stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
             else:
                 stamp_ns = host_ns  # text mode: no board clock
-            self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
+            try:
+                self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
+            except RCLError:
+                if self.context.ok():
+                    raise
+                return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
 
     def _on_raw(self, msg: Float32MultiArray) -> None:
         host_ns = self.get_clock().now().nanoseconds
