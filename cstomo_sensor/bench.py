@@ -541,6 +541,11 @@ def main(argv: list[str] | None = None) -> int:
         print("cstomo bench: note: OPENBLAS_NUM_THREADS is not 1; timings are pinned to one core anyway",
               file=sys.stderr)
     if a.pyeit:
+        try:
+            import pyeit  # noqa: F401  (optional; never a dependency of the package)
+        except ImportError:
+            print("cstomo bench --pyeit: pyEIT is not installed (.venv/bin/pip install pyeit)", file=sys.stderr)
+            return 2
         from .bench_pyeit import run as run_pyeit
 
         run_pyeit(a.out, a.cache_dir or None)
