@@ -88,7 +88,9 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
 def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
     src, board, st, frames = run(tmp_path, FaultConfig(**{fault: 0.1}), duration=0.6)
     n_faults = board.injected.get(fault, 0)
-    assert n_faults > 0 and board.injected.get("overrun", 0) == 0
+    # an overrun (the pty had no room: a starved host) loses a frame too; it is counted, not hidden
+    overrun = board.injected.get("overrun", 0)
+    assert n_faults > 0 and overrun <= 0.05 * board.next_seq
     seqs = [f.seq for f in frames]
     assert seqs == sorted(seqs) and seqs[0] == 0
     check_values(frames, src)
@@ -96,9 +98,9 @@ def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
     missing_inside = seqs[-1] + 1 - len(frames)
     assert st.seq_gaps == missing_inside
     if fault == "garbage":  # a burst is a corrupt frame of its own; the frame after it survives
-        assert lost == 0 and st.corrupt >= n_faults
+        assert lost == overrun and st.corrupt >= n_faults
     else:
-        assert lost == n_faults
+        assert n_faults <= lost <= n_faults + overrun
         assert st.corrupt >= (0 if fault == "drop" else n_faults)
     assert seqs[-1] >= board.next_seq - 5 and len(frames) > 0.7 * board.next_seq  # it went on after faults
 
@@ -127,8 +129,10 @@ def test_saturated_channel_and_dead_electrode_are_flagged(tmp_path):
 
 def test_text_mode_nan_lines_are_dropped_and_counted(tmp_path):
     src, board, st, frames = run(tmp_path, FaultConfig(nan=0.1), protocol="text", duration=0.8, rate=200.0)
-    assert board.injected["nan"] > 0 and "overrun" not in board.injected
-    assert st.corrupt == board.injected["nan"] and len(frames) + st.corrupt == board.next_seq
+    overrun = board.injected.get("overrun", 0)  # a starved host's partial line: corrupt as well
+    assert board.injected["nan"] > 0 and overrun <= 0.05 * board.next_seq
+    assert board.injected["nan"] <= st.corrupt <= board.injected["nan"] + overrun
+    assert len(frames) + st.corrupt <= board.next_seq <= len(frames) + st.corrupt + overrun
     ks = [int(f.values[0]) for f in frames]
     assert ks == sorted(ks) and ks[-1] >= board.next_seq - 3
     for k, f in zip(ks, frames):
