@@ -7,8 +7,8 @@ positively homogeneous in the force), the material law and the forward model on 
 reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md, reconstruction
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
-- ``linear`` (fast): F = W y + b, ridge regression on the calibration set with 60 dB noise
-  augmentation. One 3 x 208 product per frame (about a microsecond of arithmetic).
+- ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
+  60 dB noise augmentation. One 3 x 208 product per frame (about a microsecond of arithmetic).
 - ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a radial-basis
   surrogate of the forward + mechanical model y(F) built on the calibration set, started from the
   linear estimate; a few milliseconds per frame.
@@ -101,22 +101,21 @@ def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
 
 
 class LinearEstimator:
-    """F = W y + b (ridge regression on the calibration set, kept channels only)."""
+    """F = W y (ridge regression through the origin on the calibration set, kept channels only)."""
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None) -> None:
         self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
         self.keep = np.ones(y.shape[1], bool) if keep is None else keep
         Y = y[:, self.keep]
-        # noise augmentation in expectation: adds n * diag(noise^2) to the normal matrix
-        mu = Y.mean(axis=0)
-        Yc = Y - mu
-        A = Yc.T @ Yc + len(Y) * np.diag(self.noise[self.keep] ** 2)
+        # through the origin (no change, no force: a zero frame gives exactly zero); noise
+        # augmentation in expectation adds n * diag(noise^2) to the normal matrix
+        A = Y.T @ Y + len(Y) * np.diag(self.noise[self.keep] ** 2)
         A += ridge * np.trace(A) / len(A) * np.eye(len(A))
-        Wk = np.linalg.solve(A, Yc.T @ (forces - forces.mean(axis=0))).T  # (3, n_keep)
+        Wk = np.linalg.solve(A, Y.T @ forces).T  # (3, n_keep)
         self.W = np.zeros((3, y.shape[1]))
         self.W[:, self.keep] = Wk
-        self.b = forces.mean(axis=0) - Wk @ mu
+        self.b = np.zeros(3)
         self.W32 = self.W.astype(np.float32)
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
