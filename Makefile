@@ -22,7 +22,7 @@ $(STAMP): setup.py requirements-ros.txt
 	@touch $(STAMP)
 
 test: $(STAMP)
-	$(VPY) -m pytest -q test
+	$(VPY) -m pytest -q --durations=15 test
 
 demo: $(STAMP)
 	$(VENV)/bin/cstomo demo
