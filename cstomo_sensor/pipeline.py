@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .angles import force_angles
 from .errors import ConfigError, FrameError
 from .geometry import SensorGeometry, load_sensor
 from .landweber import LandweberSVD
@@ -142,8 +143,6 @@ class Pipeline:
         if not np.all(np.isfinite(y)):
             raise FrameError(f"frame holds {int(np.sum(~np.isfinite(y)))} NaN/Inf values in used channels")
         force = self.estimator.estimate(y)
-        from .angles import force_angles
-
         mag, el, az = force_angles(force)
         field = None
         residual = float("nan")

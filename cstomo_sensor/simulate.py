@@ -25,10 +25,9 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
@@ -290,11 +289,3 @@ class VoltageSource:
     def duration(self) -> float:
         return float(self.times[-1]) if len(self.times) else 0.0
 
-
-def load_dicts(forces: np.ndarray) -> list[dict[str, Any]]:
-    """Scene ``loads`` entries for socket force vectors."""
-    return [{"socket": {"force": [float(v) for v in f]}} for f in np.atleast_2d(forces)]
-
-
-def scene_with(scene: Scene, **changes) -> Scene:
-    return replace(scene, **changes)
