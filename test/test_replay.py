@@ -157,7 +157,7 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
             if delay > 0:
                 time.sleep(delay)
             pub.publish(msg)
-        assert wait_for(lambda: len(got["wrench"]) >= s.results, 10.0), len(got["wrench"])
+        assert wait_for(lambda: len(got["wrench"]) >= s.results, 30.0), len(got["wrench"])
         time.sleep(0.2)
         assert Path(tmp_path / "tare.csv").is_file()
     finally:
