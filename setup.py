@@ -32,8 +32,8 @@ setup(
     tests_require=["pytest"],
     entry_points={
         "console_scripts": [
-            "cstomo = cstomo_sensor.cli:main",
-            "cstomo_sensor_node = cstomo_sensor.node:main",
+            "cstomo = cstomo_sensor.tools.cli:main",
+            "cstomo_sensor_node = cstomo_sensor.ros.node:main",
         ],
     },
 )

@@ -7,19 +7,28 @@ from pathlib import Path
 
 import numpy as np
 
+from .angles import force_angles
 from .errors import FrameError
 
 FORCES_HEADER = "frame,fx,fy,fz,magnitude,elevation,azimuth"
 
 
-def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame") -> np.ndarray:
-    """Return ``v`` as a float64 (n_meas,) array, or raise :class:`FrameError` naming the problem."""
-    a = np.asarray(v, dtype=float)
-    if a.shape != (n_meas,):
+def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame", used: np.ndarray | None = None,
+                batch: bool = False) -> np.ndarray:
+    """The one frame validator: ``v`` as float64 (n_meas,) volts (with ``batch``, also
+    (n_frames, n_meas)), or :class:`FrameError` naming the problem. Values outside ``used`` (a bool
+    (n_meas,) mask of the channels in use, default all) may be NaN/Inf: a masked channel carries no data."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise FrameError(f"{what}: {err}; expected {n_meas} numbers") from None
+    if a.ndim not in ((1, 2) if batch else (1,)) or a.shape[-1] != n_meas:
         raise FrameError(f"{what} has shape {a.shape}, expected ({n_meas},) voltages")
     bad = ~np.isfinite(a)
+    if used is not None:
+        bad &= used
     if bad.any():
-        raise FrameError(f"{what} holds {int(bad.sum())} non-finite values (first at index {int(np.argmax(bad))}); expected finite volts")
+        raise FrameError(f"{what} holds {int(bad.sum())} NaN/Inf values (first at index {int(np.argmax(bad))}); expected finite volts")
     return a
 
 
@@ -52,7 +61,6 @@ def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | Non
 
 def write_forces(path: str | os.PathLike, forces: np.ndarray) -> None:
     """Write a forces file from (n, 3) force vectors (newtons, wrench frame)."""
-    from .angles import force_angles
 
     f = np.atleast_2d(np.asarray(forces, dtype=float))
     mag, el, az = force_angles(f)
@@ -76,7 +84,13 @@ def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return t[:, 0], t[:, 1:4]
 
 
+def load_index(times: np.ndarray, t: float) -> int:
+    """The load script's row in force at time t (each row holds until the next row's time); -1
+    before the first row."""
+    return int(np.searchsorted(times, t, side="right")) - 1
+
+
 def force_at(times: np.ndarray, forces: np.ndarray, t: float) -> np.ndarray:
-    """The load script's force at time t (each row holds until the next row's time)."""
-    i = int(np.searchsorted(times, t, side="right")) - 1
-    return forces[max(i, 0)] if t >= times[0] else np.zeros(3)
+    """The load script's force at time t (zero before the first row)."""
+    i = load_index(times, t)
+    return forces[i] if i >= 0 else np.zeros(3)

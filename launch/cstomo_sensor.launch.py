@@ -11,11 +11,12 @@ import os
 import tempfile
 
 from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import LifecycleNode
+
+from launch import LaunchDescription
 
 SIM_LINK = "/tmp/cstomo_sim"
 # The simulated board's default load script (time,fx,fy,fz in s and N, wrench frame): unloaded for

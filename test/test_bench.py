@@ -8,10 +8,10 @@ import pytest
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
-    from cstomo_sensor import bench
+    from cstomo_sensor.tools.bench import table
 
     out = tmp_path_factory.mktemp("bench")
-    return out, bench.run("smoke", out, say=lambda msg: None)
+    return out, table.run("smoke", out, say=lambda msg: None)
 
 
 def _rows(path):
@@ -20,16 +20,16 @@ def _rows(path):
 
 
 def test_smoke_outputs_parse(smoke):
-    from cstomo_sensor import bench
+    from cstomo_sensor.tools.bench import table
 
     out, res = smoke
     rows = _rows(out / "table.csv")
-    assert rows and set(bench.TABLE_COLS) <= set(rows[0])
+    assert rows and set(table.TABLE_COLS) <= set(rows[0])
     d = next(r for r in rows if r["setting"] == "default")
-    for k in bench.TABLE_COLS[8:]:
+    for k in table.TABLE_COLS[8:]:
         assert np.isfinite(float(d[k])), k
     stab = _rows(out / "stability.csv")
-    assert set(bench.STAB_COLS) <= set(stab[0])
+    assert set(table.STAB_COLS) <= set(stab[0])
     cases = {r["case"] for r in stab}
     assert any(c.startswith("force_N") for c in cases) and "snr_db" in cases
     assert any(c.startswith("dead electrode") for c in cases)
@@ -43,9 +43,9 @@ def test_smoke_outputs_parse(smoke):
 
 
 def test_default_row_matches_cstomo_estimate(smoke, tmp_path):
-    from cstomo_sensor import bench
-    from cstomo_sensor.cli import main
     from cstomo_sensor.frames_io import read_forces, read_frames, write_frames
+    from cstomo_sensor.tools.bench import scenes
+    from cstomo_sensor.tools.cli import main
 
     out, res = smoke
     # the frames the bench used are exactly what its frames file holds, and re-written the same
@@ -56,13 +56,13 @@ def test_default_row_matches_cstomo_estimate(smoke, tmp_path):
                  "--out", str(tmp_path / "forces.csv")]) == 0
     est, true = read_forces(tmp_path / "forces.csv"), read_forces(out / "truth.csv")
     np.testing.assert_allclose(est, res["default_forces"], rtol=1e-8, atol=1e-8)  # forces file: 9 digits
-    ang, mag = bench.errors(est, true)
+    ang, mag = scenes.errors(est, true)
     d = next(r for r in _rows(out / "table.csv") if r["setting"] == "default")
     for key, vals, q in (("angle_med_deg", ang, 0.5), ("angle_p90_deg", ang, 0.9),
                          ("mag_err_med_n", mag, 0.5), ("mag_err_p90_n", mag, 0.9)):
         assert float(d[key]) == pytest.approx(float(np.quantile(vals, q)), rel=1e-7, abs=1e-7), key
     # with the unrounded forces the table's numbers are reproduced to 1e-9
-    ang0, mag0 = bench.errors(res["default_forces"], true)
+    ang0, mag0 = scenes.errors(res["default_forces"], true)
     assert float(d["angle_med_deg"]) == pytest.approx(float(np.median(ang0)), abs=1e-9)
     assert float(d["mag_err_med_n"]) == pytest.approx(float(np.median(mag0)), abs=1e-9)
 
@@ -70,7 +70,7 @@ def test_default_row_matches_cstomo_estimate(smoke, tmp_path):
 def test_render_pngs(tmp_path):
     import matplotlib.image as mpimg
 
-    from cstomo_sensor import render
+    from cstomo_sensor.tools import render
 
     scene = tmp_path / "one.yaml"
     scene.write_text("sensor: cuboid_joint\nsnr_db: 60\nseed: 11\ntruth_mesh_size: 0.003\n"

@@ -12,7 +12,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from cstomo_sensor.bench_node import COLUMNS, cpu_seconds, markdown, memory_mb  # noqa: E402
+from cstomo_sensor.tools.bench.node import COLUMNS, cpu_seconds, markdown, memory_mb  # noqa: E402
 
 
 def test_proc_readers_on_self():
@@ -24,7 +24,7 @@ def test_proc_readers_on_self():
 def test_bench_node_smoke(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
                ROS_DOMAIN_ID=str(30 + (os.getpid() + 35) % 70))  # a domain of its own, not the suite's
-    r = subprocess.run([sys.executable, "-m", "cstomo_sensor.cli", "bench-node", "--rates", "100", "--stress", "1",
+    r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--rates", "100", "--stress", "1",
                         "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
                        env=env, capture_output=True, text=True, timeout=150)
     assert r.returncode == 0, r.stdout + r.stderr

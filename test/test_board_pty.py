@@ -9,7 +9,7 @@ from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
 from cstomo_sensor.board.wire import DataFrame, encode
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.pattern import MeasurementPattern
+from cstomo_sensor.model.pattern import MeasurementPattern
 
 RATE = 400.0
 
@@ -219,7 +219,7 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
             seen.update(kw)
             return CountingSource()
 
-    monkeypatch.setitem(sys.modules, "cstomo_sensor.simulate", types.SimpleNamespace(VoltageSource=StandIn))
+    monkeypatch.setitem(sys.modules, "cstomo_sensor.model.simulate", types.SimpleNamespace(VoltageSource=StandIn))
     link = tmp_path / "board"
     with BoardDriver(str(link), reconnect_backoff=(0.01, 0.02)) as driver:
         argv = ["--sensor", "cuboid_joint", "--load-script", "x.csv", "--rate", "300", "--duration", "0.6",

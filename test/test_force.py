@@ -8,12 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import angle_between, force_from_angles, planar_angle
-from cstomo_sensor.pipeline import Pipeline, PipelineConfig
-from cstomo_sensor.simulate import Load, Scene, Truth, add_noise, simulate
-
-from conftest import MODEL_H, TRUTH_H
+from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.model.simulate import Load, Scene, Truth, add_noise, simulate
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 
@@ -89,8 +88,8 @@ def _hot(model, x, frac=0.5):
     ("cylinder_two_heads_fig8.yaml", [(-0.008, 0.0), (0.008, 0.0)]),
 ])
 def test_patch_loads_imaged_at_the_loaded_place(scene, checks):
-    from cstomo_sensor.geometry import load_sensor
-    from cstomo_sensor.reconstruction import ReconSpec, build_model
+    from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
+    from cstomo_sensor.model.geometry import load_sensor
 
     sc = Scene.load(SCENES / scene)
     g = load_sensor(sc.sensor)
@@ -113,8 +112,8 @@ def test_patch_loads_imaged_at_the_loaded_place(scene, checks):
 
 
 def test_cli_simulate_then_estimate(tmp_path):
-    from cstomo_sensor.cli import main
     from cstomo_sensor.frames_io import read_forces
+    from cstomo_sensor.tools.cli import main
 
     assert main(["simulate", "--scene", str(SCENES / "cuboid_planar_60db.yaml"), "--out", str(tmp_path)]) == 0
     for name in ("reference.csv", "frames.csv", "truth.csv"):

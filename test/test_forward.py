@@ -1,11 +1,11 @@
 """Forward model: exact checks, reciprocity, conservation, symmetry, convergence, caching."""
 import numpy as np
 import pytest
-
-from cstomo_sensor.fem import CEMSystem, ForwardModel, local_stiffness
-from cstomo_sensor.mesh import MeshSpec, TetMesh, build_mesh, cache_load, cache_save, face_patch
-
 from conftest import MODEL_H, TRUTH_H
+
+from cstomo_sensor.cache import cache_load, cache_save
+from cstomo_sensor.model.cem import CEMSystem, ForwardModel, local_stiffness
+from cstomo_sensor.model.mesh import MeshSpec, TetMesh, build_mesh, face_patch
 
 
 def box_mesh(lx, ly, lz, n):
@@ -138,7 +138,8 @@ def test_stale_cache_entry_is_rebuilt_not_used(tmp_path):
 
 
 def test_cache_key_changes_with_every_mesh_input(cuboid):
-    from cstomo_sensor.mesh import _mesh_inputs, input_hash
+    from cstomo_sensor.cache import input_hash
+    from cstomo_sensor.model.mesh import _mesh_inputs
 
     base = input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3)))
     moved = cuboid.with_electrodes((cuboid.electrodes[0].__class__(

@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.geometry import load_sensor, preset_dirs, sensor_from_dict
+from cstomo_sensor.model.geometry import load_sensor, preset_dirs, sensor_from_dict
 
 
 @pytest.fixture()

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cstomo_sensor.errors import ConfigError, FrameError
-from cstomo_sensor.landweber import (
+from cstomo_sensor.inverse.landweber import (
     LandweberSVD,
     choose_by_discrepancy,
     choose_by_gcv,

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from cstomo_sensor.geometry import Material
-from cstomo_sensor.material import (
+from cstomo_sensor.model.material import (
     SIGMA_FLOOR_FRACTION,
+    Material,
     StressField,
     conductivity_of_theta,
     dlog_conductivity_dtheta,

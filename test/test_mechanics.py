@@ -14,8 +14,9 @@ from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm
 from skfem.models.elasticity import lame_parameters, linear_elasticity
 
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.geometry import Material, load_sensor
-from cstomo_sensor.mechanics import solve, solve_patch_load, solve_socket_load, uniaxial_compression
+from cstomo_sensor.model.elasticity import solve, solve_patch_load, solve_socket_load, uniaxial_compression
+from cstomo_sensor.model.geometry import load_sensor
+from cstomo_sensor.model.material import Material
 
 GEOM = load_sensor("cuboid_joint")
 C = np.array([0.0, 0.0, 0.02])
@@ -228,7 +229,7 @@ def test_patch_errors(coarse):
 
 
 def test_package_does_not_import_skfem():
-    code = "import sys, cstomo_sensor, cstomo_sensor.material; assert 'skfem' not in sys.modules"
+    code = "import sys, cstomo_sensor, cstomo_sensor.model.material; assert 'skfem' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

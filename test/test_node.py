@@ -1,102 +1,17 @@
-"""cstomo_sensor_node with real rclpy and a simulated board on a real pseudo-terminal.
-
-Also holds the small ROS harness that test_replay and test_launch import (ros_env, Harness).
-DDS stays on this host: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST and a domain per process, set here
-before rclpy starts.
-"""
+"""cstomo_sensor_node with real rclpy and a simulated board on a real pseudo-terminal (the harness
+and the local-only DDS set-up are in conftest.py)."""
 from __future__ import annotations
 
 import os
-import threading
-import time
 
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
+import numpy as np
+import pytest
+from conftest import PIPE, Harness, wait_for
 
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from cstomo_sensor.errors import ConfigError  # noqa: E402
-from cstomo_sensor.messages import ClockMapper  # noqa: E402
+from cstomo_sensor.board.clock import ClockMapper
+from cstomo_sensor.errors import ConfigError
 
 rclpy = pytest.importorskip("rclpy")
-
-# Small, fast reconstruction settings for every ROS test (the model is cached after the first build).
-PIPE = dict(sensor="cuboid_joint", estimator="linear", mesh_size=4.0e-3, grid=[6, 6, 3], iterations=0, damping=0.0)
-
-
-# --- harness ---------------------------------------------------------------------------------------
-
-
-def wait_for(pred, timeout: float = 10.0, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(step)
-    return True
-
-
-class Harness:
-    """The node under test plus a probe node, spun by one MultiThreadedExecutor in a thread."""
-
-    def __init__(self, context, params: dict, name: str = "cstomo_sensor") -> None:
-        from rclpy.executors import MultiThreadedExecutor
-        from rclpy.node import Node
-        from rclpy.parameter import Parameter
-
-        from cstomo_sensor.node import CstomoSensorNode
-
-        self.node = CstomoSensorNode(name, context=context,
-                                     parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
-        self.probe = Node("probe", context=context)
-        self.executor = MultiThreadedExecutor(num_threads=3, context=context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.probe)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self._thread.start()
-        self._lock = threading.Lock()
-
-    def record(self, topic: str, msg_type, depth: int = 1000) -> list:
-        """Record ``topic`` (reliable); returns the list that receives (monotonic time, msg)."""
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
-
-        out: list = []
-
-        def cb(msg):
-            with self._lock:
-                out.append((time.monotonic(), msg))
-
-        self.probe.create_subscription(msg_type, topic, cb, QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE))
-        return out
-
-    def state(self) -> str:
-        return self.node._state_machine.current_state[1]
-
-    def call_tare(self, timeout: float = 20.0):
-        from std_srvs.srv import Trigger
-
-        cli = self.probe.create_client(Trigger, f"{self.node.get_fully_qualified_name()}/tare")
-        assert cli.wait_for_service(5.0)
-        fut = cli.call_async(Trigger.Request())
-        assert wait_for(fut.done, timeout)
-        return fut.result()
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self._thread.join(5.0)
-        self.node._release()
-        self.node.destroy_node()
-        self.probe.destroy_node()
-
-
-@pytest.fixture(scope="module")
-def ros():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
 
 # --- ClockMapper (pure) ----------------------------------------------------------------------------
 
@@ -160,7 +75,7 @@ def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
     from rclpy.parameter import Parameter
 
-    from cstomo_sensor.node import CstomoSensorNode
+    from cstomo_sensor.ros.node import CstomoSensorNode
 
     with pytest.raises(InvalidParameterValueException, match="stale_timeout"):
         CstomoSensorNode("bad_range", context=ros, parameter_overrides=[Parameter("stale_timeout", value=-1.0)])
@@ -169,7 +84,7 @@ def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
 
 
 def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_restart_is_needed(ros):
-    from cstomo_sensor.node import PARAMETERS, CstomoSensorNode
+    from cstomo_sensor.ros.node import PARAMETERS, CstomoSensorNode
 
     node = CstomoSensorNode("introspect", context=ros, parameter_overrides=[rclpy.parameter.Parameter("autostart", value=False)])
     try:
@@ -225,7 +140,7 @@ def source():
 @pytest.fixture(scope="module")
 def warm_model():
     """Build the Pipeline once (into the test cache); every node below loads it in well under a second."""
-    from cstomo_sensor.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
@@ -336,8 +251,9 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
 
 
 def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path, source, warm_model):
-    from cstomo_sensor.board.sim import FaultConfig
     from geometry_msgs.msg import WrenchStamped
+
+    from cstomo_sensor.board.sim import FaultConfig
 
     h, board = start(ros, tmp_path, source, faults=FaultConfig(stall_at=1.5, stall_for=2.5), rate=100.0,
                      tare_on_start=True, tare_frames=5)
@@ -361,9 +277,10 @@ def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path
 def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, warm_model):
     """The board disappears and returns, flips bits, sends garbage, saturates a channel and loses an
     electrode: diagnostics report each, the node recovers without a restart and keeps publishing."""
-    from cstomo_sensor.board.sim import FaultConfig
-    from cstomo_sensor.pattern import MeasurementPattern
     from geometry_msgs.msg import WrenchStamped
+
+    from cstomo_sensor.board.sim import FaultConfig
+    from cstomo_sensor.model.pattern import MeasurementPattern
 
     faults = FaultConfig(disconnect_at=1.5, reappear_after=1.5, bit_flip=0.05, garbage=0.05,
                          saturate_channel=7, dead_electrode=3)

@@ -1,8 +1,7 @@
 """The generated measurement order against the paper's appendix B and C tables (legible rows)."""
-import numpy as np
 import pytest
 
-from cstomo_sensor.pattern import MeasurementPattern
+from cstomo_sensor.model.pattern import MeasurementPattern
 
 # (row, drive pair, measure pair), 1-based, transcribed from the paper's appendix B (one layer).
 # "20 6,7 8,9" is printed with a garbled row number: it is row 70 (REFERENCE_SENSOR.md s.2).

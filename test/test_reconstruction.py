@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from cstomo_sensor.cache import input_hash
 from cstomo_sensor.errors import FrameError, ModelMismatchError
-from cstomo_sensor.landweber import LandweberSVD, landweber
-from cstomo_sensor.pattern import MeasurementPattern
-from cstomo_sensor.reconstruction import ReconSpec, ReconstructionModel, model_inputs
-from cstomo_sensor.mesh import input_hash
-from cstomo_sensor.simulate import Load, add_noise
+from cstomo_sensor.inverse.landweber import LandweberSVD, landweber
+from cstomo_sensor.inverse.reconstruction import ReconSpec, ReconstructionModel, model_inputs
+from cstomo_sensor.model.pattern import MeasurementPattern
+from cstomo_sensor.model.simulate import Load, add_noise
 
 
 @pytest.fixture(scope="module")
@@ -127,13 +127,13 @@ def test_frames_with_nan_or_inf_refused(cuboid_model, bad):
 
 
 def test_masked_channels_ignored(cuboid_model, cuboid_truth):
-    from cstomo_sensor.estimate import LinearEstimator
-    from cstomo_sensor.pipeline import Pipeline
+    from cstomo_sensor.force.estimate import LinearEstimator
+    from cstomo_sensor.force.pipeline import Pipeline
 
     n = cuboid_model.n_meas
     est = LinearEstimator(np.random.default_rng(0).standard_normal((20, 3)),
                           np.random.default_rng(1).standard_normal((20, n)) * 0.01, np.full(n, 1e-3), 1e-3)
-    from cstomo_sensor.geometry import load_sensor
+    from cstomo_sensor.model.geometry import load_sensor
 
     pipe = Pipeline(load_sensor("cuboid_joint"), cuboid_model, est)
     pipe.set_reference(cuboid_truth.reference)
@@ -155,7 +155,7 @@ def test_extreme_contrasts_give_finite_images(cuboid_model, cuboid_truth, contra
     v = cuboid_truth.voltages(Load("inclusion", inclusion=(0, 0, 0.01, 0.004, contrast)))
     x = cuboid_model.reconstruct(v, cuboid_truth.reference)
     assert np.all(np.isfinite(x))
-    from cstomo_sensor.material import StressField
+    from cstomo_sensor.model.material import StressField
 
     f = StressField.from_conductivity_change(x, cuboid_truth.geometry.material)
     assert np.all(np.isfinite(f.pressure)) and np.all(np.isfinite(f.volumetric_compression))
@@ -176,8 +176,8 @@ def test_model_file_round_trip_and_mismatch(cuboid_model, cuboid, tmp_path):
 
 
 def test_cli_reconstruct_writes_field(cuboid_model, cuboid_truth, tmp_path):
-    from cstomo_sensor.cli import main
     from cstomo_sensor.frames_io import write_frames
+    from cstomo_sensor.tools.cli import main
 
     write_frames(tmp_path / "ref.csv", cuboid_truth.reference[None])
     frames = np.array([cuboid_truth.voltages(Load("inclusion", inclusion=(0, 0, 0.01, 0.004, 1.0)))] * 2)

@@ -3,20 +3,15 @@ the same bag played message by message, with its timing, into the node in topic 
 outputs equal replay's frame by frame (stamps aside)."""
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ["ROS_DOMAIN_ID"] = str(100 + os.getpid() % 100)
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
+import numpy as np
+import pytest
+from conftest import PIPE, Harness, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 pytest.importorskip("rosbags")
-
-from test_node import PIPE, Harness, wait_for  # noqa: E402
 
 BAG = Path(__file__).resolve().parent / "data" / "raw_voltages_bag"
 TARE = 10
@@ -26,14 +21,14 @@ FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 
 @pytest.fixture(scope="module")
 def config():
-    from cstomo_sensor.pipeline import PipelineConfig
+    from cstomo_sensor.force.pipeline import PipelineConfig
 
     return PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
 
 
 @pytest.fixture(scope="module")
 def pipe(config):
-    from cstomo_sensor.pipeline import Pipeline
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(config)
 
@@ -43,8 +38,8 @@ def read_bag(path):
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
 
-    from cstomo_sensor.messages import TOPIC_TYPES
-    from cstomo_sensor.node import _msg_class
+    from cstomo_sensor.ros.messages import TOPIC_TYPES
+    from cstomo_sensor.ros.node import _msg_class
 
     out: dict[str, list] = {}
     with Reader(path) as r:
@@ -63,7 +58,7 @@ def force_rows(msgs: dict, ns: str = "/cstomo_sensor/") -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def replayed(tmp_path_factory, config, pipe):
-    from cstomo_sensor.replay import replay
+    from cstomo_sensor.tools.replay import replay
 
     out = tmp_path_factory.mktemp("replay") / "out"
     s = replay(BAG, out, config, tare_frames=TARE, stress_field_every=EVERY, pipeline=pipe)
@@ -94,7 +89,7 @@ def test_replay_with_a_reference_file_equals_the_tare_on_the_first_frames(tmp_pa
     from std_msgs.msg import Float32MultiArray
 
     from cstomo_sensor.frames_io import write_frames
-    from cstomo_sensor.replay import replay
+    from cstomo_sensor.tools.replay import replay
 
     with Reader(BAG) as r:
         first = [np.asarray(deserialize_message(bytes(raw), Float32MultiArray).data, float)
@@ -111,14 +106,14 @@ def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.replay import main, replay
+    from cstomo_sensor.tools.replay import main, replay
 
     mcap = tmp_path / "mcap_in"
     with Reader(BAG) as r, Writer(mcap, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest) for c in r.connections}
         for c, t, raw in r.messages():
             w.write(conns[c.id], t, raw)
-    args = [str(mcap), "--out", str(tmp_path / "out"), "--mesh-size", str(PIPE["mesh_size"] * 1e3),
+    args = [str(mcap), "--out", str(tmp_path / "out"), "--mesh-size", str(PIPE["mesh_size"]),
             "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE), "--storage", "mcap"]
     assert main(args) == 0
     assert "results written" in capsys.readouterr().out

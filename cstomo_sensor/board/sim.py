@@ -6,12 +6,9 @@ rate (absolute-time schedule, board clock in monotonic microseconds) and can inj
 """
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import select
-import signal
-import sys
 import threading
 import time
 import tty
@@ -21,8 +18,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from ..errors import ConfigError, CstomoError
-from ..pattern import MeasurementPattern
+from ..errors import ConfigError
+from ..model.pattern import MeasurementPattern
 from .wire import (
     DRIVE_CURRENT_A,
     N_ELECTRODES,
@@ -411,72 +408,3 @@ class SimulatedBoard:
             self._sent += 1
             if self._first_seq[-1] < 0:
                 self._first_seq[-1] = seq
-
-
-# --- command line -----------------------------------------------------------------------------
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
-    p.add_argument("--sensor", required=True, help="sensor preset name or YAML path")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="scene YAML file")
-    src.add_argument("--load-script", help="load script CSV (time,fx,fy,fz)")
-    p.add_argument("--rate", type=float, required=True, help="frames per second")
-    p.add_argument("--duration", type=float, help="seconds to run (default: until SIGINT/SIGTERM)")
-    p.add_argument("--protocol", default="binary", help="binary (default) or text")
-    p.add_argument("--link", help="symlink kept pointing at the current pty")
-    p.add_argument("--snr", type=float, default=60.0, help="signal-to-noise ratio in dB (default 60)")
-    p.add_argument("--seed", type=int, default=0)
-    g = p.add_argument_group("faults")
-    g.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--truncate", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--garbage", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--garbage-bytes", type=int, default=48, metavar="N")
-    g.add_argument("--nan", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--stall-at", type=float, metavar="S")
-    g.add_argument("--stall-for", type=float, default=0.0, metavar="S")
-    g.add_argument("--disconnect-at", type=float, metavar="S")
-    g.add_argument("--reappear-after", type=float, default=0.5, metavar="S")
-    g.add_argument("--saturate-channel", type=int, metavar="I", help="value index 0..207")
-    g.add_argument("--full-scale", type=float, default=2.5, metavar="V")
-    g.add_argument("--dead-electrode", type=int, metavar="E", help="electrode index 0..15")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
-    args = _parser().parse_args(argv)
-    from ..geometry import load_sensor
-    from ..simulate import VoltageSource
-
-    try:
-        faults = FaultConfig(
-            bit_flip=args.bit_flip, drop=args.drop, truncate=args.truncate, garbage=args.garbage,
-            garbage_bytes=args.garbage_bytes, nan=args.nan, stall_at=args.stall_at, stall_for=args.stall_for,
-            disconnect_at=args.disconnect_at, reappear_after=args.reappear_after,
-            saturate_channel=args.saturate_channel, full_scale=args.full_scale, dead_electrode=args.dead_electrode,
-        )
-        layers = load_sensor(args.sensor).layers
-        source = VoltageSource.from_args(
-            sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
-        )
-        board = SimulatedBoard(
-            source, protocol=args.protocol, rate_hz=args.rate, duration=args.duration, link=args.link,
-            faults=faults, seed=args.seed, layers=layers,
-        )
-    except CstomoError as err:
-        print(f"cstomo board-sim: {err}", file=sys.stderr)
-        return 2
-    previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    print(f"device: {board.device}", flush=True)
-    try:
-        board.run()
-    finally:
-        board.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    st = board.stats()
-    print(f"sent {st.sent} frames; injected {st.injected}", file=sys.stderr)
-    return 0

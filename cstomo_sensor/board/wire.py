@@ -12,9 +12,11 @@ import struct
 import zlib
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import ClassVar, Union
+from typing import ClassVar
 
 import numpy as np
+
+from ..errors import FrameError
 
 PROTOCOL_VERSION = 1
 PROTOCOLS = ("binary", "text")  # the two wire modes a board may speak
@@ -215,7 +217,7 @@ class DataFrame:
         for name, shape in (("values", (N_VALUES,)), ("saturated", (N_VALUES,)), ("contact_ok", (N_ELECTRODES,))):
             a = getattr(self, name)
             if np.shape(a) != shape:
-                raise ValueError(f"DataFrame.{name}.shape={np.shape(a)}, expected {shape}")
+                raise FrameError(f"DataFrame.{name}.shape={np.shape(a)}, expected {shape}")
 
     def payload(self) -> bytes:
         contact = int(np.packbits(np.asarray(self.contact_ok, bool), bitorder="little").view("<u2")[0])
@@ -224,7 +226,7 @@ class DataFrame:
         return head + sat + np.asarray(self.values, "<f4").tobytes()
 
 
-Message = Union[Identify, Start, Stop, SetCurrent, SetPattern, Identity, Ack, Error, DataFrame]
+Message = Identify | Start | Stop | SetCurrent | SetPattern | Identity | Ack | Error | DataFrame
 
 
 def encode(msg: Message) -> bytes:

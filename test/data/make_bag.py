@@ -2,10 +2,10 @@
 
     .venv/bin/python test/data/make_bag.py
 
-A simulated device (cstomo_sensor.simulate.VoltageSource: honest simulation, independent mesh,
+A simulated device (cstomo_sensor.model.simulate.VoltageSource: honest simulation, independent mesh,
 mismatched electrodes, 60 dB noise) follows a load script: unloaded, then four socket forces, then
 unloaded again; 50 frames per second for 4 s, recorded as the node records them
-(std_msgs/Float32MultiArray on /cstomo_sensor/raw_voltages, built by cstomo_sensor.messages).
+(std_msgs/Float32MultiArray on /cstomo_sensor/raw_voltages, built by cstomo_sensor.ros.messages).
 """
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ def main() -> int:
     from rosbags.typesys import Stores, get_typestore
 
     from cstomo_sensor.frames_io import write_forces
-    from cstomo_sensor.messages import TOPIC_TYPES, raw_voltages_msg
-    from cstomo_sensor.simulate import VoltageSource
+    from cstomo_sensor.model.simulate import VoltageSource
+    from cstomo_sensor.ros.messages import TOPIC_TYPES, raw_voltages_msg
 
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / "load.csv"

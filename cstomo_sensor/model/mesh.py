@@ -1,4 +1,6 @@
-"""Tetrahedral meshes of the sensor bodies, their electrode patches, quality, and the disk cache.
+"""Tetrahedral meshes of the sensor bodies, their electrode patches, quality.
+
+Meshes are cached on disk (:mod:`cstomo_sensor.cache`).
 
 The surface is made with pyvista, the tetrahedra with pytetwild (both imported only when a mesh is
 actually built). One knob sets the size: ``h``, the target edge length in metres; a sizing field
@@ -12,69 +14,25 @@ electrode is jittered (the honest-simulation mismatch).
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, MeshError
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..errors import ConfigError, MeshError
 from .geometry import SensorGeometry
 
 log = logging.getLogger(__name__)
 
 MESH_FORMAT = 3  # bump when the mesher or the file layout changes: old cache entries are not reused
+MESH_SIZE_RANGE = (2.0e-4, 2.0e-2)  # m: the element sizes a mesh may be asked for
 MIN_QUALITY = 0.02  # smallest accepted normalised tetrahedron quality (1 = regular, 0 = flat)
-
-
-def default_cache_dir() -> Path:
-    """``$CSTOMO_CACHE_DIR``, else ``$XDG_CACHE_HOME/cstomo_sensor``, else ``~/.cache/cstomo_sensor``."""
-    if os.environ.get("CSTOMO_CACHE_DIR"):
-        return Path(os.environ["CSTOMO_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "cstomo_sensor"
-
-
-def input_hash(inputs: dict) -> str:
-    """SHA-256 (24 hex digits) of a JSON-able dict of every input."""
-    return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=_jsonable).encode()).hexdigest()[:24]
-
-
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    raise TypeError(f"not hashable into a cache key: {type(o)}")
-
-
-def cache_load(path: Path, key: str) -> dict[str, np.ndarray] | None:
-    """Arrays of a cache entry if it exists and was written for ``key``; else None (a stale or
-    unreadable entry is logged and ignored, so the caller rebuilds it)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["cache_key"]) != key:
-                log.warning("cache entry %s was built for other inputs: rebuilding", path)
-                return None
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError) as err:
-        log.warning("cache entry %s unreadable (%s): rebuilding", path, err)
-        return None
-
-
-def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:
-    """Write arrays atomically (no pickle) with their key."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
-    np.savez(tmp, cache_key=np.array(key), **arrays)
-    os.replace(tmp, path)
 
 
 @dataclass(frozen=True)
@@ -266,7 +224,7 @@ class MeshSpec:
     refine_socket: bool = True
 
     def __post_init__(self) -> None:
-        if not (2.0e-4 <= self.h <= 2.0e-2):
+        if not (MESH_SIZE_RANGE[0] <= self.h <= MESH_SIZE_RANGE[1]):
             raise ConfigError(f"mesh size h={self.h!r} m: expected 0.2 mm <= h <= 20 mm")
         if self.h_electrode is not None and not (5e-5 <= self.h_electrode <= self.h):
             raise ConfigError(f"h_electrode={self.h_electrode!r} m: expected 0.05 mm <= h_electrode <= h")
@@ -277,7 +235,7 @@ class MeshSpec:
 
 
 def _surface(geometry: SensorGeometry, h: float):
-    import pyvista as pv
+    import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     H = geometry.height
     if geometry.shape == "cuboid":
@@ -299,7 +257,7 @@ def _surface(geometry: SensorGeometry, h: float):
 
 def _sizing_field(geometry: SensorGeometry, spec: MeshSpec):
     """A background tetrahedral grid with target edge lengths (fTetWild's --bg-mesh)."""
-    import pyvista as pv
+    import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     lo = np.array([-geometry.horizontal_half_extent] * 2 + [0.0]) - 1e-3
     hi = np.array([geometry.horizontal_half_extent] * 2 + [geometry.height]) + 1e-3
@@ -321,7 +279,6 @@ def _sizing_field(geometry: SensorGeometry, spec: MeshSpec):
 
 
 def _mesh_inputs(geometry: SensorGeometry, spec: MeshSpec) -> dict:
-    from importlib.metadata import version
 
     return {
         "format": MESH_FORMAT,
@@ -351,7 +308,7 @@ def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir:
         mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),
                        info={"cache_hit": True, "key": key, "seconds": {"mesh": time.perf_counter() - t0}})
         return mesh
-    import pytetwild
+    import pytetwild  # heavy: only when a mesh is built
 
     log.info("meshing %s with h=%.2f mm, electrodes %.2f mm (pytetwild; cached afterwards)",
              geometry.name, spec.h * 1e3, spec.he * 1e3)

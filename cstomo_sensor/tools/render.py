@@ -20,12 +20,21 @@ from pathlib import Path
 
 import numpy as np
 
+from ..angles import planar_angle
+from ..errors import ConfigError, CstomoError, ModelMismatchError
+from ..force.pipeline import Pipeline, PipelineConfig
+from ..inverse.reconstruction import voxel_basis
+from ..model.geometry import load_sensor
+from ..model.material import pressure_of_theta
+from ..model.mesh import MeshSpec, build_mesh, electrode_patches
+from ..model.simulate import Scene, add_noise
+
 WINDOW = (1200, 600)
-DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "scenes" / "cuboid_planar_60db.yaml"
+DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "cuboid_planar_60db.yaml"
 
 
 def _grid(points: np.ndarray, tets: np.ndarray, **cell_data):
-    import pyvista as pv
+    import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     cells = np.hstack([np.full((len(tets), 1), 4), tets]).ravel()
     g = pv.UnstructuredGrid(cells, np.full(len(tets), pv.CellType.TETRA, dtype=np.uint8), points * 1e3)
@@ -35,7 +44,7 @@ def _grid(points: np.ndarray, tets: np.ndarray, **cell_data):
 
 
 def _plotter(shape=(1, 2)):
-    import pyvista as pv
+    import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     pv.OFF_SCREEN = True
     p = pv.Plotter(off_screen=True, window_size=list(WINDOW), shape=shape, border=False)
@@ -49,9 +58,8 @@ def _view(p) -> None:
 
 
 def render_mesh(mesh, patches, out: Path) -> Path:
-    import matplotlib
-
-    import pyvista as pv
+    import matplotlib  # heavy: only when a picture is drawn
+    import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     p = _plotter((1, 1))
     p.add_mesh(_grid(mesh.points, mesh.tets).extract_surface(algorithm="dataset_surface"), color="lightgrey", show_edges=True,
@@ -128,10 +136,10 @@ def render_case(truth_grid, recon_grid, label: str, out: Path, i: int) -> list[P
 
 
 def render_voltages(ref: np.ndarray, frames: np.ndarray, labels: list[str], out: Path) -> Path:
-    import matplotlib
+    import matplotlib  # heavy: only when a picture is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: only when a picture is drawn
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(WINDOW[0] / 100, WINDOW[1] / 100), dpi=100)
     k = np.arange(1, len(ref) + 1)
@@ -156,14 +164,6 @@ def render_voltages(ref: np.ndarray, frames: np.ndarray, labels: list[str], out:
 def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, cache_dir=None,
            say=print) -> list[Path]:
     """Render every view; returns the PNG paths."""
-    from .angles import planar_angle
-    from .errors import ConfigError
-    from .geometry import load_sensor
-    from .material import pressure_of_theta
-    from .mesh import MeshSpec, build_mesh, electrode_patches
-    from .pipeline import Pipeline, PipelineConfig
-    from .reconstruction import voxel_basis
-    from .simulate import Scene, add_noise
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -175,7 +175,8 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
     pipe = Pipeline.build(cfg)
     mesh = build_mesh(geometry, MeshSpec(h=cfg.mesh_size), cache_dir)
     cell_voxel, _, _ = voxel_basis(geometry, mesh, cfg.grid)
-    assert cell_voxel.max() + 1 == pipe.model.n_cells
+    if cell_voxel.max() + 1 != pipe.model.n_cells:
+        raise ModelMismatchError(f"mesh gives {cell_voxel.max() + 1} voxels, the model {pipe.model.n_cells}: rebuild the cache")
     paths = [render_mesh(mesh, electrode_patches(mesh, geometry), out)]
     say(f"wrote {paths[-1]}")
     # the scene, simulated exactly as `cstomo simulate` does (frames_per_load = 1 per load)
@@ -207,7 +208,6 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .errors import CstomoError
 
     p = argparse.ArgumentParser(prog="cstomo render", description=__doc__.splitlines()[0])
     p.add_argument("--sensor", default="cuboid_joint", help="preset name or geometry YAML path")

@@ -21,14 +21,14 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 
-from .errors import ConfigError, FrameError
+from ..errors import ConfigError, FrameError
 
 __all__ = [
     "landweber",
@@ -346,7 +346,7 @@ class LandweberSVD:
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
-    def from_jacobian(cls, J: np.ndarray, rtol: float = 1e-10) -> "LandweberSVD":
+    def from_jacobian(cls, J: np.ndarray, rtol: float = 1e-10) -> LandweberSVD:
         """Thin SVD of ``J`` truncated to the singular values ``> rtol * s_max``.
 
         Parameters
@@ -363,7 +363,7 @@ class LandweberSVD:
         return cls._from_matrix(J, np.ones(J.shape[0], dtype=bool), rtol)
 
     @classmethod
-    def _from_matrix(cls, J: np.ndarray, keep: np.ndarray, rtol: float) -> "LandweberSVD":
+    def _from_matrix(cls, J: np.ndarray, keep: np.ndarray, rtol: float) -> LandweberSVD:
         try:
             U, s, Vt = scipy.linalg.svd(J, full_matrices=False, lapack_driver="gesdd")
         except np.linalg.LinAlgError:  # gesdd occasionally fails to converge; gesvd is slower but robust
@@ -455,7 +455,7 @@ class LandweberSVD:
         c = self.U.T @ y
         return self.Vt.T @ (f.reshape((-1,) + (1,) * (c.ndim - 1)) * c)
 
-    def masked(self, keep: np.ndarray) -> "LandweberSVD":
+    def masked(self, keep: np.ndarray) -> LandweberSVD:
         """The LandweberSVD of ``J[keep]`` with ``R`` expanded back to ``n_meas`` columns.
 
         Dropped measurements (a broken electrode, a saturated channel) get zero rows in ``U`` and so

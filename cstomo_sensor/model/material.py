@@ -37,9 +37,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .geometry import Material
+from ..errors import ConfigError, require_positive
 
 __all__ = [
+    "Material",
     "SIGMA_FLOOR_FRACTION",
     "StressField",
     "conductivity_floor",
@@ -51,6 +52,45 @@ __all__ = [
     "theta_of_conductivity",
     "theta_of_conductivity_change",
 ]
+
+@dataclass(frozen=True)
+class Material:
+    """Piezoresistive rubber (paper eqs. (2), (9), (11)) and its elasticity."""
+
+    E: float = 1.0e6  # Young's modulus, Pa
+    nu: float = 0.45  # Poisson's ratio
+    phi0: float = 0.06  # filler volume fraction at rest
+    phi_c: float = 0.05  # percolation threshold
+    rho_h: float = 4.0e-5  # filler resistivity, ohm m
+    tau: float = 2.0  # percolation exponent
+
+    def __post_init__(self) -> None:
+        require_positive("material.E", self.E)
+        if not 0.0 <= self.nu < 0.5:
+            raise ConfigError(f"material.nu={self.nu!r}: expected 0 <= nu < 0.5")
+        require_positive("material.rho_h", self.rho_h)
+        require_positive("material.tau", self.tau)
+        if not 0.0 < self.phi_c < self.phi0 < 1.0:
+            raise ConfigError(
+                f"material.phi_c={self.phi_c!r}, material.phi0={self.phi0!r}: expected 0 < phi_c < phi0 < 1"
+            )
+
+    @property
+    def rho0(self) -> float:
+        """Unloaded resistivity, ohm m (0.361 for the reference material)."""
+        return self.rho_h * ((1.0 - self.phi_c) / (self.phi0 - self.phi_c)) ** self.tau
+
+    @property
+    def sigma0(self) -> float:
+        """Unloaded conductivity, S/m."""
+        return 1.0 / self.rho0
+
+    @property
+    def bulk_modulus(self) -> float:
+        """K = E / (3 (1 - 2 nu)), Pa."""
+        return self.E / (3.0 * (1.0 - 2.0 * self.nu))
+
+
 
 SIGMA_FLOOR_FRACTION = 1.0e-6
 """The clipped conductivity of a broken network, as a fraction of the unloaded sigma0."""
@@ -229,10 +269,10 @@ class StressField:
             "clipped": np.shape(self.clipped),
         }
         if len(set(shapes.values())) != 1:
-            raise ValueError(f"StressField: arrays must share one shape, got {shapes}")
+            raise ConfigError(f"StressField: arrays must share one shape, got {shapes}")
 
     @classmethod
-    def from_conductivity_change(cls, dsigma: ArrayLike, mat: Material) -> "StressField":
+    def from_conductivity_change(cls, dsigma: ArrayLike, mat: Material) -> StressField:
         """Apply the inverse law and K theta to a conductivity change.
 
         Parameters

@@ -25,11 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, FrameError, ModelMismatchError
-from .fem import ForwardModel
-from .geometry import SensorGeometry
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..errors import ConfigError, ModelMismatchError
+from ..frames_io import check_frame
+from ..model.cem import ForwardModel
+from ..model.geometry import SensorGeometry
+from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
 from .landweber import LandweberSVD, choose_by_discrepancy
-from .mesh import MeshSpec, TetMesh, build_mesh, cache_load, cache_save, default_cache_dir, input_hash
 
 log = logging.getLogger(__name__)
 
@@ -53,17 +55,21 @@ class ReconSpec:
     snr_db: float = 60.0
 
     def __post_init__(self) -> None:
-        MeshSpec(h=self.mesh_size)  # validates the size
-        g = tuple(int(v) for v in self.grid)
+        if not MESH_SIZE_RANGE[0] <= self.mesh_size <= MESH_SIZE_RANGE[1]:
+            raise ConfigError.bad_value("mesh_size", self.mesh_size, "metres, 0.0002 <= mesh_size <= 0.02")
+        try:
+            g = tuple(int(v) for v in self.grid)
+        except (TypeError, ValueError):
+            g = ()
         if len(g) != 3 or min(g) < 1 or max(g) > 64:
-            raise ConfigError(f"grid={self.grid!r}: expected three integers in 1..64")
+            raise ConfigError.bad_value("grid", self.grid, "three integers in 1..64")
         object.__setattr__(self, "grid", g)
         if self.iterations is not None and not (1 <= int(self.iterations) <= 10**9):
-            raise ConfigError(f"iterations={self.iterations!r}: expected None (automatic) or 1..1e9")
+            raise ConfigError.bad_value("iterations", self.iterations, "None (automatic) or 1..1e9")
         if not (0.0 <= self.damping < 1e6) or not np.isfinite(self.damping):
-            raise ConfigError(f"damping={self.damping!r}: expected >= 0 (relative to s_max^2)")
+            raise ConfigError.bad_value("damping", self.damping, ">= 0 (relative to s_max^2)")
         if not (0.0 < self.snr_db <= 200.0):
-            raise ConfigError(f"snr_db={self.snr_db!r}: expected 0 < snr_db <= 200")
+            raise ConfigError.bad_value("snr_db", self.snr_db, "0 < snr_db <= 200")
 
 
 def voxel_basis(geometry: SensorGeometry, mesh: TetMesh, grid: tuple[int, int, int]):
@@ -122,22 +128,15 @@ class ReconstructionModel:
 
     def normalise(self, frames: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """``y = (V - V_ref) / v_scale`` for (n_meas,) or (n_frames, n_meas) frames; refuses NaN/Inf."""
-        v = np.asarray(frames, dtype=float)
-        ref = np.asarray(reference, dtype=float)
-        for name, a in (("frame", v), ("reference", ref)):
-            if a.shape[-1] != self.n_meas:
-                raise FrameError(f"{name} has {a.shape[-1]} values per frame, expected {self.n_meas}")
-            bad = ~np.isfinite(a)
-            if bad.any():
-                raise FrameError(f"{name} holds {int(bad.sum())} NaN/Inf values; expected finite volts")
-        return (v - ref) / self.v_scale
+        v = check_frame(frames, self.n_meas, "frame", batch=True)
+        return (v - check_frame(reference, self.n_meas, "reference")) / self.v_scale
 
     def reconstruct(self, frames: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """Conductivity change per voxel, S/m: (n_voxels,) or (n_frames, n_voxels)."""
         y = self.normalise(frames, reference)
         return (y @ self.R.T.astype(np.float64)) * self.sigma0
 
-    def with_settings(self, iterations: int, damping: float = 0.0) -> "ReconstructionModel":
+    def with_settings(self, iterations: int, damping: float = 0.0) -> ReconstructionModel:
         """A copy whose R equals other Landweber settings (one SVD of S, no forward model)."""
         svd = LandweberSVD.from_jacobian(self.S)
         lam = damping * svd.s_max**2
@@ -154,15 +153,20 @@ class ReconstructionModel:
         cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)
 
     @classmethod
-    def load(cls, path: str | Path, key: str | None = None) -> "ReconstructionModel":
+    def load(cls, path: str | Path, key: str | None = None) -> ReconstructionModel:
         """Load; with ``key``, a model built for other inputs raises :class:`ModelMismatchError`."""
         with np.load(path, allow_pickle=False) as z:
             found = str(z["cache_key"])
             if key is not None and found != key:
                 raise ModelMismatchError(f"{path}: model built for inputs {found}, expected {key}; rebuild it")
-            s = json.loads(str(z["scalars"]))
-            return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
-                       z["volumes"], s["iterations"], s["damping"], s["step"], found, s["meta"])
+            return cls.from_arrays({k: z[k] for k in z.files})
+
+    @classmethod
+    def from_arrays(cls, z: dict[str, np.ndarray]) -> ReconstructionModel:
+        """The model of the arrays :meth:`save` writes (a cache entry as :func:`cache_load` gives it)."""
+        s = json.loads(str(z["scalars"]))
+        return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
+                   z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"])
 
 
 def model_inputs(geometry: SensorGeometry, spec: ReconSpec) -> dict:
@@ -184,8 +188,9 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     say = progress or (lambda msg: log.info("%s", msg))
     key = input_hash(model_inputs(geometry, spec))
     path = Path(cache_dir or default_cache_dir()) / "models" / f"{geometry.name}-{key}.npz"
-    if cache_load(path, key) is not None:
-        model = ReconstructionModel.load(path, key)
+    hit = cache_load(path, key)
+    if hit is not None:
+        model = ReconstructionModel.from_arrays(hit)
         model.meta["cache_hit"] = True
         return model
     seconds = {}

@@ -12,9 +12,6 @@
 from __future__ import annotations
 
 import argparse
-import os
-import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -22,9 +19,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from geometry_msgs.msg import WrenchStamped
 
-from .angles import angle_between, force_angles, force_from_angles
-from .frames_io import force_at
+from ..angles import angle_between, force_angles, force_from_angles
+from ..errors import CstomoError
+from ..force.estimate import ESTIMATORS
+from ..force.pipeline import Pipeline, PipelineConfig
+from ..frames_io import force_at, load_index
+from .common import DEFAULTS, NodeWithBoard, local_ros_env
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -49,15 +52,13 @@ def _fmt(f: np.ndarray) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="cstomo demo", description=__doc__.splitlines()[0])
-    p.add_argument("--sensor", default="cuboid_joint")
-    p.add_argument("--estimator", default="linear", choices=["linear", "model"])
+    p.add_argument("--sensor", default=DEFAULTS.sensor)
+    p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
     p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held")
     a = p.parse_args(argv)
 
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # DDS stays on this host
-    os.environ.setdefault("ROS_DOMAIN_ID", str(150 + os.getpid() % 80))
-    from .pipeline import Pipeline, PipelineConfig
+    local_ros_env(150)
 
     print("[1/3] model and force estimator (built once, then loaded from the cache)", flush=True)
     t = time.perf_counter()
@@ -69,44 +70,23 @@ def main(argv: list[str] | None = None) -> int:
     script = work / "load.csv"
     np.savetxt(script, np.column_stack([times, forces]), delimiter=",", header="time,fx,fy,fz", comments="")
     duration = float(times[-1] + a.hold)
-    link = work / "board"
-    bindir = Path(sys.executable).parent
-    procs: list[subprocess.Popen] = []
-    try:
-        node = subprocess.Popen(
-            [str(bindir / "cstomo_sensor_node"), "--ros-args", "-p", f"port:={link}", "-p", f"sensor:={a.sensor}",
-             "-p", f"estimator:={a.estimator}", "-p", "tare_on_start:=true", "-p", "tare_frames:=50",
-             "-p", f"tare_file:={work / 'tare.csv'}", "-p", "stress_field_every:=0", "--log-level", "warn"])
-        procs.append(node)
+    params = {"sensor": a.sensor, "estimator": a.estimator, "tare_on_start": "true", "tare_frames": 50,
+              "tare_file": work / "tare.csv", "stress_field_every": 0}
+    board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate), "--duration", str(duration)]
+    with NodeWithBoard(work / "board", params, board_args) as run:
         print("[2/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
               flush=True)
-        board = subprocess.Popen(
-            [str(bindir / "cstomo"), "board-sim", "--sensor", a.sensor, "--load-script", str(script), "--rate",
-             str(a.rate), "--duration", str(duration), "--link", str(link)],
-            stdout=subprocess.PIPE, text=True)
-        procs.append(board)
-        first = board.stdout.readline().strip()
-        if not first.startswith("device:"):
-            print(f"board-sim failed to start ({first!r})", file=sys.stderr)
+        try:
+            device = run.start()
+        except CstomoError as err:
+            print(f"cstomo demo: {err}", file=sys.stderr)
             return 1
         t0 = time.monotonic()
-        print(f"[3/3] board streaming on {first.split(':', 1)[1].strip()}; the node tares on its first frames\n",
-              flush=True)
-        return _watch(a, t0, duration, times, forces, labels, board)
-    finally:
-        for pr in procs:  # the node first, so it does not report the board's end as a lost port
-            if pr.poll() is None:
-                pr.send_signal(signal.SIGINT)
-                try:
-                    pr.wait(5)
-                except subprocess.TimeoutExpired:
-                    pr.kill()
+        print(f"[3/3] board streaming on {device}; the node tares on its first frames\n", flush=True)
+        return _watch(a, t0, duration, times, forces, labels, run.board)
 
 
 def _watch(a, t0, duration, times, forces, labels, board) -> int:
-    import rclpy
-    from geometry_msgs.msg import WrenchStamped
-
     rclpy.init()
     node = rclpy.create_node("cstomo_demo_view")
     latest: dict = {}
@@ -128,7 +108,7 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
             time.sleep(0.5)
             now = time.monotonic()
             t = now - t0
-            i = int(np.searchsorted(times, t, side="right")) - 1
+            i = load_index(times, t)
             true = force_at(times, forces, t)
             rate = (count[0] - last_n) / (now - last_t)
             last_n, last_t = count[0], now

@@ -26,9 +26,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import ConfigError
+from ..errors import ConfigError
 from .geometry import SensorGeometry
-from .mesh import ElectrodePatch, TetMesh, electrode_patches
+from .mesh import TetMesh, electrode_patches
 from .pattern import MeasurementPattern, pattern_for
 
 log = logging.getLogger(__name__)

@@ -32,15 +32,19 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .angles import force_from_angles
-from .errors import ConfigError
-from .fem import ForwardModel
+from ..angles import force_from_angles
+from ..errors import ConfigError
+from ..frames_io import load_index, read_load_script, write_forces, write_frames
+from . import elasticity
+from .cem import ForwardModel
 from .geometry import Electrode, SensorGeometry, load_sensor
 from .material import conductivity_of_theta
 from .mesh import MeshSpec, TetMesh, build_mesh
 
 log = logging.getLogger(__name__)
 
+
+DEFAULT_SNR_DB = 60.0  # REFERENCE_SENSOR.md section 5: the default scene's noise
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
     """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (section 5); None = no noise."""
@@ -78,7 +82,7 @@ class Load:
     inclusion: tuple = ()  # (cx, cy, cz, radius, contrast)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Load":
+    def from_dict(cls, d: dict) -> Load:
         if not isinstance(d, dict) or len(d.keys() - {"total_force"}) != 1:
             raise ConfigError(f"load {d!r}: expected one of socket:, patches: (+ total_force:), inclusion:")
         if "socket" in d:
@@ -137,17 +141,15 @@ class Truth:
 
     def theta(self, load: Load) -> np.ndarray:
         """Volumetric compression at the truth mesh's cell centres."""
-        from . import mechanics
-
         key = (load.kind, load.force, load.patches)
         if key not in self._theta_cache:
             m = self.mechanics_mesh
             if load.kind == "socket":
-                sol = mechanics.solve_socket_load(m.points, m.tets, self.geometry, load.force_vector)
+                sol = elasticity.solve_socket_load(m.points, m.tets, self.geometry, load.force_vector)
             else:
                 patches = [{"shape": s, ("size" if s == "square" else "radius"): v, "center": c}
                            for s, v, c in load.patches]
-                sol = mechanics.solve_patch_load(m.points, m.tets, self.geometry, patches, -load.force[2])
+                sol = elasticity.solve_patch_load(m.points, m.tets, self.geometry, patches, -load.force[2])
             self._theta_cache[key] = sol.theta_at(self.forward.mesh.centers)
         return self._theta_cache[key]
 
@@ -176,7 +178,7 @@ class Scene:
 
     sensor: str
     loads: tuple[Load, ...]
-    snr_db: float | None = 60.0
+    snr_db: float | None = DEFAULT_SNR_DB
     seed: int = 0
     truth_mesh_size: float = 3e-3
     mechanics_mesh_size: float = 4e-3
@@ -185,7 +187,7 @@ class Scene:
     frames_per_load: int = 1
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "Scene":
+    def load(cls, path: str | os.PathLike) -> Scene:
         p = Path(path)
         if not p.is_file():
             raise ConfigError(f"scene file {str(p)!r}: not found")
@@ -197,7 +199,7 @@ class Scene:
         if not Path(sensor).is_absolute() and Path(sensor).suffix in (".yaml", ".yml"):
             sensor = str(p.parent / sensor)
         return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d["loads"]),
-                   snr_db=d.get("snr_db", 60.0), seed=int(d.get("seed", 0)),
+                   snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
                    truth_mesh_size=float(d.get("truth_mesh_size", 3e-3)),
                    mechanics_mesh_size=float(d.get("mechanics_mesh_size", 4e-3)),
                    z_rel=float(mm.get("contact_impedance", 0.2)), jitter=float(mm.get("electrode_jitter", 2e-4)),
@@ -224,8 +226,6 @@ def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.n
 
 def simulate_scene_files(scene_path, out_dir, cache_dir=None) -> None:
     """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (section 6)."""
-    from .frames_io import write_forces, write_frames
-
     scene = Scene.load(scene_path)
     ref, frames, forces = simulate(scene, cache_dir)
     out = Path(out_dir)
@@ -255,9 +255,10 @@ class VoltageSource:
 
     @classmethod
     def from_args(cls, sensor: str = "cuboid_joint", scene: str | None = None, load_script: str | None = None,
-                  snr_db: float | None = 60.0, seed: int = 0, cache_dir=None,
-                  hold: float = 1.0) -> "VoltageSource":
-        """From a load script (``time,fx,fy,fz``) or a scene (each load held ``hold`` seconds)."""
+                  snr_db: float | None = None, seed: int = 0, cache_dir=None,
+                  hold: float = 1.0) -> VoltageSource:
+        """From a load script (``time,fx,fy,fz``) or a scene (each load held ``hold`` seconds); ``snr_db``
+        None takes the scene's, or :data:`DEFAULT_SNR_DB` for a load script."""
         if (scene is None) == (load_script is None):
             raise ConfigError("give exactly one of scene=FILE or load_script=FILE.csv")
         if scene is not None:
@@ -265,23 +266,17 @@ class VoltageSource:
             truth = sc.truth(cache_dir)
             return cls(truth, hold * np.arange(len(sc.loads)), list(sc.loads),
                        sc.snr_db if snr_db is None else snr_db)
-        from .frames_io import read_load_script
-
         times, forces = read_load_script(load_script)
         truth = Truth(load_sensor(sensor), seed=seed, cache_dir=cache_dir)
-        return cls(truth, times, [Load("socket", force=tuple(f)) for f in forces], snr_db)
-
-    def _index(self, t: float) -> int:
-        if t < self.times[0]:
-            return -1
-        return int(np.searchsorted(self.times, t, side="right")) - 1
+        return cls(truth, times, [Load("socket", force=tuple(f)) for f in forces],
+                   DEFAULT_SNR_DB if snr_db is None else snr_db)
 
     def truth(self, t: float) -> np.ndarray:
-        i = self._index(t)
+        i = load_index(self.times, t)
         return np.zeros(3) if i < 0 else self.loads[i].force_vector
 
     def frame(self, t: float, rng: np.random.Generator) -> np.ndarray:
-        i = self._index(t)
+        i = load_index(self.times, t)
         v = self._ref if i < 0 else self._frames[i]
         return add_noise(v, self._ref, self.snr_db, rng)
 

@@ -10,28 +10,23 @@ import logging
 import resource
 import sys
 import time
+from importlib import import_module
 
 import numpy as np
 
-from .errors import CstomoError
+from ..errors import CstomoError
+from ..force.pipeline import Pipeline
+from ..frames_io import read_frames, write_forces, write_frames
+from ..inverse.reconstruction import build_model
+from ..model.cem import ForwardModel
+from ..model.geometry import load_sensor
+from ..model.mesh import MeshSpec, build_mesh
+from ..model.simulate import simulate_scene_files
+from .common import add_pipeline_args, pipeline_config
 
-
-def _recon_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sensor", default="cuboid_joint", help="preset name or geometry YAML path")
-    p.add_argument("--mesh-size", type=float, default=4.0, help="forward mesh edge length, mm (default 4)")
-    p.add_argument("--grid", type=int, nargs=3, default=(8, 8, 4), metavar=("NX", "NY", "NZ"),
-                   help="reconstruction voxel grid (default 8 8 4)")
-    p.add_argument("--iterations", type=int, default=0, help="Landweber iterations (0 = discrepancy rule)")
-    p.add_argument("--damping", type=float, default=0.0, help="Tikhonov damping relative to s_max^2")
-    p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
-
-
-def _config(a):
-    from .pipeline import PipelineConfig
-
-    return PipelineConfig(sensor=a.sensor, cache_dir=a.cache_dir, estimator=getattr(a, "estimator", "linear"),
-                          mesh_size=a.mesh_size * 1e-3, grid=tuple(a.grid), iterations=a.iterations,
-                          damping=a.damping)
+#: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
+OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "demo": ".demo", "bench-node": ".bench.node",
+               "bench": ".bench.main", "render": ".render"}
 
 
 def _peak_mb() -> float:
@@ -39,13 +34,10 @@ def _peak_mb() -> float:
 
 
 def cmd_model_build(a) -> int:
-    from .fem import ForwardModel
-    from .geometry import load_sensor
-    from .mesh import MeshSpec, build_mesh
 
     g = load_sensor(a.sensor)
     t = time.perf_counter()
-    mesh = build_mesh(g, MeshSpec(h=a.mesh_size * 1e-3), a.cache_dir or None)
+    mesh = build_mesh(g, MeshSpec(h=pipeline_config(a).mesh_size), a.cache_dir or None)
     t_mesh = time.perf_counter() - t
     fm = ForwardModel(g, mesh)
     sol = fm.solve()
@@ -53,7 +45,7 @@ def cmd_model_build(a) -> int:
     fm.jacobian(solution=sol)
     t_jac = time.perf_counter() - t
     s = mesh.summary()
-    print(f"sensor {g.name}: mesh h = {a.mesh_size:.2f} mm ({'cached' if mesh.info.get('cache_hit') else 'built'})")
+    print(f"sensor {g.name}: mesh h = {a.mesh_size * 1e3:.2f} mm ({'cached' if mesh.info.get('cache_hit') else 'built'})")
     print(f"  nodes {s['nodes']}, cells {s['cells']}, volume {s['volume_m3'] * 1e9:.1f} mm^3 "
           f"(body {g.volume * 1e9:.1f}), min quality {s['min_quality']:.3f}")
     areas = np.array([p.area for p in fm.patches]) / (np.pi * np.array([e.radius for e in g.electrodes]) ** 2)
@@ -70,24 +62,17 @@ def cmd_model_build(a) -> int:
 
 
 def cmd_model_voltages(a) -> int:
-    from .fem import ForwardModel
-    from .frames_io import write_frames
-    from .geometry import load_sensor
-    from .mesh import MeshSpec, build_mesh
 
     g = load_sensor(a.sensor)
-    fm = ForwardModel(g, build_mesh(g, MeshSpec(h=a.mesh_size * 1e-3), a.cache_dir or None))
-    write_frames(a.out, fm.voltages()[None], comment=f"model prediction, {g.name}, unloaded, h={a.mesh_size} mm")
+    fm = ForwardModel(g, build_mesh(g, MeshSpec(h=pipeline_config(a).mesh_size), a.cache_dir or None))
+    write_frames(a.out, fm.voltages()[None], comment=f"model prediction, {g.name}, unloaded, h={a.mesh_size:g} m")
     print(f"wrote {a.out}")
     return 0
 
 
 def cmd_reconstruct(a) -> int:
-    from .frames_io import read_frames
-    from .geometry import load_sensor
-    from .reconstruction import build_model
 
-    cfg = _config(a)
+    cfg = pipeline_config(a)
     g = load_sensor(cfg.sensor)
     model = build_model(g, cfg.recon_spec, cfg.cache_dir or None)
     ref = read_frames(a.reference, model.n_meas)
@@ -99,10 +84,8 @@ def cmd_reconstruct(a) -> int:
 
 
 def cmd_estimate(a) -> int:
-    from .frames_io import read_frames, write_forces
-    from .pipeline import Pipeline
 
-    pipe = Pipeline.build(_config(a))
+    pipe = Pipeline.build(pipeline_config(a))
     pipe.set_reference(read_frames(a.reference, pipe.n_meas).mean(axis=0))
     frames = read_frames(a.frames, pipe.n_meas)
     forces = np.array([pipe.process(f, with_field=False).force for f in frames])
@@ -112,7 +95,6 @@ def cmd_estimate(a) -> int:
 
 
 def cmd_simulate(a) -> int:
-    from .simulate import simulate_scene_files
 
     simulate_scene_files(a.scene, a.out, cache_dir=a.cache_dir or None)
     print(f"wrote {a.out}/reference.csv, frames.csv, truth.csv")
@@ -121,27 +103,8 @@ def cmd_simulate(a) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    # commands that own their argument parsing
-    if argv and argv[0] == "board-sim":
-        from .board.sim import main as board_main
-
-        return board_main(argv[1:])
-    if argv and argv[0] == "replay":
-        from .replay import main as replay_main
-
-        return replay_main(argv[1:])
-    if argv and argv[0] == "demo":
-        from .demo import main as demo_main
-
-        return demo_main(argv[1:])
-    if argv and argv[0] == "bench-node":
-        from .bench_node import main as bench_node_main
-
-        return bench_node_main(argv[1:])
-    if argv and argv[0] in ("bench", "render"):
-        from importlib import import_module
-
-        return import_module(f".{argv[0]}", __package__).main(argv[1:])
+    if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
+        return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
     p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -157,9 +120,9 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--reference", required=True)
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
-    e.add_argument("--estimator", default="linear", choices=["linear", "model"])
-    for q in (b, v, r, e):
-        _recon_args(q)
+    for q in (b, v, r):
+        add_pipeline_args(q, estimator=False)
+    add_pipeline_args(e)
     s = sub.add_parser("simulate", help="honestly simulated frames of a scene file")
     s.add_argument("--scene", required=True)
     s.add_argument("--out", required=True)

@@ -19,47 +19,10 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
-from .errors import ConfigError
+from ..errors import ConfigError, require_positive
+from .material import Material
 
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
-
-
-@dataclass(frozen=True)
-class Material:
-    """Piezoresistive rubber (paper eqs. (2), (9), (11)) and its elasticity."""
-
-    E: float = 1.0e6  # Young's modulus, Pa
-    nu: float = 0.45  # Poisson's ratio
-    phi0: float = 0.06  # filler volume fraction at rest
-    phi_c: float = 0.05  # percolation threshold
-    rho_h: float = 4.0e-5  # filler resistivity, ohm m
-    tau: float = 2.0  # percolation exponent
-
-    def __post_init__(self) -> None:
-        _positive("material.E", self.E)
-        if not 0.0 <= self.nu < 0.5:
-            raise ConfigError(f"material.nu={self.nu!r}: expected 0 <= nu < 0.5")
-        _positive("material.rho_h", self.rho_h)
-        _positive("material.tau", self.tau)
-        if not 0.0 < self.phi_c < self.phi0 < 1.0:
-            raise ConfigError(
-                f"material.phi_c={self.phi_c!r}, material.phi0={self.phi0!r}: expected 0 < phi_c < phi0 < 1"
-            )
-
-    @property
-    def rho0(self) -> float:
-        """Unloaded resistivity, ohm m (0.361 for the reference material)."""
-        return self.rho_h * ((1.0 - self.phi_c) / (self.phi0 - self.phi_c)) ** self.tau
-
-    @property
-    def sigma0(self) -> float:
-        """Unloaded conductivity, S/m."""
-        return 1.0 / self.rho0
-
-    @property
-    def bulk_modulus(self) -> float:
-        """K = E / (3 (1 - 2 nu)), Pa."""
-        return self.E / (3.0 * (1.0 - 2.0 * self.nu))
 
 
 @dataclass(frozen=True)
@@ -98,9 +61,9 @@ class SensorGeometry:
         if len(self.size) != expected:
             raise ConfigError(f"body.size={self.size!r}: expected {expected} values for a {self.shape}")
         for i, s in enumerate(self.size):
-            _positive(f"body.size[{i}]", s)
-        _positive("drive_current", self.drive_current)
-        _positive("contact_impedance", self.contact_impedance)
+            require_positive(f"body.size[{i}]", s)
+        require_positive("drive_current", self.drive_current)
+        require_positive("contact_impedance", self.contact_impedance)
         if self.socket_radius < 0 or self.socket_radius >= min(self.horizontal_half_extent, self.height):
             raise ConfigError(
                 f"socket.radius={self.socket_radius!r}: expected 0 <= radius < "
@@ -112,7 +75,7 @@ class SensorGeometry:
         if self.layers not in (1, 2) or n % self.layers:
             raise ConfigError(f"electrodes.layers={self.layers!r}: expected 1 or 2, dividing {n} electrodes")
         for e in self.electrodes:
-            _positive(f"electrodes.radius ({e.name})", e.radius)
+            require_positive(f"electrodes.radius ({e.name})", e.radius)
             self._check_on_surface(e)
         c = np.array([e.center for e in self.electrodes])
         d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=-1)
@@ -155,10 +118,10 @@ class SensorGeometry:
         """(n_electrodes, 3) centres, m."""
         return np.array([e.center for e in self.electrodes], dtype=float)
 
-    def with_electrodes(self, electrodes: tuple[Electrode, ...]) -> "SensorGeometry":
+    def with_electrodes(self, electrodes: tuple[Electrode, ...]) -> SensorGeometry:
         return replace(self, electrodes=tuple(electrodes))
 
-    def with_contact_impedance(self, z: float) -> "SensorGeometry":
+    def with_contact_impedance(self, z: float) -> SensorGeometry:
         return replace(self, contact_impedance=float(z))
 
     def digest(self) -> str:
@@ -189,15 +152,6 @@ class SensorGeometry:
             )
 
 
-def _positive(name: str, value: Any) -> None:
-    try:
-        ok = float(value) > 0 and np.isfinite(float(value))
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ConfigError(f"{name}={value!r}: expected a positive finite number")
-
-
 def _outward_normal(shape: str, size: tuple[float, ...], c: np.ndarray) -> tuple[float, float, float]:
     if shape == "cylinder":
         r = np.hypot(c[0], c[1]) or 1.0
@@ -212,7 +166,7 @@ def _outward_normal(shape: str, size: tuple[float, ...], c: np.ndarray) -> tuple
 def preset_dirs() -> list[Path]:
     """Where preset names are looked up: $CSTOMO_SENSOR_PATH, the source tree, the install share."""
     dirs = [Path(p) for p in os.environ.get("CSTOMO_SENSOR_PATH", "").split(os.pathsep) if p]
-    dirs.append(Path(__file__).resolve().parent.parent / "config" / "sensors")
+    dirs.append(Path(__file__).resolve().parents[2] / "config" / "sensors")
     dirs.append(Path(sys.prefix) / "share" / "cstomo_sensor" / "config" / "sensors")
     try:  # a colcon install on a robot
         from ament_index_python.packages import get_package_share_directory  # type: ignore

@@ -9,7 +9,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 def pair_list(n_electrodes: int = 16, layers: int = 1) -> np.ndarray:

@@ -31,17 +31,20 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike
+from scipy.optimize import nnls
 from scipy.spatial import cKDTree
 
-from .errors import ConfigError
-from .geometry import Material, SensorGeometry
+from ..errors import ConfigError
+from .geometry import SensorGeometry
+from .material import Material
 
 log = logging.getLogger(__name__)
 
@@ -175,7 +178,7 @@ def _elasticity_solver(A, locs: np.ndarray, comp: np.ndarray):
     back to a sparse LU (SuperLU) where pyamg is not installed. AMG sets up in about a second where
     the LU of a P2 elasticity matrix takes tens of seconds."""
     try:
-        import pyamg
+        import pyamg  # heavy: only for the elasticity solve
     except ImportError:  # pragma: no cover - pyamg is a dependency; LU is the plain fallback
         return spla.splu(A.tocsc()).solve
     x, y, z = locs
@@ -203,8 +206,8 @@ class _Problem:
     """The assembled stiffness and the bases on one mesh (internal)."""
 
     def __init__(self, points: np.ndarray, tets: np.ndarray, mat: Material) -> None:
-        from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm
-        from skfem.models.elasticity import lame_parameters, linear_elasticity
+        from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm  # heavy: only where the elasticity is assembled
+        from skfem.models.elasticity import lame_parameters, linear_elasticity  # heavy: only where the elasticity is assembled
 
         t = tets.copy()
         v = points[t]
@@ -233,7 +236,8 @@ class _Problem:
             on = (np.abs(fp[2] - H) <= tol).all(axis=0)
             return bf[on]
         if which == "socket":
-            assert geometry is not None
+            if geometry is None:
+                raise ConfigError("boundary_facets(which='socket') needs the sensor geometry")
             R = geometry.socket_radius
             if R <= 0:
                 raise ConfigError(f"geometry {geometry.name!r}: socket_radius={R!r}, expected a socket (> 0)")
@@ -243,16 +247,16 @@ class _Problem:
             on_sphere = (np.abs(r - R) <= max(0.05 * R, 10 * FACE_TOL * R)).all(axis=0)
             below = cen[2] < H - tol
             return bf[on_sphere & below]
-        raise ValueError(f"which={which!r}: expected 'bottom', 'top' or 'socket'")
+        raise ConfigError(f"which={which!r}: expected 'bottom', 'top' or 'socket'")
 
     def facet_basis(self, facets: np.ndarray, intorder: int):
-        from skfem import FacetBasis
+        from skfem import FacetBasis  # heavy: only where the elasticity is assembled
 
         return FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
 
     def load_vector(self, fb, traction: np.ndarray) -> np.ndarray:
         """Assemble int t . v dA for a traction given at the facet quadrature points (3, nf, nq)."""
-        from skfem import LinearForm, asm
+        from skfem import LinearForm, asm  # heavy: only where the elasticity is assembled
 
         @LinearForm
         def form(v, w):
@@ -262,7 +266,7 @@ class _Problem:
 
     def solve(self, f: np.ndarray, fixed: np.ndarray, load: Mapping[str, Any], resultant: np.ndarray,
               delta: np.ndarray | None = None) -> MechanicsSolution:
-        from skfem import condense
+        from skfem import condense  # heavy: only where the elasticity is assembled
 
         u = np.zeros(self.basis.N)
         if np.any(f):
@@ -288,7 +292,7 @@ class _Problem:
 
     def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
         """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
-        from skfem import Basis
+        from skfem import Basis  # heavy: only where the elasticity is assembled
 
         X = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
         vb = Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
@@ -439,7 +443,6 @@ def solve_socket_load(
     fb = prob.facet_basis(facets, _SOCKET_INTORDER)
     n = fb.normals.reshape(3, -1)
     w = fb.dx.reshape(-1)
-    from scipy.optimize import nnls
 
     _, miss = nnls(-n, F)  # is F in the cone of the facets' inward pushes -n?
     if miss > 1e-9 * fnorm:

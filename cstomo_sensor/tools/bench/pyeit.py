@@ -28,12 +28,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-MESH_MM = 6.0
+from ...inverse.reconstruction import ReconSpec, build_model, voxel_basis
+from ...model.cem import ForwardModel
+from ...model.geometry import load_sensor
+from ...model.mesh import MeshSpec, build_mesh
+from .scenes import NOISE_SEED, SceneSet, image_errors
+
+MESH_SIZE = 6.0e-3  # m
 
 
 def _pyeit_mesh(mesh, geometry, sigma0: float):
-    from pyeit.mesh.wrapper import PyEITMesh
+    from pyeit.mesh.wrapper import PyEITMesh  # optional: never a dependency of the package
 
     pts, tets = mesh.points, mesh.tets.copy()
     x = pts[tets]
@@ -48,7 +55,7 @@ def _pyeit_mesh(mesh, geometry, sigma0: float):
 
 
 def _protocol(pattern):
-    from pyeit.eit.protocol import PyEITProtocol
+    from pyeit.eit.protocol import PyEITProtocol  # optional: never a dependency of the package
 
     rows = pattern.rows
     drives = np.unique(rows[:, 0])
@@ -78,28 +85,23 @@ def _agree(a, b) -> dict:
 
 
 def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dict:
-    import pyeit
-    from pyeit.eit.fem import EITForward
-    from pyeit.eit.jac import JAC
+    import pyeit  # optional: never a dependency of the package
+    from pyeit.eit.fem import EITForward  # optional: never a dependency of the package
+    from pyeit.eit.jac import JAC  # optional: never a dependency of the package
 
-    from .bench import NOISE_SEED, SceneSet, image_errors
-    from .fem import ForwardModel
-    from .geometry import load_sensor
-    from .mesh import MeshSpec, build_mesh
-    from .reconstruction import ReconSpec, build_model, voxel_basis
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     g = load_sensor("cuboid_joint")
     sigma0 = g.material.sigma0
     I = g.drive_current
-    mesh = build_mesh(g, MeshSpec(h=MESH_MM * 1e-3), cache_dir)
+    mesh = build_mesh(g, MeshSpec(h=MESH_SIZE), cache_dir)
     fm = ForwardModel(g, mesh)
     pmesh, el_pos = _pyeit_mesh(mesh, g, sigma0)
     fwd = EITForward(pmesh, _protocol(fm.pattern))
-    say(f"pyEIT {pyeit.__version__ if hasattr(pyeit, '__version__') else ''} on our {MESH_MM:g} mm mesh: "
+    say(f"pyEIT {pyeit.__version__ if hasattr(pyeit, '__version__') else ''} on our {MESH_SIZE * 1e3:g} mm mesh: "
         f"{mesh.n_nodes} nodes, {mesh.n_cells} tetrahedra")
-    r: dict = {"mesh_mm": MESH_MM, "nodes": mesh.n_nodes, "cells": mesh.n_cells}
+    r: dict = {"mesh_mm": MESH_SIZE * 1e3, "nodes": mesh.n_nodes, "cells": mesh.n_cells}
 
     # forward voltages, homogeneous
     v_ours, t_ours = _timed(lambda: fm.voltages(), 3)
@@ -121,7 +123,6 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
     scenes = SceneSet(n_scenes, cache_dir, say)
     ref, frames = scenes.noisy(scenes.clean, reps, 60.0, NOISE_SEED)
     # relative difference signals of the truth loads' conductivity, on this mesh, both solvers
-    from scipy.spatial import cKDTree
 
     _, near = cKDTree(scenes.truth.forward.mesh.centers).query(mesh.centers)
     dvs_ours, dvs_py = [], []
@@ -134,7 +135,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
 
     # reconstruction set-up and per-frame solve
     t = time.perf_counter()
-    model = build_model(g, ReconSpec(mesh_size=MESH_MM * 1e-3, grid=(8, 8, 4)), cache_dir)
+    model = build_model(g, ReconSpec(mesh_size=MESH_SIZE, grid=(8, 8, 4)), cache_dir)
     t_model_load = time.perf_counter() - t
     t_model = float(sum(v for k, v in model.meta["seconds"].items() if k != "mesh"))  # the mesh is shared input
     solver = JAC(pmesh, fwd.protocol)

@@ -9,7 +9,7 @@ a window of ``--seconds`` after a warm-up, measures:
 * latency = receive time in this subscriber (``time.time_ns()``, the system clock: the node's host
   time is its ROS clock, which is the system clock without ``use_sim_time``) minus the wrench's
   ``header.stamp``. The stamp is the board's write time mapped onto host time by the lower envelope
-  of ``host_time - board_time`` (messages.ClockMapper), so it is the board's write time *plus the
+  of ``host_time - board_time`` (board.clock.ClockMapper), so it is the board's write time *plus the
   smallest transport delay seen* (pty + serial driver thread + queue hand-over): that minimum is
   not included in the latency; what is measured is everything above it (processing, DDS,
   the subscriber's executor, scheduling);
@@ -27,9 +27,6 @@ import argparse
 import csv
 import math
 import os
-import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -37,6 +34,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import WrenchStamped
+
+from ...errors import CstomoError
+from ...force.estimate import ESTIMATORS
+from ...force.pipeline import Pipeline, PipelineConfig
+from ..common import DEFAULTS, NodeWithBoard, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
@@ -104,54 +109,31 @@ def _num(d: dict, key: str) -> float:
         return math.nan
 
 
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for pr in procs:  # the node first, so it does not report the board's end as a lost port
-        if pr.poll() is None:
-            pr.send_signal(signal.SIGINT)
-    for pr in procs:
-        if pr.poll() is None:
-            try:
-                pr.wait(5)
-            except subprocess.TimeoutExpired:
-                pr.kill()
-                pr.wait()
-
-
 def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> dict:
     """One configuration: node + board, warm-up, measured window; a row of COLUMNS."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from geometry_msgs.msg import WrenchStamped
 
     rec = _Recorder()
     subs = [ros_node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", rec.on_wrench, 100),
             ros_node.create_subscription(DiagnosticArray, "/diagnostics", rec.on_diag, 10)]
     tag = f"r{rate:g}_s{stress}"
-    link = work / f"board_{tag}"
-    bindir = Path(sys.executable).parent
     # startup (rclpy import, model load, tare, 2 s unloaded) + warm-up + window + margin
     duration = 30.0 + a.warmup + a.seconds
-    procs: list[subprocess.Popen] = []
+    params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": rate, "protocol": "binary",
+              "tare_on_start": "true", "tare_frames": 50, "tare_file": work / "tare.csv", "stress_field_every": stress}
+    board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(rate), "--duration", str(duration),
+                  "--protocol", "binary"]
     logs = [open(work / f"node_{tag}.log", "w"), open(work / f"board_{tag}.log", "w")]
+    run = NodeWithBoard(work / f"board_{tag}", params, board_args, node_out=logs[0], board_err=logs[1])
     try:
-        node = subprocess.Popen(
-            [str(bindir / "cstomo_sensor_node"), "--ros-args", "-p", f"port:={link}", "-p", f"sensor:={a.sensor}",
-             "-p", f"estimator:={a.estimator}", "-p", f"rate_hz:={rate}", "-p", "protocol:=binary",
-             "-p", "tare_on_start:=true", "-p", "tare_frames:=50", "-p", f"tare_file:={work / 'tare.csv'}",
-             "-p", f"stress_field_every:={stress}", "--log-level", "warn"],
-            stdout=logs[0], stderr=subprocess.STDOUT)
-        procs.append(node)
-        board = subprocess.Popen(
-            [str(bindir / "cstomo"), "board-sim", "--sensor", a.sensor, "--load-script", str(script), "--rate",
-             str(rate), "--duration", str(duration), "--link", str(link), "--protocol", "binary"],
-            stdout=subprocess.PIPE, stderr=logs[1], text=True)
-        procs.append(board)
-        first = board.stdout.readline().strip()
-        if not first.startswith("device:"):
-            raise RuntimeError(f"board-sim failed to start ({first!r}); see {logs[1].name}")
+        try:
+            run.start()
+        except CstomoError as err:
+            raise CstomoError(f"{err}; see {logs[1].name}") from None
+        node, board = run.node, run.board
         deadline = time.monotonic() + 60.0
         while rec.wrenches == 0:
             if time.monotonic() > deadline or node.poll() is not None or board.poll() is not None:
-                raise RuntimeError(f"no wrench from the node within 60 s; see {logs[0].name}")
+                raise CstomoError(f"no wrench from the node within 60 s; see {logs[0].name}")
             time.sleep(0.05)
         time.sleep(a.warmup)  # past the tare and the step to 20 N; queues and caches settled
 
@@ -168,7 +150,7 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
         with rec.lock:
             diags = list(rec.diags)
     finally:
-        _stop(procs)
+        run.stop()
         for s in subs:
             ros_node.destroy_subscription(s)
         for f in logs:
@@ -226,16 +208,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
     p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
     p.add_argument("--out", default=".", help="directory for node_bench.csv and the processes' logs")
-    p.add_argument("--sensor", default="cuboid_joint")
-    p.add_argument("--estimator", default="linear", choices=["linear", "model"])
+    p.add_argument("--sensor", default=DEFAULTS.sensor)
+    p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
     a = p.parse_args(argv)
 
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # DDS stays on this host
-    os.environ.setdefault("ROS_DOMAIN_ID", str(30 + os.getpid() % 70))
+    local_ros_env(30)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    from .pipeline import Pipeline, PipelineConfig
 
     print("model and force estimator (built once, then loaded from the cache)", flush=True)
     t = time.monotonic()
@@ -246,7 +226,6 @@ def main(argv: list[str] | None = None) -> int:
     script = work / "load.csv"  # constant load: unloaded 2 s (tare), then 20 N pushing straight down
     np.savetxt(script, [[0.0, 0, 0, 0], [2.0, 0, 0, -20.0]], delimiter=",", header="time,fx,fy,fz", comments="")
 
-    import rclpy
 
     rclpy.init()
     ros_node = rclpy.create_node("cstomo_bench_node")

@@ -5,7 +5,7 @@ mcap storage) with the ``rosbags`` library and writes a new bag with the node's 
 (``wrench``, ``force_magnitude``, ``force_elevation``, ``force_azimuth`` and, if asked,
 ``stress_field``) under the same namespace as the input topic, with the same message types and
 the same numbers the live node publishes: both go through
-:class:`~cstomo_sensor.messages.FrameProcessor` and :class:`~cstomo_sensor.messages.OutputMessages`.
+:class:`~cstomo_sensor.force.pipeline.FrameProcessor` and :class:`~cstomo_sensor.ros.messages.OutputMessages`.
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>.csv``) that frame
 (the mean of its rows) is the reference; without it, the first ``tare_frames`` frames of the bag
@@ -22,10 +22,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import Float32MultiArray
 
-from .errors import ConfigError, CstomoError, FrameError
-from .messages import FORCE_TOPICS, RAW_TOPIC, STRESS_TOPIC, TOPIC_TYPES, FrameProcessor, OutputMessages, values_from_raw_msg
-from .pipeline import PipelineConfig
+from ..errors import ConfigError, CstomoError, FrameError
+from ..force.pipeline import FrameProcessor, Pipeline, PipelineConfig
+from ..frames_io import read_frames
+from ..ros.messages import FORCE_TOPICS, RAW_TOPIC, STRESS_TOPIC, TOPIC_TYPES, OutputMessages, values_from_raw_msg
+from .common import add_pipeline_args, pipeline_config
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +48,7 @@ class ReplaySummary:
 
 
 def _typestore():
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys import Stores, get_typestore  # optional: the [full] extra
 
     store = getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST
     return get_typestore(store)
@@ -81,11 +85,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     storage : {'sqlite3', 'mcap'}
         Storage plugin of the output bag.
     """
-    from rclpy.serialization import deserialize_message, serialize_message
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-    from std_msgs.msg import Float32MultiArray
-
-    from .pipeline import Pipeline
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # optional: the [full] extra
 
     if storage not in STORAGES:
         raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
@@ -93,10 +93,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         raw_topic = find_raw_topic(reader.connections, topic)
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
-    proc = FrameProcessor(pipe, layers=pipe.geometry.layers, stress_field_every=stress_field_every)
+    proc = FrameProcessor(pipe, stress_field_every=stress_field_every)
     if reference is not None:
-        from .frames_io import read_frames
-
         pipe.set_reference(read_frames(reference, pipe.n_meas).mean(axis=0))
     else:
         proc.start_tare(tare_frames)
@@ -130,14 +128,11 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
 
 
 def _parser() -> argparse.ArgumentParser:
-    from .cli import _recon_args
-
     p = argparse.ArgumentParser(prog="cstomo replay", description=__doc__.split("\n\n")[0])
     p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
-    _recon_args(p)
-    p.add_argument("--estimator", default="linear", help="linear or model (default %(default)s)")
+    add_pipeline_args(p)
     p.add_argument("--reference", help="frames file used as the reference (else: tare on the first frames)")
     p.add_argument("--tare-frames", type=int, default=50, help="frames averaged by the tare (default 50)")
     p.add_argument("--stress-field-every", type=int, default=0, help="write stress_field every N results")
@@ -149,13 +144,11 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """``cstomo replay IN_BAG --out OUT_BAG [...]``; prints a one-line summary."""
     args = _parser().parse_args(argv)
-    from rosbags.rosbag2 import ReaderError, WriterError
+    from rosbags.rosbag2 import ReaderError, WriterError  # optional: the [full] extra
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        from .cli import _config
-
-        cfg = _config(args)
+        cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
                    stress_field_every=args.stress_field_every, frame_id=args.frame_id, topic=args.topic,
                    storage=args.storage, progress=lambda m: print(f"model: {m}", file=sys.stderr))

@@ -23,13 +23,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
 
-from .errors import ConfigError
-from .fem import ForwardModel
-from .geometry import SensorGeometry
-from .material import conductivity_of_theta
-from .mesh import MeshSpec, build_mesh, cache_load, cache_save, default_cache_dir, input_hash
-from .reconstruction import ReconstructionModel
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..errors import ConfigError
+from ..inverse.reconstruction import ReconstructionModel
+from ..model import elasticity
+from ..model.cem import ForwardModel
+from ..model.geometry import SensorGeometry
+from ..model.material import conductivity_of_theta
+from ..model.mesh import MeshSpec, build_mesh
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +64,6 @@ def calibration_directions(n: int, min_elevation_deg: float) -> np.ndarray:
 def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
                     cache_dir=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """(forces (n, 3), y (n, n_meas)) noise-free, through the model's mesh (cached)."""
-    from . import mechanics
-
     say = progress or (lambda m: log.info("%s", m))
     # y depends on the forward mesh, the model reference and v_scale, not on the voxel grid or
     # the Landweber settings: one calibration serves every grid
@@ -79,7 +80,7 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
     forces, ys = [], []
     for i, d in enumerate(dirs):
-        sol = mechanics.solve_socket_load(mech.points, mech.tets, geometry, d)
+        sol = elasticity.solve_socket_load(mech.points, mech.tets, geometry, d)
         theta1 = sol.theta_at(fwd_mesh.centers)  # per newton
         for m in spec.magnitudes:
             sigma, _ = conductivity_of_theta(m * theta1, geometry.material)
@@ -115,13 +116,11 @@ class LinearEstimator:
         Wk = np.linalg.solve(A, Y.T @ forces).T  # (3, n_keep)
         self.W = np.zeros((3, y.shape[1]))
         self.W[:, self.keep] = Wk
-        self.b = np.zeros(3)
-        self.W32 = self.W.astype(np.float32)
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        return self.W @ y + self.b
+        return self.W @ y
 
-    def masked(self, keep: np.ndarray) -> "LinearEstimator":
+    def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
 
 
@@ -130,7 +129,6 @@ class ModelEstimator:
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None, iterations: int = 6) -> None:
-        from scipy.interpolate import RBFInterpolator
 
         self.linear = LinearEstimator(forces, y, noise, ridge, keep)
         self.keep = self.linear.keep
@@ -159,16 +157,20 @@ class ModelEstimator:
                 break
         return F
 
-    def masked(self, keep: np.ndarray) -> "ModelEstimator":
+    def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+
+
+#: The force estimators by name; the first is the default.
+ESTIMATORS = ("linear", "model")
 
 
 def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionModel, cache_dir=None,
                     progress=None, spec: CalibrationSpec = CalibrationSpec()):
     """The estimator called ``name`` ('linear' or 'model'), calibrated (cached) for ``model``."""
-    classes = {"linear": LinearEstimator, "model": ModelEstimator}
+    classes = dict(zip(ESTIMATORS, (LinearEstimator, ModelEstimator)))
     if name not in classes:
-        raise ConfigError(f"estimator={name!r}: expected one of {sorted(classes)}")
+        raise ConfigError.bad_value("estimator", name, f"one of {list(ESTIMATORS)}")
     if geometry.socket_radius <= 0:
         raise ConfigError(f"sensor {geometry.name!r} has no socket: force estimation needs one")
     forces, y = calibration_set(geometry, model, spec, cache_dir, progress)

@@ -1,179 +1,53 @@
 """``cstomo_sensor_node``: the managed (lifecycle) ROS 2 node of the sensor.
 
-configure: read the parameters into one frozen :class:`NodeConfig`, load (or build) the
-:class:`~cstomo_sensor.pipeline.Pipeline`, open the input (serial board or ``~/raw_voltages_in``)
+configure: read the parameters into one frozen :class:`~.params.NodeConfig`, load (or build) the
+:class:`~cstomo_sensor.force.pipeline.Pipeline`, open the input (serial board or ``~/raw_voltages_in``)
 and set the reference (tare at start, else the saved tare, else the model's reference with a WARN).
 activate: publish. deactivate: stop publishing. cleanup/shutdown: release port, threads, pipeline.
 With ``autostart`` (default) the node walks itself to active, so ``ros2 run`` needs no manager.
 
-Frames go through :class:`~cstomo_sensor.messages.FrameProcessor` and
-:class:`~cstomo_sensor.messages.OutputMessages`, shared with ``cstomo replay``. See docs/node.md.
+Frames go through :class:`~cstomo_sensor.force.pipeline.FrameProcessor` and
+:class:`~cstomo_sensor.ros.messages.OutputMessages`, shared with ``cstomo replay``. Parameters and
+the config are in :mod:`.params`; the library's log records reach ``/rosout`` through :mod:`.log`.
+See docs/node.md.
 """
 from __future__ import annotations
 
+import importlib
 import math
 import os
 import sys
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import rclpy
-from rclpy._rclpy_pybind11 import RCLError
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
-from .errors import ConfigError, CstomoError, FrameError
-from .frames_io import read_frames, write_frames
+from ..board.clock import ClockMapper
+from ..board.driver import BoardDriver
+from ..errors import ConfigError, CstomoError, FrameError
+from ..force.pipeline import FrameProcessor, Pipeline
+from ..frames_io import read_frames, write_frames
+from . import log as ros_log
 from .messages import (
     FORCE_TOPICS,
     RAW_TOPIC,
     STRESS_TOPIC,
     TOPIC_TYPES,
-    ClockMapper,
-    FrameProcessor,
     OutputMessages,
     raw_voltages_msg,
     values_from_raw_msg,
 )
-from .pipeline import PipelineConfig
-
-PROTOCOLS = ("binary", "text")
-INPUTS = ("serial", "topic")
-RELIABILITIES = ("system_default", "reliable", "best_effort")
-
-
-def _d(description: str, *, read_only: bool = False, lo=None, hi=None, step=None) -> ParameterDescriptor:
-    desc = ParameterDescriptor(description=description, read_only=read_only)
-    if isinstance(lo, float) or isinstance(hi, float):
-        desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-    elif lo is not None:
-        desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 1))]
-    return desc
-
-
-#: name -> (default, descriptor). Declared once, in this order; config/cstomo_sensor.yaml lists them all.
-PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
-    "input": ("serial", _d("Frame source: 'serial' (a board) or 'topic' (~/raw_voltages_in)", read_only=True)),
-    "port": ("/dev/cstomo", _d("Serial URL: device path, socket://, rfc2217://, loop://", read_only=True)),
-    "baudrate": (921600, _d("Serial speed (ignored by USB CDC and ptys)", read_only=True, lo=1200, hi=16_000_000)),
-    "protocol": ("binary", _d("Wire protocol of the board: 'binary' or 'text' (docs/protocol.md)", read_only=True)),
-    "rate_hz": (0.0, _d("Frame rate asked of a binary board in START; 0 = the board's default",
-                        read_only=True, lo=0.0, hi=10000.0)),
-    "sensor": ("cuboid_joint", _d("Sensor preset name or YAML path", read_only=True)),
-    "cache_dir": ("", _d("Model and tare cache directory; '' = $CSTOMO_CACHE_DIR or ~/.cache/cstomo_sensor",
-                         read_only=True)),
-    "estimator": ("linear", _d("Force estimator: 'linear' or 'model'", read_only=True)),
-    "mesh_size": (4.0e-3, _d("Forward mesh element size in metres", read_only=True, lo=2.0e-4, hi=2.0e-2)),
-    "grid": ([8, 8, 4], _d("Reconstruction voxel grid (nx, ny, nz), each 1..64", read_only=True)),
-    "iterations": (0, _d("Landweber iterations; 0 = discrepancy rule", read_only=True, lo=0, hi=1_000_000_000)),
-    "damping": (0.0, _d("Landweber damping relative to s_max^2", read_only=True, lo=0.0, hi=1.0e6)),
-    "tare_frames": (50, _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000)),
-    "tare_file": ("", _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>.csv",
-                         read_only=True)),
-    "tare_on_start": (False, _d("Tare on the first tare_frames frames at start (else the saved tare, "
-                                "else the model reference)", read_only=True)),
-    "frame_id": ("cstomo_socket", _d("frame_id of the wrench and the stress cloud (the wrench frame)",
-                                     read_only=True)),
-    "autostart": (True, _d("Walk to active by itself (no lifecycle manager needed)", read_only=True)),
-    "stress_field_every": (10, _d("Publish ~/stress_field every N frames; 0 = off", read_only=True,
-                                  lo=0, hi=1_000_000)),
-    "qos_depth": (10, _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000)),
-    "qos_reliability": ("system_default", _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
-                                             read_only=True)),
-    "stale_timeout": (0.5, _d("Seconds without frames after which the data is stale (force topics stop, "
-                              "diagnostics say why)", lo=0.01, hi=3600.0)),
-    "clock_window": (10.0, _d("Seconds of board time over which the board-to-host clock offset is "
-                              "the minimum", read_only=True, lo=0.1, hi=3600.0)),
-}
-
-
-def _choice(name: str, value: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(f"parameter '{name}'={value!r}: expected one of {list(choices)}")
-
-
-@dataclass(frozen=True)
-class NodeConfig:
-    """Every setting of the node, built once from its parameters (validated here)."""
-
-    pipeline: PipelineConfig
-    input: str = "serial"
-    port: str = "/dev/cstomo"
-    baudrate: int = 921600
-    protocol: str = "binary"
-    rate_hz: float = 0.0
-    tare_frames: int = 50
-    tare_file: str = ""
-    tare_on_start: bool = False
-    frame_id: str = "cstomo_socket"
-    stress_field_every: int = 10
-    qos_depth: int = 10
-    qos_reliability: str = "system_default"
-    stale_timeout: float = 0.5
-    clock_window: float = 10.0
-
-    def __post_init__(self) -> None:
-        _choice("input", self.input, INPUTS)
-        _choice("protocol", self.protocol, PROTOCOLS)
-        _choice("qos_reliability", self.qos_reliability, RELIABILITIES)
-        if self.input == "serial" and not self.port:
-            raise ConfigError("parameter 'port'='': expected a serial URL")
-        if not self.frame_id:
-            raise ConfigError("parameter 'frame_id'='': expected a frame name")
-        for name in ("tare_frames", "qos_depth"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected >= 1")
-        for name in ("stale_timeout", "clock_window"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected > 0")
-
-    @classmethod
-    def from_parameters(cls, get) -> NodeConfig:
-        """Build from ``get(name) -> value``; a bad value raises ConfigError naming the parameter."""
-        try:
-            pipe = PipelineConfig(sensor=get("sensor"), cache_dir=get("cache_dir"), estimator=get("estimator"),
-                                  mesh_size=get("mesh_size"), grid=tuple(get("grid")),
-                                  iterations=get("iterations"), damping=get("damping"))
-        except (ConfigError, TypeError, ValueError) as err:
-            name, eq, rest = str(err).partition("=")
-            raise ConfigError(f"parameter '{name}'={rest}" if eq and name.isidentifier() else f"parameter {err}") from err
-        names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
-        return cls(pipeline=pipe, **{n: get(n) for n in names})
-
-    @property
-    def cache_path(self) -> Path:
-        if self.pipeline.cache_dir:
-            return Path(self.pipeline.cache_dir)
-        from .mesh import default_cache_dir
-
-        return default_cache_dir()
-
-    @property
-    def sensor_name(self) -> str:
-        return Path(self.pipeline.sensor).stem
-
-    @property
-    def tare_path(self) -> Path:
-        """Where the tare of this sensor is saved (frames-file format) and read back at start."""
-        if self.tare_file:
-            return Path(self.tare_file)
-        return self.cache_path / f"tare_{self.sensor_name}.csv"
-
-    def qos(self) -> QoSProfile:
-        rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,
-               "best_effort": ReliabilityPolicy.BEST_EFFORT}[self.qos_reliability]
-        return QoSProfile(depth=self.qos_depth, reliability=rel)
+from .params import PARAMETERS, NodeConfig
 
 
 class _Stats:
@@ -197,6 +71,7 @@ class CstomoSensorNode(LifecycleNode):
 
     def __init__(self, node_name: str = "cstomo_sensor", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self._log_handler = ros_log.attach(self.get_logger())  # the library's records reach /rosout
         for name, (default, desc) in PARAMETERS.items():
             self.declare_parameter(name, default, desc)
         self.config: NodeConfig | None = None
@@ -221,6 +96,10 @@ class CstomoSensorNode(LifecycleNode):
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
+    def destroy_node(self) -> None:
+        ros_log.detach(self._log_handler)
+        super().destroy_node()
+
     # --- lifecycle ---------------------------------------------------------------------------------
 
     def _autostart(self) -> None:
@@ -238,7 +117,6 @@ class CstomoSensorNode(LifecycleNode):
             self.get_logger().error(f"refusing to start: {err}")
             return TransitionCallbackReturn.FAILURE
         log = self.get_logger()
-        from .pipeline import Pipeline
 
         t0 = time.monotonic()
         try:
@@ -251,8 +129,7 @@ class CstomoSensorNode(LifecycleNode):
         self.config, self.pipe = cfg, pipe
         self._board_clock = ClockMapper(cfg.clock_window)
         self._stats = _Stats()
-        self.processor = FrameProcessor(pipe, layers=pipe.geometry.layers,
-                                        stress_field_every=cfg.stress_field_every, on_tare=self._save_tare)
+        self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._save_tare)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
         self._init_reference()
         qos = cfg.qos()
@@ -264,7 +141,6 @@ class CstomoSensorNode(LifecycleNode):
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
         self._stop.clear()
         if cfg.input == "serial":
-            from .board.driver import BoardDriver
 
             try:
                 self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
@@ -532,7 +408,6 @@ class CstomoSensorNode(LifecycleNode):
 
 def _msg_class(type_name: str):
     pkg, _, name = type_name.split("/")
-    import importlib
 
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 

@@ -1,0 +1,260 @@
+"""The per-frame path: tared difference -> image -> stress field -> force. No ROS, no serial.
+
+Everything the node does with a frame is here, so the node, ``cstomo replay`` and the command line
+give the same numbers. Per frame: one normalisation, one float32 matrix-vector product for the
+image (only when the field is asked for), the estimator, into preallocated buffers.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..angles import force_angles
+from ..errors import ConfigError, FrameError
+from ..frames_io import check_frame
+from ..inverse.landweber import LandweberSVD
+from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
+from ..model.geometry import SensorGeometry, load_sensor
+from ..model.material import StressField
+from ..model.pattern import MeasurementPattern
+from .estimate import ESTIMATORS, build_estimator
+
+log = logging.getLogger(__name__)
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every setting of the per-frame path: the one source of their defaults and choices (the
+    node's parameters, the parameter file and the command line take theirs from here)."""
+
+    sensor: str = "cuboid_joint"
+    cache_dir: str = ""  # '' = default_cache_dir()
+    estimator: str = ESTIMATORS[0]
+    mesh_size: float = ReconSpec.mesh_size  # m
+    grid: tuple[int, int, int] = ReconSpec.grid
+    iterations: int = 0  # 0 = chosen by the discrepancy rule
+    damping: float = ReconSpec.damping
+
+    def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ConfigError.bad_value("estimator", self.estimator, f"one of {list(ESTIMATORS)}")
+        if self.iterations < 0:
+            raise ConfigError.bad_value("iterations", self.iterations, "0 (automatic) or a positive count")
+        object.__setattr__(self, "grid", self.recon_spec.grid)  # validates mesh_size, grid, damping
+
+    @property
+    def recon_spec(self) -> ReconSpec:
+        return ReconSpec(mesh_size=self.mesh_size, grid=tuple(self.grid),
+                         iterations=self.iterations or None, damping=self.damping)
+
+
+@dataclass
+class FrameResult:
+    """One frame's outputs. ``force`` in newtons in the wrench frame; angles in radians."""
+
+    force: np.ndarray
+    magnitude: float
+    elevation: float
+    azimuth: float
+    residual: float
+    field: StressField | None
+
+
+class Pipeline:
+    """Reference, mask, reconstruction model and force estimator of one sensor.
+
+    Ready when constructed; :meth:`build` loads everything from the cache (or builds it).
+    ``image_dtype`` is the precision of the per-frame image product (float32, or float64 to
+    measure what float32 costs).
+    """
+
+    def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,
+                 image_dtype: type = np.float32) -> None:
+        self.geometry = geometry
+        self.model = model
+        self.estimator = estimator
+        self.n_meas = model.n_meas
+        self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
+        self.reference: np.ndarray | None = None
+        self._svd: LandweberSVD | None = None
+        self._dtype = np.dtype(image_dtype)
+        self._R = model.R.astype(self._dtype, copy=False)
+        self._keep = np.ones(self.n_meas, dtype=bool)
+        self._y = np.empty(self.n_meas, dtype=np.float64)
+        self._y32 = np.empty(self.n_meas, dtype=self._dtype)
+        self._x = np.empty(model.n_cells, dtype=self._dtype)
+
+    @classmethod
+    def build(cls, config: PipelineConfig, progress=None) -> Pipeline:
+        geometry = load_sensor(config.sensor)
+        model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
+        estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
+        return cls(geometry, model, estimator)
+
+    @property
+    def model_reference(self) -> np.ndarray:
+        return self.model.model_reference
+
+    @property
+    def bad_channels(self) -> np.ndarray:
+        return ~self._keep
+
+    def set_reference(self, frame: np.ndarray) -> None:
+        """Use the device's own unloaded frame (tare) as the difference reference."""
+        self.reference = check_frame(frame, self.n_meas, "reference").copy()
+
+    def set_bad_channels(self, bad: np.ndarray) -> None:
+        """Exclude measurements (saturated channel, dead electrode): R and the estimator get the mask.
+
+        Re-SVDs the 208 x n_voxels sensitivity (milliseconds); the forward model is not rebuilt.
+        """
+        keep = ~np.asarray(bad, dtype=bool)
+        if keep.shape != (self.n_meas,):
+            raise ConfigError(f"bad channel mask of shape {keep.shape}, expected ({self.n_meas},)")
+        if np.array_equal(keep, self._keep):
+            return
+        self._keep = keep
+        if keep.all():
+            self._R = self.model.R.astype(self._dtype, copy=False)
+        else:
+            if self._svd is None:
+                self._svd = LandweberSVD.from_jacobian(self.model.S)
+            svd = self._svd.masked(keep)
+            lam = self.model.damping * self._svd.s_max**2
+            self._R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
+        self.estimator = self.estimator.masked(keep)
+
+    def process(self, frame: np.ndarray, with_field: bool = True) -> FrameResult:
+        """Estimate the force (and the field) from one frame of (n_meas,) volts.
+
+        Raises :class:`FrameError` for a frame of the wrong length or with NaN/Inf in a used channel.
+        """
+        if self.reference is None:
+            raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
+        v = check_frame(frame, self.n_meas, used=self._keep)
+        y = self._y
+        np.subtract(v, self.reference, out=y)
+        y /= self.model.v_scale
+        y[~self._keep] = 0.0
+        force = self.estimator.estimate(y)
+        mag, el, az = force_angles(force)
+        field = None
+        residual = float("nan")
+        if with_field:
+            self._y32[:] = y
+            np.matmul(self._R, self._y32, out=self._x)
+            dsigma = self._x.astype(np.float64) * self.model.sigma0
+            field = StressField.from_conductivity_change(dsigma, self.geometry.material)
+            r = y - (self.model.S @ self._x) * self._keep
+            residual = float(np.linalg.norm(r) / max(np.linalg.norm(y), 1e-300))
+        return FrameResult(force, float(mag), float(el), float(az), residual, field)
+
+
+@dataclass(frozen=True)
+class Excluded:
+    """Channels excluded from the reconstruction by the latest frame's status flags."""
+
+    saturated: int = 0
+    dead_electrodes: tuple[int, ...] = ()
+    channels: int = 0
+
+
+class FrameProcessor:
+    """Tare, bad-channel mask and per-frame processing around a Pipeline (node and replay share it).
+
+    Tare semantics (the same everywhere): when a tare is pending (``tare_on_start`` in the node, or
+    no ``--reference`` given to replay), the next ``tare_frames`` frames of the input are averaged
+    into the reference and give no output; every later frame is processed against that reference.
+
+    Parameters
+    ----------
+    pipe : Pipeline
+        The per-frame core (its reference is set here by a tare or by the caller).
+    stress_field_every : int
+        Attach the stress field to every N-th processed frame (the first one included); 0 never.
+    on_tare : callable or None
+        Called with the (208,) averaged reference when a tare completes (e.g. to save it).
+    """
+
+    def __init__(self, pipe: Pipeline, stress_field_every: int = 0,
+                 on_tare: Callable[[np.ndarray], None] | None = None) -> None:
+        if stress_field_every < 0:
+            raise ConfigError(f"{stress_field_every=}: expected >= 0 (0 = off)")
+        self.pipe = pipe
+        self.stress_field_every = int(stress_field_every)
+        self.on_tare = on_tare
+        n_el = len(pipe.geometry.electrodes)
+        pattern = MeasurementPattern(n_el, pipe.geometry.layers)
+        self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
+        self._mask = np.zeros(pipe.n_meas, bool)
+        self._all_good = np.ones(n_el, bool)
+        self.excluded = Excluded()
+        self.processed = 0
+        self._tare_sum = np.zeros(pipe.n_meas)
+        self._tare_left = self._tare_n = 0
+
+    # --- tare ------------------------------------------------------------------------------------
+
+    def start_tare(self, n_frames: int) -> None:
+        """Average the next ``n_frames`` frames into the reference (they give no output)."""
+        if n_frames < 1:
+            raise ConfigError(f"tare_frames={n_frames!r}: expected >= 1")
+        self._tare_sum[:] = 0.0
+        self._tare_left = self._tare_n = int(n_frames)
+
+    @property
+    def taring(self) -> bool:
+        return self._tare_left > 0
+
+    @property
+    def ready(self) -> bool:
+        """A reference is set and no tare is pending: frames give results."""
+        return not self.taring and self.pipe.reference is not None
+
+    # --- per frame -------------------------------------------------------------------------------
+
+    def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
+        """Exclude saturated values and every row of a dead electrode; True if the mask changed
+        (only then is ``pipe.set_bad_channels`` called)."""
+        contact = self._all_good if contact_ok is None else np.asarray(contact_ok, bool)
+        dead = ~contact
+        mask = self._electrode_rows[dead].any(axis=0) if dead.any() else np.zeros_like(self._mask)
+        if saturated is not None:
+            mask |= np.asarray(saturated, bool)
+        if np.array_equal(mask, self._mask):
+            return False
+        self._mask = mask
+        self.pipe.set_bad_channels(mask.copy())
+        self.excluded = Excluded(
+            saturated=0 if saturated is None else int(np.count_nonzero(saturated)),
+            dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
+            channels=int(mask.sum()),
+        )
+        if mask.any():
+            log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
+                        self.excluded.channels, self.excluded.saturated, self.excluded.dead_electrodes)
+        return True
+
+    def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
+                contact_ok: np.ndarray | None = None) -> object | None:
+        """The FrameResult of one frame, or None while the frame goes into a pending tare (or no
+        reference exists yet)."""
+        if self._tare_left:
+            self._tare_sum += values
+            self._tare_left -= 1
+            if not self._tare_left:
+                ref = self._tare_sum / self._tare_n
+                self.pipe.set_reference(ref)
+                log.info("tare: new reference from %d frames", self._tare_n)
+                if self.on_tare is not None:
+                    self.on_tare(ref)
+            return None
+        if self.pipe.reference is None:
+            return None
+        self.update_mask(saturated, contact_ok)
+        every = self.stress_field_every
+        with_field = every > 0 and self.processed % every == 0
+        self.processed += 1
+        return self.pipe.process(values, with_field=with_field)

@@ -1,0 +1,52 @@
+"""The library's log records on ``/rosout``: a :class:`logging.Handler` that hands every record of
+the ``cstomo_sensor`` logger tree to a node's ROS logger, levels kept.
+
+The core logs with :func:`logging.getLogger` (DESIGN.md habit 9) and knows nothing of ROS; while a
+node runs, :func:`attach` joins the two, so the driver's reconnects, the tare and the core's warnings
+reach ``/rosout`` (and the console) under the child logger ``<node>.<module path>``.
+"""
+from __future__ import annotations
+
+import logging
+
+from rclpy.impl.rcutils_logger import RcutilsLogger
+
+ROOT = logging.getLogger(__name__.split(".")[0])  # the package's logger tree
+
+
+class RosLogHandler(logging.Handler):
+    """Forwards records to ``ros_logger`` (and its children named after the module)."""
+
+    def __init__(self, ros_logger: RcutilsLogger) -> None:
+        super().__init__()
+        self.ros_logger = ros_logger
+        self._children: dict[str, RcutilsLogger] = {}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            name = record.name.partition(".")[2] or "lib"
+            child = self._children.get(name)
+            if child is None:
+                child = self._children[name] = self.ros_logger.get_child(name)
+            # python and rcutils share the numbers: DEBUG 10, INFO 20, WARN(ING) 30, ERROR 40, FATAL/CRITICAL 50
+            level = min(max(record.levelno // 10 * 10, 10), 50)
+            child.log(self.format(record), level)
+        except Exception:  # noqa: BLE001 - logging must never raise into the code that logs
+            self.handleError(record)
+
+
+def attach(ros_logger: RcutilsLogger) -> RosLogHandler:
+    """Send the package's records to ``ros_logger`` at its level (not to stderr a second time);
+    returns the handler for :func:`detach`."""
+    handler = RosLogHandler(ros_logger)
+    ROOT.addHandler(handler)
+    ROOT.setLevel(max(int(ros_logger.get_effective_level()), logging.DEBUG))
+    ROOT.propagate = False
+    return handler
+
+
+def detach(handler: RosLogHandler) -> None:
+    ROOT.removeHandler(handler)
+    if not ROOT.handlers:
+        ROOT.propagate = True
+        ROOT.setLevel(logging.NOTSET)

@@ -1,0 +1,48 @@
+"""``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
+GREIT figures (:mod:`.greit`) and the pyEIT comparison (:mod:`.pyeit`)."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from .greit import greit
+from .heldout import heldout
+from .pyeit import run as run_pyeit
+from .table import run
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="cstomo bench", description=__doc__.splitlines()[0])
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--smoke", action="store_true", help="default setting only, 2 scenes (under a minute, warm caches)")
+    g.add_argument("--quick", action="store_true", help="every knob, 8 scenes (a few minutes)")
+    g.add_argument("--pyeit", action="store_true", help="comparison with pyEIT (needs `pip install pyeit`)")
+    g.add_argument("--heldout", type=int, metavar="N", help="both estimators on N held-out forces at 60 and 40 dB")
+    g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
+    a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if os.environ.get("OPENBLAS_NUM_THREADS") != "1":
+        print("cstomo bench: note: OPENBLAS_NUM_THREADS is not 1; timings are pinned to one core anyway",
+              file=sys.stderr)
+    if a.pyeit:
+        try:
+            import pyeit  # noqa: F401  (optional; never a dependency of the package)
+        except ImportError:
+            print("cstomo bench --pyeit: pyEIT is not installed (.venv/bin/pip install pyeit)", file=sys.stderr)
+            return 2
+
+        run_pyeit(a.out, a.cache_dir or None)
+        return 0
+    if a.heldout or a.greit:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        (heldout(a.heldout, a.out, a.cache_dir or None) if a.heldout else greit(a.out, a.cache_dir or None))
+        return 0
+    run("smoke" if a.smoke else "quick" if a.quick else "full", a.out, a.cache_dir or None)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

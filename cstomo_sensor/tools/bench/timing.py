@@ -1,0 +1,44 @@
+"""Running frames through a pipeline, and timing it per frame on one core."""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+
+def run_frames(pipe, ref: np.ndarray, frames: np.ndarray, with_field: bool = True):
+    pipe.set_reference(ref)
+    out = [pipe.process(f, with_field=with_field) for f in frames]
+    forces = np.array([r.force for r in out])
+    images = np.array([r.field.conductivity_change for r in out]) if with_field else None
+    return forces, images, np.array([r.residual for r in out])
+
+
+def time_frames(pipe, frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seconds per ``process(frame, with_field=True)`` and per estimator call, n frames, one core."""
+    aff = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    if aff:
+        os.sched_setaffinity(0, {min(aff)})
+    try:
+        idx = np.arange(n) % len(frames)
+        for f in frames[:3]:
+            pipe.process(f, with_field=True)  # warm-up
+        tp = np.empty(n)
+        for j, i in enumerate(idx):
+            t = time.perf_counter()
+            pipe.process(frames[i], with_field=True)
+            tp[j] = time.perf_counter() - t
+        ys = [pipe.model.normalise(f, pipe.reference) for f in frames]
+        for y in ys:
+            y[pipe.bad_channels] = 0.0
+        te = np.empty(n)
+        for j, i in enumerate(idx):
+            y = ys[i]
+            t = time.perf_counter()
+            pipe.estimator.estimate(y)
+            te[j] = time.perf_counter() - t
+    finally:
+        if aff:
+            os.sched_setaffinity(0, aff)
+    return tp, te

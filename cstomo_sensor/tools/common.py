@@ -1,0 +1,118 @@
+"""What the command-line tools share: the pipeline's flags, the ROS environment of the tools that
+start rclpy, and starting the node together with a simulated board.
+
+The flags take their defaults and choices from :class:`~cstomo_sensor.force.pipeline.PipelineConfig`
+(the one source of truth); every length is in metres, as in the node's parameters and the files.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import IO
+
+from ..errors import ConfigError, CstomoError
+from ..force.estimate import ESTIMATORS
+from ..force.pipeline import PipelineConfig
+
+DEFAULTS = PipelineConfig()
+
+
+def add_pipeline_args(p: argparse.ArgumentParser, estimator: bool = True) -> None:
+    """``--sensor --mesh-size --grid --iterations --damping --cache-dir`` (and ``--estimator``)."""
+    p.add_argument("--sensor", default=DEFAULTS.sensor, help="preset name or geometry YAML path (default %(default)s)")
+    p.add_argument("--mesh-size", type=float, default=DEFAULTS.mesh_size, metavar="METRES",
+                   help="forward mesh element size in metres (default %(default)g)")
+    p.add_argument("--grid", type=int, nargs=3, default=DEFAULTS.grid, metavar=("NX", "NY", "NZ"),
+                   help="reconstruction voxel grid (default %(default)s)")
+    p.add_argument("--iterations", type=int, default=DEFAULTS.iterations, help="Landweber iterations (0 = discrepancy rule)")
+    p.add_argument("--damping", type=float, default=DEFAULTS.damping, help="Tikhonov damping relative to s_max^2")
+    p.add_argument("--cache-dir", default=DEFAULTS.cache_dir, help="cache directory (default: the user's cache)")
+    if estimator:
+        p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS,
+                       help="force estimator (default %(default)s)")
+
+
+def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
+    """The :class:`PipelineConfig` of parsed :func:`add_pipeline_args` flags (validated there)."""
+    if a.mesh_size > 0.1:  # a value in millimetres, as older versions took it
+        raise ConfigError.bad_value("--mesh-size", a.mesh_size, f"metres (e.g. {a.mesh_size * 1e-3:g})")
+    return PipelineConfig(sensor=a.sensor, cache_dir=a.cache_dir, estimator=getattr(a, "estimator", DEFAULTS.estimator),
+                          mesh_size=a.mesh_size, grid=tuple(a.grid), iterations=a.iterations, damping=a.damping)
+
+
+def local_ros_env(domain_base: int) -> None:
+    """Keep DDS on this host (and on a domain of its own unless the caller chose one) for a tool
+    that starts rclpy or ROS processes."""
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ.setdefault("ROS_DOMAIN_ID", str(domain_base + os.getpid() % 70))
+
+
+def executable(name: str) -> str:
+    """Path of one of the package's console scripts (installed beside the running interpreter)."""
+    return str(Path(sys.executable).parent / name)
+
+
+class NodeWithBoard:
+    """``cstomo_sensor_node`` and ``cstomo board-sim`` on one pty link, as subprocesses.
+
+    The node is started first (it waits for the link), then the board; :meth:`start` returns the
+    board's device path once the board has printed it. :meth:`stop` (and leaving a ``with`` block)
+    sends SIGINT to the node first, so it does not report the board's end as a lost port, then to
+    the board, and kills what has not ended after 5 s.
+
+    Parameters
+    ----------
+    link : path
+        The symlink the board keeps pointing at its pty; the node's ``port``.
+    node_params : dict
+        ``-p name:=value`` parameters of the node besides ``port``.
+    board_args : list of str
+        Arguments of ``cstomo board-sim`` besides ``--link``.
+    node_out, board_err : file or None
+        Where the node's output and the board's stderr go (None: this process's).
+    """
+
+    def __init__(self, link: str | Path, node_params: dict, board_args: list[str], node_out: IO | None = None,
+                 board_err: IO | None = None, log_level: str = "warn") -> None:
+        self.link = str(link)
+        self.node_cmd = [executable("cstomo_sensor_node"), "--ros-args", "-p", f"port:={self.link}"]
+        for k, v in node_params.items():
+            self.node_cmd += ["-p", f"{k}:={v}"]
+        self.node_cmd += ["--log-level", log_level]
+        self.board_cmd = [executable("cstomo"), "board-sim", *board_args, "--link", self.link]
+        self.node_out, self.board_err = node_out, board_err
+        self.node: subprocess.Popen | None = None
+        self.board: subprocess.Popen | None = None
+
+    def start(self) -> str:
+        """Start both; the board's device path. Raises :class:`CstomoError` if the board fails."""
+        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out,
+                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
+        self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True)
+        first = self.board.stdout.readline().strip()
+        if not first.startswith("device:"):
+            raise CstomoError(f"board-sim failed to start ({first!r})")
+        return first.split(":", 1)[1].strip()
+
+    def stop(self) -> None:
+        procs = [p for p in (self.node, self.board) if p is not None]
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            if p.poll() is None:
+                try:
+                    p.wait(5)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+    def __enter__(self) -> NodeWithBoard:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
