@@ -22,7 +22,7 @@ setup(
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
         "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
-        "test": ["pytest", "hypothesis"],
+        "test": ["pytest", "hypothesis", "ruff"],
     },
     zip_safe=True,
     maintainer="cstomo_sensor developers",

@@ -1,7 +1,10 @@
 """cstomo_sensor: force-direction sensing with electrical impedance tomography of conductive rubber.
 
-The numerical core (geometry, pattern, mesh data, fem, reconstruction, material, estimate) imports
-with numpy, scipy and PyYAML alone; pyvista/pytetwild, scikit-fem, pyserial and rclpy are imported
-only by the modules that need them.
+Layers, one folder each: :mod:`.model` (the sensor and its physics), :mod:`.inverse` (Landweber and
+the reconstruction model), :mod:`.force` (estimators and the per-frame pipeline), :mod:`.board`
+(wire protocol, serial driver, simulated board), :mod:`.ros` (the node) and :mod:`.tools` (the
+command line); beside them the shared helpers :mod:`.errors`, :mod:`.cache`, :mod:`.frames_io` and
+:mod:`.angles`. The core never imports :mod:`.ros` or :mod:`.tools` and imports with numpy, scipy,
+PyYAML and pyserial alone; rclpy loads only in :mod:`.ros` and :mod:`.tools`.
 """
 __version__ = "0.1.0"

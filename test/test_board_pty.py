@@ -1,5 +1,4 @@
 """End to end over a real pseudo-terminal: SimulatedBoard (in a thread) -> BoardDriver."""
-import sys
 import time
 
 import numpy as np
@@ -207,9 +206,7 @@ def test_bad_arguments_raise_config_error(kw):
 def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     """``cstomo board-sim`` end to end; the real VoltageSource is another module's job, so a
     stand-in module provides ``VoltageSource.from_args`` here."""
-    import types
-
-    from cstomo_sensor.board import sim
+    from cstomo_sensor.tools import board_sim
 
     seen = {}
 
@@ -219,12 +216,12 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
             seen.update(kw)
             return CountingSource()
 
-    monkeypatch.setitem(sys.modules, "cstomo_sensor.model.simulate", types.SimpleNamespace(VoltageSource=StandIn))
+    monkeypatch.setattr(board_sim, "VoltageSource", StandIn)
     link = tmp_path / "board"
     with BoardDriver(str(link), reconnect_backoff=(0.01, 0.02)) as driver:
         argv = ["--sensor", "cuboid_joint", "--load-script", "x.csv", "--rate", "300", "--duration", "0.6",
                 "--link", str(link), "--snr", "40", "--saturate-channel", "3"]
-        assert sim.main(argv) == 0
+        assert board_sim.main(argv) == 0
         frames = drain(driver, quiet=0.2)
     assert capsys.readouterr().out.splitlines()[0] == f"device: {link}"
     assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": "x.csv", "snr_db": 40.0, "seed": 0}

@@ -276,8 +276,10 @@ def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path
 
 def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, warm_model):
     """The board disappears and returns, flips bits, sends garbage, saturates a channel and loses an
-    electrode: diagnostics report each, the node recovers without a restart and keeps publishing."""
+    electrode: diagnostics report each, the node recovers without a restart and keeps publishing, and
+    the library's own warnings (the driver's, the frame processor's) reach /rosout."""
     from geometry_msgs.msg import WrenchStamped
+    from rcl_interfaces.msg import Log
 
     from cstomo_sensor.board.sim import FaultConfig
     from cstomo_sensor.model.pattern import MeasurementPattern
@@ -288,6 +290,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     try:
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
+        rosout = h.record("/rosout", Log)
         board.start()
         assert wait_for(lambda: any(diag(m)[2].get("connected") == "False" for _, m in dg), 8.0)
         n_down = len(wr)
@@ -302,7 +305,12 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     down = next(diag(m) for _, m in dg if diag(m)[2].get("connected") == "False")
     assert down[0] == 2 and "disconnected" in down[1]
     level, message, v = diag(dg[-1][1])
-    assert int(v["corrupt"]) > 0 and int(v["seq_gaps"]) >= 0
+    # a bit-flipped frame fails its CRC: it is lost, and the next frame's sequence number shows the gap
+    assert int(v["corrupt"]) > 0 and int(v["seq_gaps"]) > 0
+    logs = [(m.level, m.name, m.msg) for _, m in rosout]
+    assert any(level == Log.WARN and name == "cstomo_sensor.force.pipeline" and "excluding" in msg
+               for level, name, msg in logs), logs
+    assert any(level == Log.WARN and name == "cstomo_sensor.board.driver" for level, name, msg in logs), logs
     assert v["saturated_channels"] == "1" and v["dead_electrodes"] == "4"
     rows = MeasurementPattern(16, 2).electrode_rows(3)
     rows[7] = True

@@ -28,9 +28,18 @@ class RosLogHandler(logging.Handler):
             child = self._children.get(name)
             if child is None:
                 child = self._children[name] = self.ros_logger.get_child(name)
-            # python and rcutils share the numbers: DEBUG 10, INFO 20, WARN(ING) 30, ERROR 40, FATAL/CRITICAL 50
-            level = min(max(record.levelno // 10 * 10, 10), 50)
-            child.log(self.format(record), level)
+            # one call site per severity: rclpy keeps one severity per call site and logger
+            msg, level = self.format(record), record.levelno
+            if level >= logging.CRITICAL:
+                child.fatal(msg)
+            elif level >= logging.ERROR:
+                child.error(msg)
+            elif level >= logging.WARNING:
+                child.warning(msg)
+            elif level >= logging.INFO:
+                child.info(msg)
+            else:
+                child.debug(msg)
         except Exception:  # noqa: BLE001 - logging must never raise into the code that logs
             self.handleError(record)
 

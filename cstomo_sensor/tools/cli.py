@@ -101,10 +101,8 @@ def cmd_simulate(a) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
-        return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
     p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -134,7 +132,14 @@ def main(argv: list[str] | None = None) -> int:
                    "(see cstomo bench-node -h)")
     sub.add_parser("bench", help="speed and accuracy of every knob on honest scenes (see cstomo bench -h)")
     sub.add_parser("render", help="off-screen pictures of mesh, stress and image (see cstomo render -h)")
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
+        return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
+    a = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     handlers = {("model", "build"): cmd_model_build, ("model", "voltages"): cmd_model_voltages}
     fn = handlers.get((a.cmd, getattr(a, "what", None))) or {

@@ -26,7 +26,7 @@ from ..angles import angle_between, force_angles, force_from_angles
 from ..errors import CstomoError
 from ..force.estimate import ESTIMATORS
 from ..force.pipeline import Pipeline, PipelineConfig
-from ..frames_io import force_at, load_index
+from ..frames_io import force_at, load_index, read_load_script
 from .common import DEFAULTS, NodeWithBoard, local_ros_env
 
 
@@ -55,10 +55,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sensor", default=DEFAULTS.sensor)
     p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
-    p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held")
+    p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held (the last one, with --load-script)")
+    p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")
     a = p.parse_args(argv)
-
     local_ros_env(150)
+    try:
+        return _run(a)
+    except (CstomoError, OSError) as err:
+        print(f"cstomo demo: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(a: argparse.Namespace) -> int:
 
     print("[1/3] model and force estimator (built once, then loaded from the cache)", flush=True)
     t = time.perf_counter()
@@ -66,7 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
 
     work = Path(tempfile.mkdtemp(prefix="cstomo_demo_"))
-    times, forces, labels = load_script(a.hold)
+    if a.load_script:
+        times, forces = read_load_script(a.load_script)
+        labels = [f"script row {i + 1}" for i in range(len(times))]
+    else:
+        times, forces, labels = load_script(a.hold)
     script = work / "load.csv"
     np.savetxt(script, np.column_stack([times, forces]), delimiter=",", header="time,fx,fy,fz", comments="")
     duration = float(times[-1] + a.hold)
@@ -76,11 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     with NodeWithBoard(work / "board", params, board_args) as run:
         print("[2/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
               flush=True)
-        try:
-            device = run.start()
-        except CstomoError as err:
-            print(f"cstomo demo: {err}", file=sys.stderr)
-            return 1
+        device = run.start()
         t0 = time.monotonic()
         print(f"[3/3] board streaming on {device}; the node tares on its first frames\n", flush=True)
         return _watch(a, t0, duration, times, forces, labels, run.board)

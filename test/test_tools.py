@@ -1,0 +1,62 @@
+"""Smoke tests of the command-line tools no other test runs: ``cstomo demo`` (node + simulated board,
+a scripted load), ``cstomo bench --heldout`` and ``--greit`` on tiny settings, and the metre unit of
+``--mesh-size``."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from cstomo_sensor.tools.cli import main as cstomo
+
+
+def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
+    pytest.importorskip("rclpy")
+    script = tmp_path / "load.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n1.5,0,0,-20\n")
+    exe = Path(sys.executable).parent / "cstomo"
+    out = subprocess.run([str(exe), "demo", "--load-script", str(script), "--hold", "2.5", "--rate", "100"],
+                         capture_output=True, text=True, timeout=240, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text
+    assert "Traceback" not in text
+    lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and " N " in ln]
+    assert lines, text
+    summary = next(ln for ln in out.stdout.splitlines() if "settled loads" in ln)
+    angle = float(summary.split("median angle error")[1].split("deg")[0])
+    assert angle < 5.0, summary  # 20 N straight down, honest simulation at 60 dB
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_bench_heldout_on_three_forces(tmp_path):
+    assert cstomo(["bench", "--heldout", "3", "--out", str(tmp_path)]) == 0
+    rows = _rows(tmp_path / "heldout.csv")
+    assert {(r["snr_db"], r["estimator"]) for r in rows if r["subset"] == "all"} == {
+        (s, e) for s in ("60.0", "40.0") for e in ("linear", "model")}
+    for r in rows:
+        if r["subset"] == "all" and r["snr_db"] == "60.0":
+            assert float(r["angle_med"]) < 10.0 and float(r["mag_pct_med"]) < 20.0, r
+
+
+def test_bench_greit_figures(tmp_path):
+    assert cstomo(["bench", "--greit", "--out", str(tmp_path)]) == 0
+    rows = _rows(tmp_path / "greit.csv")
+    assert len(rows) == 6
+    for r in rows:
+        amp, pos = float(r["amplitude_response"]), float(r["position_error_mm"])
+        assert math.isfinite(amp) and amp > 0 and pos < 20.0, r
+
+
+def test_mesh_size_is_in_metres_everywhere(capsys):
+    assert cstomo(["model", "build", "--mesh-size", "4"]) == 2  # millimetres refused, with the fix named
+    err = capsys.readouterr().err
+    assert "--mesh-size" in err and "metres" in err and "0.004" in err
