@@ -71,10 +71,13 @@ def wait_for(pred, timeout: float = 10.0, step: float = 0.02) -> bool:
 
 
 class Harness:
-    """The node under test plus a probe node, spun by one MultiThreadedExecutor in a thread."""
+    """The node under test, spun as its own main() spins it (a MultiThreadedExecutor of two threads),
+    and a probe node on a SingleThreadedExecutor, each in a thread of its own. (One three-thread
+    executor for both spun at 100 % of a core once the probe had two subscriptions, and starved the
+    in-process simulated board of the GIL: frames stalled, the driver reopened the port.)"""
 
     def __init__(self, context, params: dict, name: str = "cstomo_sensor") -> None:
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
         from rclpy.node import Node
         from rclpy.parameter import Parameter
 
@@ -83,11 +86,13 @@ class Harness:
         self.node = CstomoSensorNode(name, context=context,
                                      parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
         self.probe = Node("probe", context=context)
-        self.executor = MultiThreadedExecutor(num_threads=3, context=context)
+        self.executor = MultiThreadedExecutor(num_threads=2, context=context)
         self.executor.add_node(self.node)
-        self.executor.add_node(self.probe)
-        self._thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self._thread.start()
+        self.probe_executor = SingleThreadedExecutor(context=context)
+        self.probe_executor.add_node(self.probe)
+        self._threads = [threading.Thread(target=e.spin, daemon=True) for e in (self.executor, self.probe_executor)]
+        for t in self._threads:
+            t.start()
         self._lock = threading.Lock()
 
     def record(self, topic: str, msg_type, depth: int = 1000) -> list:
@@ -116,8 +121,9 @@ class Harness:
         return fut.result()
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self._thread.join(5.0)
+        for e, t in zip((self.executor, self.probe_executor), self._threads):
+            e.shutdown(timeout_sec=2.0)
+            t.join(5.0)
         self.node._release()
         self.node.destroy_node()
         self.probe.destroy_node()

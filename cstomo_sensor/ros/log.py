@@ -3,7 +3,8 @@ the ``cstomo_sensor`` logger tree to a node's ROS logger, levels kept.
 
 The core logs with :func:`logging.getLogger` (DESIGN.md habit 9) and knows nothing of ROS; while a
 node runs, :func:`attach` joins the two, so the driver's reconnects, the tare and the core's warnings
-reach ``/rosout`` (and the console) under the child logger ``<node>.<module path>``.
+reach ``/rosout`` (and the console) under the node's logger, the message prefixed with the module
+(``board.driver: ... connected``).
 """
 from __future__ import annotations
 
@@ -15,31 +16,27 @@ ROOT = logging.getLogger(__name__.split(".")[0])  # the package's logger tree
 
 
 class RosLogHandler(logging.Handler):
-    """Forwards records to ``ros_logger`` (and its children named after the module)."""
+    """Forwards records to ``ros_logger``."""
 
     def __init__(self, ros_logger: RcutilsLogger) -> None:
         super().__init__()
         self.ros_logger = ros_logger
-        self._children: dict[str, RcutilsLogger] = {}
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            name = record.name.partition(".")[2] or "lib"
-            child = self._children.get(name)
-            if child is None:
-                child = self._children[name] = self.ros_logger.get_child(name)
-            # one call site per severity: rclpy keeps one severity per call site and logger
-            msg, level = self.format(record), record.levelno
+            msg = f"{record.name.partition('.')[2] or record.name}: {self.format(record)}"
+            level, log = record.levelno, self.ros_logger
+            # one call site per severity: rclpy keeps one severity per call site of a logger
             if level >= logging.CRITICAL:
-                child.fatal(msg)
+                log.fatal(msg)
             elif level >= logging.ERROR:
-                child.error(msg)
+                log.error(msg)
             elif level >= logging.WARNING:
-                child.warning(msg)
+                log.warning(msg)
             elif level >= logging.INFO:
-                child.info(msg)
+                log.info(msg)
             else:
-                child.debug(msg)
+                log.debug(msg)
         except Exception:  # noqa: BLE001 - logging must never raise into the code that logs
             self.handleError(record)
 

@@ -71,7 +71,6 @@ class CstomoSensorNode(LifecycleNode):
 
     def __init__(self, node_name: str = "cstomo_sensor", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        self._log_handler = ros_log.attach(self.get_logger())  # the library's records reach /rosout
         for name, (default, desc) in PARAMETERS.items():
             self.declare_parameter(name, default, desc)
         self.config: NodeConfig | None = None
@@ -92,6 +91,7 @@ class CstomoSensorNode(LifecycleNode):
         self._last_diag = time.monotonic()
         self._last_corrupt = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
+        self._log_handler = ros_log.attach(self.get_logger())  # the library's records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
