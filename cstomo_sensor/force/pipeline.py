@@ -24,6 +24,7 @@ from .estimate import ESTIMATORS, build_estimator
 
 log = logging.getLogger(__name__)
 
+
 @dataclass(frozen=True)
 class PipelineConfig:
     """Every setting of the per-frame path: the one source of their defaults and choices (the
