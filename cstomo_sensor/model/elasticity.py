@@ -62,6 +62,7 @@ FACE_TOL = 1e-4
 CARRIED_ELEVATION_DEG = (15.0, 90.0)
 """Force elevations the reference sensor carries (REFERENCE_SENSOR.md s.4)."""
 NEWTON_TOL = 1e-12
+CONTACT_ACCEPT_TOL = 1e-6  # relative resultant error accepted when Newton stalls at rounding level
 """Newton stops when |int t dA - F| <= NEWTON_TOL |F| (or, when the line search stalls at
 rounding level, accepts a residual below 1e3 NEWTON_TOL |F|)."""
 _VOLUME_INTORDER = 2  # exact for the P2 stiffness (products of linear gradients)
@@ -375,7 +376,11 @@ def _socket_contact(n: np.ndarray, w: np.ndarray, force: np.ndarray) -> np.ndarr
         g = grad(a)
         if not np.isfinite(a).all() or np.linalg.norm(a) > 1e6 * fnorm / area:
             break
-    if np.isfinite(a).all() and np.linalg.norm(g) <= 1e3 * NEWTON_TOL * fnorm:
+    # Newton can stall at rounding level before NEWTON_TOL on some meshes (a line search that finds no
+    # descent; seen at 1.2e-9 on a fresh pytetwild mesh): a resultant within 1e-6 of |F| is a force
+    # error of a micronewton per newton, far below the sensor's noise, and is accepted. A force the
+    # socket cannot carry leaves a residual of order |F|.
+    if np.isfinite(a).all() and np.linalg.norm(g) <= CONTACT_ACCEPT_TOL * fnorm:
         return a
     raise ConfigError(
         f"force={tuple(float(f) for f in force)} N: the socket contact did not converge "
