@@ -16,13 +16,18 @@ ROOT = logging.getLogger(__name__.split(".")[0])  # the package's logger tree
 
 
 class RosLogHandler(logging.Handler):
-    """Forwards records to ``ros_logger``."""
+    """Forwards records to ``ros_logger`` while ``context_ok()`` (the node's ROS context is up);
+    after a shutdown, records go to stderr as Python's own last-resort handler writes them."""
 
-    def __init__(self, ros_logger: RcutilsLogger) -> None:
+    def __init__(self, ros_logger: RcutilsLogger, context_ok=lambda: True) -> None:
         super().__init__()
         self.ros_logger = ros_logger
+        self.context_ok = context_ok
 
     def emit(self, record: logging.LogRecord) -> None:
+        if not self.context_ok():  # /rosout is gone (SIGINT): rcl would print an error per record
+            logging.lastResort.handle(record)
+            return
         try:
             msg = f"{record.name.partition('.')[2] or record.name}: {self.format(record)}"
             level, log = record.levelno, self.ros_logger
@@ -41,10 +46,10 @@ class RosLogHandler(logging.Handler):
             self.handleError(record)
 
 
-def attach(ros_logger: RcutilsLogger) -> RosLogHandler:
+def attach(ros_logger: RcutilsLogger, context_ok=lambda: True) -> RosLogHandler:
     """Send the package's records to ``ros_logger`` at its level (not to stderr a second time);
     returns the handler for :func:`detach`."""
-    handler = RosLogHandler(ros_logger)
+    handler = RosLogHandler(ros_logger, context_ok)
     ROOT.addHandler(handler)
     ROOT.setLevel(max(int(ros_logger.get_effective_level()), logging.DEBUG))
     ROOT.propagate = False

@@ -91,7 +91,7 @@ class CstomoSensorNode(LifecycleNode):
         self._last_diag = time.monotonic()
         self._last_corrupt = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
-        self._log_handler = ros_log.attach(self.get_logger())  # the library's records reach /rosout
+        self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
