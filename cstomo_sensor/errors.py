@@ -28,6 +28,10 @@ class FrameError(CstomoError, ValueError):
     """A frame of voltages is malformed (wrong length, NaN/Inf, unparsable)."""
 
 
+class NoUsableChannelsError(FrameError):
+    """A frame's status flags exclude every measurement (all contacts failed, all saturated)."""
+
+
 class ModelMismatchError(CstomoError, ValueError):
     """A cached or saved model was built for other inputs than the ones asked for."""
 

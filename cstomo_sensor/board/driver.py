@@ -41,7 +41,8 @@ class DriverStats:
     reconnects : int
         Times the port was opened again after losing it (unplugged or stalled).
     last_error : str
-        The latest error or board complaint, '' if none.
+        The latest error or board complaint, '' if none since the last data frame (a frame
+        clears it: an old "open failed" is not blamed for today's trouble).
     bytes : int
         Bytes read from the port.
     """
@@ -270,6 +271,7 @@ class BoardDriver:
                     # step >= 2**31: the board restarted its counter; follow it without counting
                 self._last_seq = frame.seq
             self._frames += 1
+            self._last_error = ""
             if len(self._queue) == self._queue.maxlen:
                 self._dropped += 1
             self._queue.append(frame)

@@ -73,6 +73,11 @@ class FaultConfig:
         Value index (0-based) whose channel saturates: flag set, value clipped to +-``full_scale``.
     dead_electrode : int or None
         Electrode (0-based) with no contact: contact flag false, its rows read noise.
+    no_contact_at, no_contact_for : float or None, float
+        During [no_contact_at, no_contact_at + no_contact_for) every contact flag is false (a cable
+        pulled off the sensor) and the values read noise.
+    saturate_all_at, saturate_all_for : float or None, float
+        During that window every value is flagged saturated and clipped to +-``full_scale``.
     """
 
     bit_flip: float = 0.0
@@ -88,19 +93,28 @@ class FaultConfig:
     saturate_channel: int | None = None
     full_scale: float = 2.5
     dead_electrode: int | None = None
+    no_contact_at: float | None = None
+    no_contact_for: float = 0.0
+    saturate_all_at: float | None = None
+    saturate_all_for: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("bit_flip", "drop", "truncate", "garbage", "nan"):
             p = getattr(self, name)
             if not 0.0 <= p <= 1.0:
                 raise ConfigError(f"FaultConfig.{name}={p!r}: expected a probability in [0, 1]")
-        for name in ("stall_for", "reappear_after", "full_scale", "garbage_bytes"):
+        for name in ("stall_for", "reappear_after", "full_scale", "garbage_bytes", "no_contact_for",
+                     "saturate_all_for"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"FaultConfig.{name}={getattr(self, name)!r}: expected >= 0")
         if self.saturate_channel is not None and not 0 <= self.saturate_channel < N_VALUES:
             raise ConfigError(f"FaultConfig.saturate_channel={self.saturate_channel!r}: expected 0..{N_VALUES - 1}")
         if self.dead_electrode is not None and not 0 <= self.dead_electrode < N_ELECTRODES:
             raise ConfigError(f"FaultConfig.dead_electrode={self.dead_electrode!r}: expected 0..{N_ELECTRODES - 1}")
+
+
+def _within(t: float, start: float | None, length: float) -> bool:
+    return start is not None and start <= t < start + length
 
 
 @dataclass(frozen=True)
@@ -374,6 +388,12 @@ class SimulatedBoard:
         if self._dead_rows is not None:
             contact[f.dead_electrode] = False
             values[self._dead_rows] = self._rng.normal(0.0, 1e-3, int(self._dead_rows.sum()))
+        if _within(t, f.no_contact_at, f.no_contact_for):
+            contact[:] = False
+            values[:] = self._rng.normal(0.0, 1e-3, N_VALUES)
+        if _within(t, f.saturate_all_at, f.saturate_all_for):
+            saturated[:] = True
+            values[:] = np.where(values >= 0, f.full_scale, -f.full_scale)
         harmed = False
         if rng.random() < f.drop:
             self._injected["drop"] += 1

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..angles import force_angles
-from ..errors import ConfigError, FrameError
+from ..errors import ConfigError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..inverse.landweber import LandweberSVD
 from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
@@ -116,16 +116,17 @@ class Pipeline:
             raise ConfigError(f"bad channel mask of shape {keep.shape}, expected ({self.n_meas},)")
         if np.array_equal(keep, self._keep):
             return
-        self._keep = keep
+        # everything is computed before anything is assigned: a refused mask changes nothing
         if keep.all():
-            self._R = self.model.R.astype(self._dtype, copy=False)
+            R = self.model.R.astype(self._dtype, copy=False)
         else:
             if self._svd is None:
                 self._svd = LandweberSVD.from_jacobian(self.model.S)
             svd = self._svd.masked(keep)
             lam = self.model.damping * self._svd.s_max**2
-            self._R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
-        self.estimator = self.estimator.masked(keep)
+            R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
+        estimator = self.estimator.masked(keep)
+        self._keep, self._R, self.estimator = keep, R, estimator
 
     def process(self, frame: np.ndarray, with_field: bool = True) -> FrameResult:
         """Estimate the force (and the field) from one frame of (n_meas,) volts.
@@ -162,12 +163,40 @@ class Excluded:
     channels: int = 0
 
 
+#: Largest tare spread accepted: max over the used channels of std / rms(reference) of the tare
+#: frames. 60 dB noise (std 0.1 % of rms) gives 0.15..0.35 % over 208 channels (2..50 frames); a
+#: 20 N socket load moves a channel by up to 5.7 % of rms, so one arriving in the middle 80 % of
+#: a tare gives 1.7 % or more.
+TARE_MAX_SPREAD = 0.01
+
+
+@dataclass(frozen=True)
+class TareOutcome:
+    """How a tare ended: ``reference`` (208,) if accepted, else None and ``reason`` says why.
+
+    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare).
+    """
+
+    reference: np.ndarray | None
+    frames: int
+    spread: float
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.reference is not None
+
+
 class FrameProcessor:
     """Tare, bad-channel mask and per-frame processing around a Pipeline (node and replay share it).
 
     Tare semantics (the same everywhere): when a tare is pending (``tare_on_start`` in the node, or
-    no ``--reference`` given to replay), the next ``tare_frames`` frames of the input are averaged
-    into the reference and give no output; every later frame is processed against that reference.
+    no ``--reference`` given to replay), the next ``tare_frames`` usable frames of the input are
+    averaged into the reference and give no output; every later frame is processed against that
+    reference. A tare is refused (the old reference stays) when its frames are not steady: the
+    largest per-channel standard deviation over the channels not excluded during the tare, relative
+    to the rms of the averaged reference, is above ``tare_max_spread``; or when the average is not
+    finite. Without any reference a tare is always pending: a refused or cancelled one starts over.
 
     Parameters
     ----------
@@ -176,24 +205,34 @@ class FrameProcessor:
     stress_field_every : int
         Attach the stress field to every N-th processed frame (the first one included); 0 never.
     on_tare : callable or None
-        Called with the (208,) averaged reference when a tare completes (e.g. to save it).
+        Called with the :class:`TareOutcome` when a tare ends, accepted or refused (e.g. to save it).
+    tare_max_spread : float
+        The steadiness limit of a tare (see :data:`TARE_MAX_SPREAD`).
     """
 
     def __init__(self, pipe: Pipeline, stress_field_every: int = 0,
-                 on_tare: Callable[[np.ndarray], None] | None = None) -> None:
+                 on_tare: Callable[[TareOutcome], None] | None = None,
+                 tare_max_spread: float = TARE_MAX_SPREAD) -> None:
         if stress_field_every < 0:
             raise ConfigError(f"{stress_field_every=}: expected >= 0 (0 = off)")
+        if not tare_max_spread > 0:
+            raise ConfigError(f"{tare_max_spread=}: expected > 0 (a fraction of the reference rms)")
         self.pipe = pipe
         self.stress_field_every = int(stress_field_every)
         self.on_tare = on_tare
+        self.tare_max_spread = float(tare_max_spread)
         n_el = len(pipe.geometry.electrodes)
         pattern = MeasurementPattern(n_el, pipe.geometry.layers)
         self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
-        self._mask = np.zeros(pipe.n_meas, bool)
+        self._mask = pipe.bad_channels.copy()  # always the pipeline's own mask
         self._all_good = np.ones(n_el, bool)
-        self.excluded = Excluded()
+        self.excluded = Excluded(channels=int(self._mask.sum()))
         self.processed = 0
-        self._tare_sum = np.zeros(pipe.n_meas)
+        self._tare_x0 = np.zeros(pipe.n_meas)   # first tare frame (sums are taken around it)
+        self._tare_s1 = np.zeros(pipe.n_meas)
+        self._tare_s2 = np.zeros(pipe.n_meas)
+        self._tare_d = np.zeros(pipe.n_meas)
+        self._tare_mask = np.zeros(pipe.n_meas, bool)  # channels excluded by any tare frame
         self._tare_left = self._tare_n = 0
 
     # --- tare ------------------------------------------------------------------------------------
@@ -202,8 +241,18 @@ class FrameProcessor:
         """Average the next ``n_frames`` frames into the reference (they give no output)."""
         if n_frames < 1:
             raise ConfigError(f"tare_frames={n_frames!r}: expected >= 1")
-        self._tare_sum[:] = 0.0
         self._tare_left = self._tare_n = int(n_frames)
+
+    def cancel_tare(self) -> int:
+        """Drop a pending tare (the reference stays as it is); returns the frames it had taken.
+
+        Without any reference the tare stays pending (see the class docstring)."""
+        taken = self._tare_n - self._tare_left if self._tare_left else 0
+        if self.pipe.reference is not None:
+            self._tare_left = 0
+        else:
+            self._tare_left = self._tare_n
+        return taken
 
     @property
     def taring(self) -> bool:
@@ -214,22 +263,71 @@ class FrameProcessor:
         """A reference is set and no tare is pending: frames give results."""
         return not self.taring and self.pipe.reference is not None
 
+    def _add_tare_frame(self, v: np.ndarray, mask: np.ndarray) -> TareOutcome | None:
+        if self._tare_left == self._tare_n:  # the first frame
+            self._tare_x0[:] = v
+            self._tare_s1[:] = 0.0
+            self._tare_s2[:] = 0.0
+            self._tare_mask[:] = mask
+        self._tare_mask |= mask
+        np.subtract(v, self._tare_x0, out=self._tare_d)
+        self._tare_s1 += self._tare_d
+        self._tare_s2 += self._tare_d**2
+        self._tare_left -= 1
+        if self._tare_left:
+            return None
+        n = self._tare_n
+        ref = self._tare_x0 + self._tare_s1 / n
+        spread = 0.0
+        used = ~self._tare_mask
+        rms = float(np.sqrt(np.mean(ref[used] ** 2))) if used.any() else 0.0
+        if n > 1 and rms > 0:
+            var = np.maximum(self._tare_s2 - self._tare_s1**2 / n, 0.0) / (n - 1)
+            spread = float(np.sqrt(var[used].max()) / rms)
+        if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
+            return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
+                                                "channel; check the board's contacts and cable")
+        if spread > self.tare_max_spread:
+            worst = int(np.argmax(np.where(used, var, -1.0))) + 1
+            return TareOutcome(None, n, spread, f"tare refused: frames not steady (spread {spread:.2%} of the "
+                                                f"reference rms at measurement {worst}, limit "
+                                                f"{self.tare_max_spread:.2%}); keep the sensor still and unloaded "
+                                                "during the tare")
+        return TareOutcome(ref, n, spread)
+
     # --- per frame -------------------------------------------------------------------------------
 
-    def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
-        """Exclude saturated values and every row of a dead electrode; True if the mask changed
-        (only then is ``pipe.set_bad_channels`` called)."""
+    def _mask_of(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None):
+        """(mask, saturated count, dead electrodes) of a frame's flags; raises
+        :class:`NoUsableChannelsError` when they exclude every measurement."""
         contact = self._all_good if contact_ok is None else np.asarray(contact_ok, bool)
         dead = ~contact
         mask = self._electrode_rows[dead].any(axis=0) if dead.any() else np.zeros_like(self._mask)
+        n_sat = 0
         if saturated is not None:
-            mask |= np.asarray(saturated, bool)
+            saturated = np.asarray(saturated, bool)
+            n_sat = int(np.count_nonzero(saturated))
+            mask |= saturated
+        if mask.all():
+            raise NoUsableChannelsError(
+                f"every measurement excluded ({n_sat} saturated values, {int(dead.sum())} of {dead.size} "
+                "electrode contacts failed): frame dropped; check the sensor's cable, contacts and drive current")
+        return mask, n_sat, dead
+
+    def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
+        """Exclude saturated values and every row of a dead electrode; True if the mask changed
+        (only then is ``pipe.set_bad_channels`` called).
+
+        Raises :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every
+        measurement: such a frame carries no data and must be dropped.
+        """
+        mask, n_sat, dead = self._mask_of(saturated, contact_ok)
         if np.array_equal(mask, self._mask):
             return False
+        self.pipe.set_bad_channels(mask.copy())  # raises before changing anything if refused
         self._mask = mask
-        self.pipe.set_bad_channels(mask.copy())
         self.excluded = Excluded(
-            saturated=0 if saturated is None else int(np.count_nonzero(saturated)),
+            saturated=n_sat,
             dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
             channels=int(mask.sum()),
         )
@@ -239,18 +337,16 @@ class FrameProcessor:
         return True
 
     def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
-                contact_ok: np.ndarray | None = None) -> object | None:
+                contact_ok: np.ndarray | None = None) -> FrameResult | None:
         """The FrameResult of one frame, or None while the frame goes into a pending tare (or no
-        reference exists yet)."""
+        reference exists yet). Raises :class:`FrameError` for a frame that must be dropped (it then
+        counts for nothing, not even for a pending tare)."""
         if self._tare_left:
-            self._tare_sum += values
-            self._tare_left -= 1
-            if not self._tare_left:
-                ref = self._tare_sum / self._tare_n
-                self.pipe.set_reference(ref)
-                log.info("tare: new reference from %d frames", self._tare_n)
-                if self.on_tare is not None:
-                    self.on_tare(ref)
+            mask = self._mask_of(saturated, contact_ok)[0]
+            v = check_frame(values, self.pipe.n_meas, "tare frame", used=~mask)
+            outcome = self._add_tare_frame(v, mask)
+            if outcome is not None:
+                self._end_tare(outcome)
             return None
         if self.pipe.reference is None:
             return None
@@ -259,3 +355,16 @@ class FrameProcessor:
         with_field = every > 0 and self.processed % every == 0
         self.processed += 1
         return self.pipe.process(values, with_field=with_field)
+
+    def _end_tare(self, outcome: TareOutcome) -> None:
+        if outcome.ok:
+            self.pipe.set_reference(outcome.reference)
+            log.info("tare: new reference from %d frames (spread %.2f%% of its rms)", outcome.frames,
+                     100 * outcome.spread)
+        elif self.pipe.reference is None:
+            log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, outcome.frames)
+            self.start_tare(outcome.frames)
+        else:
+            log.warning("%s; the previous reference stays", outcome.reason)
+        if self.on_tare is not None:
+            self.on_tare(outcome)

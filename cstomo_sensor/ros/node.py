@@ -19,6 +19,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 
 import numpy as np
 import rclpy
@@ -34,8 +35,8 @@ from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
-from ..errors import ConfigError, CstomoError, FrameError
-from ..force.pipeline import FrameProcessor, Pipeline
+from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
+from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..frames_io import read_frames, write_frames
 from . import log as ros_log
 from .messages import (
@@ -57,7 +58,12 @@ class _Stats:
         self.lock = threading.Lock()
         self.frames = 0          # frames handled (all time)
         self.period_frames = 0   # frames handled since the last diagnostics
-        self.corrupt = 0         # malformed frames (topic mode) or rejected by the pipeline
+        self.corrupt = 0         # malformed input messages (topic mode; the driver counts the board's)
+        self.rejected = 0        # frames dropped by the frame path (pipeline, errors), all causes
+        self.all_excluded = 0    # ... of which every measurement was excluded by the board's flags
+        self.errors = 0          # ... of which an unexpected exception (a bug) was the cause
+        self.reject_reason = ""  # why the latest frame was dropped; '' once a frame goes through
+        self.period_reason = ""  # the latest reason this diagnostics period
         self.late = 0            # frames dropped as older than stale_timeout
         self.proc_sum = 0.0      # per-frame processing seconds, this period
         self.proc_max = 0.0
@@ -87,9 +93,10 @@ class CstomoSensorNode(LifecycleNode):
         self._stats = _Stats()
         self._proc_lock = threading.Lock()  # one frame at a time through the processor
         self._tare_done = threading.Event()
+        self._tare_outcome: tuple[TareOutcome, str] | None = None  # set by the frame thread
         self._board_clock = ClockMapper()
         self._last_diag = time.monotonic()
-        self._last_corrupt = 0
+        self._last_corrupt = self._last_rejected = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
@@ -129,7 +136,8 @@ class CstomoSensorNode(LifecycleNode):
         self.config, self.pipe = cfg, pipe
         self._board_clock = ClockMapper(cfg.clock_window)
         self._stats = _Stats()
-        self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._save_tare)
+        self._last_corrupt = self._last_rejected = 0
+        self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._tare_ended)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
         self._init_reference()
         qos = cfg.qos()
@@ -224,7 +232,8 @@ class CstomoSensorNode(LifecycleNode):
         self.pipe.set_reference(self.pipe.model_reference)
         self.reference_source = "model (untared)"
 
-    def _save_tare(self, ref: np.ndarray) -> None:
+    def _save_tare(self, ref: np.ndarray) -> str:
+        """Write an accepted tare to ``tare_path``; returns '' or why it was not saved."""
         cfg = self.config
         self.reference_source = "tare"
         try:
@@ -233,27 +242,57 @@ class CstomoSensorNode(LifecycleNode):
             write_frames(tmp, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}': mean of "
                                            f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
             os.replace(tmp, cfg.tare_path)
-            self.reference_source = f"tare saved to {cfg.tare_path}"
-            self.get_logger().info(f"tare saved to {cfg.tare_path}")
         except OSError as err:
-            self.get_logger().error(f"tare not saved to {cfg.tare_path}: {err}")
+            note = f"tare in use but not saved to {cfg.tare_path} ({err}): fix tare_file and tare again"
+            self.get_logger().error(note)
+            return note
+        self.reference_source = f"tare saved to {cfg.tare_path}"
+        self.get_logger().info(f"tare saved to {cfg.tare_path}")
+        return ""
+
+    def _tare_ended(self, outcome: TareOutcome) -> None:
+        """The processor ended a tare (frame thread, under ``_proc_lock``): save it if accepted and
+        hand the outcome to a waiting ``~/tare`` call."""
+        note = self._save_tare(outcome.reference) if outcome.ok else ""
+        self._tare_outcome = (outcome, note)
         self._tare_done.set()
 
     def _on_tare(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """A tare is a transaction: it ends on its own frames within the deadline (accepted, or
+        refused as not steady), or it is cancelled; only an accepted one changes the reference and
+        the saved file."""
         cfg, proc = self.config, self.processor
         if proc is None:
             response.success, response.message = False, "not configured"
             return response
+        n = cfg.tare_frames
+        wait = cfg.stale_timeout + n * 0.1 + 2.0
         with self._proc_lock:
             self._tare_done.clear()
-            proc.start_tare(cfg.tare_frames)
-        wait = cfg.stale_timeout + cfg.tare_frames * 0.1 + 2.0
-        if not self._tare_done.wait(wait):
-            response.success = False
-            response.message = f"tare not finished within {wait:.1f} s: are frames arriving?"
+            self._tare_outcome = None
+            proc.start_tare(n)
+        self._tare_done.wait(wait)
+        with self._proc_lock:  # decided under the lock: a tare cannot end while it is cancelled
+            ended, self._tare_outcome = self._tare_outcome, None
+            taken = proc.cancel_tare() if ended is None else n
+        unchanged = f"the reference ({self.reference_source}) and {cfg.tare_path} are unchanged"
+        if ended is None:
+            why = self.stale_reason() or "frames late, dropped or rejected"
+            msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call ~/tare " \
+                  "again once frames arrive"
+            if proc.taring:
+                msg += " (the tare at start stays pending: no reference yet)"
+            self.get_logger().warning(msg)
+            response.success, response.message = False, msg
+            return response
+        outcome, note = ended
+        if not outcome.ok:
+            self.get_logger().warning(f"~/tare: {outcome.reason}")
+            response.success, response.message = False, f"{outcome.reason}, then call ~/tare again; {unchanged}"
             return response
         response.success = True
-        response.message = f"reference from {cfg.tare_frames} frames; {self.reference_source}"
+        response.message = f"reference from {n} frames (spread {outcome.spread:.2%} of its rms); " \
+                           f"{note or self.reference_source}"
         return response
 
     # --- frames ------------------------------------------------------------------------------------
@@ -261,20 +300,22 @@ class CstomoSensorNode(LifecycleNode):
     def _serial_loop(self) -> None:
         drv = self._driver
         while not self._stop.is_set():
-            frame = drv.get(0.1)
-            if frame is None:
-                continue
-            host_ns = self.get_clock().now().nanoseconds
-            if frame.board_time_us is not None:
-                stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
-            else:
-                stamp_ns = host_ns  # text mode: no board clock
             try:
+                frame = drv.get(0.1)
+                if frame is None:
+                    continue
+                host_ns = self.get_clock().now().nanoseconds
+                if frame.board_time_us is not None:
+                    stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
+                else:
+                    stamp_ns = host_ns  # text mode: no board clock
                 self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
-            except RCLError:
-                if self.context.ok():
-                    raise
-                return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
+            except RCLError as err:
+                if not self.context.ok():
+                    return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
+                self._frame_dropped(err)
+            except Exception as err:  # noqa: BLE001 - the frame boundary: counted, logged, reported
+                self._frame_dropped(err)
 
     def _on_raw(self, msg: Float32MultiArray) -> None:
         host_ns = self.get_clock().now().nanoseconds
@@ -285,10 +326,32 @@ class CstomoSensorNode(LifecycleNode):
                 self._stats.corrupt += 1
             self.get_logger().warning(f"dropped input frame: {err}", throttle_duration_sec=5.0)
             return
-        self._handle(values, None, None, host_ns, host_ns, raw=False)
+        try:
+            self._handle(values, None, None, host_ns, host_ns, raw=False)
+        except Exception as err:  # noqa: BLE001 - the frame boundary, as in _serial_loop
+            self._frame_dropped(err)
+
+    def _frame_dropped(self, err: Exception) -> None:
+        """Count, log (throttled) and report a frame the frame path dropped; the caller goes on."""
+        bug = not isinstance(err, FrameError)
+        reason = f"{type(err).__name__}: {err}" if bug else str(err)
+        st = self._stats
+        with st.lock:
+            st.rejected += 1
+            st.all_excluded += isinstance(err, NoUsableChannelsError)
+            st.errors += bug
+            st.reject_reason = st.period_reason = reason
+        if bug:
+            self.get_logger().error("frame dropped on an unexpected error (a bug: please report it with this "
+                                    f"trace):\n{''.join(traceback.format_exception(err))}",
+                                    throttle_duration_sec=5.0)
+        else:
+            self.get_logger().warning(f"dropped frame: {reason}", throttle_duration_sec=5.0)
 
     def _handle(self, values, saturated, contact_ok, stamp_ns: int, host_ns: int, raw: bool) -> None:
-        """One frame: count it, maybe publish raw, process (tare or result), publish outputs."""
+        """One frame: count it, maybe publish raw, process (tare or result), publish outputs.
+
+        Raises whatever the frame path raises; the callers count it (:meth:`_frame_dropped`)."""
         t0 = time.perf_counter()
         st, proc, cfg = self._stats, self.processor, self.config
         with st.lock:
@@ -306,14 +369,11 @@ class CstomoSensorNode(LifecycleNode):
             self._pubs[RAW_TOPIC].publish(raw_voltages_msg(values))
         if not (active or proc.taring):
             return
-        try:
-            with self._proc_lock:
-                result = proc.process(values, saturated, contact_ok)
-        except FrameError as err:
+        with self._proc_lock:
+            result = proc.process(values, saturated, contact_ok)
+        if st.reject_reason:
             with st.lock:
-                st.corrupt += 1
-            self.get_logger().warning(f"dropped frame: {err}", throttle_duration_sec=5.0)
-            return
+                st.reject_reason = ""  # frames go through again
         if result is None or not self._active:
             return
         for topic, msg in self.out.build(result, stamp_ns).items():
@@ -359,6 +419,9 @@ class CstomoSensorNode(LifecycleNode):
             proc_max = st.proc_max if st.proc_n else math.nan
             st.period_frames, st.proc_sum, st.proc_max, st.proc_n = 0, 0.0, 0.0, 0
             corrupt, late, residual, frames = st.corrupt, st.late, st.residual, st.frames
+            rejected, period_reason, st.period_reason = st.rejected, st.period_reason, ""
+            kv_rejected = {"frames_rejected": rejected, "frames_all_excluded": st.all_excluded,
+                           "frame_errors": st.errors, "reject_reason": st.reject_reason}
         status = DiagnosticStatus(name=f"{self.get_name()}: sensor", hardware_id=cfg.port if cfg and cfg.input == "serial" else "")
         kv = {"state": "active" if self._active else "inactive", "input": cfg.input if cfg else "",
               "reference": self.reference_source, "frames": frames, "frame_rate_hz": f"{rate:.1f}",
@@ -376,6 +439,11 @@ class CstomoSensorNode(LifecycleNode):
             level = max(level, DiagnosticStatus.WARN)
             msgs.append(f"{corrupt - self._last_corrupt} corrupt frames")
         self._last_corrupt = corrupt
+        kv.update(kv_rejected)
+        if rejected > self._last_rejected:
+            level = max(level, DiagnosticStatus.WARN)
+            msgs.append(f"{rejected - self._last_rejected} frames rejected ({period_reason})")
+        self._last_rejected = rejected
         ex = self.processor.excluded if self.processor is not None else None
         if ex is not None:
             kv.update(saturated_channels=ex.saturated, dead_electrodes=",".join(str(e + 1) for e in ex.dead_electrodes),
