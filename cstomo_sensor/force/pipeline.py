@@ -203,8 +203,11 @@ class Pipeline:
         self.estimator = self.estimator.masked(keep)
         self._update_gate()
 
-    def process(self, frame: np.ndarray, with_field: bool = True) -> FrameResult:
+    def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
         """Estimate the force (and the field) from one frame of (n_meas,) volts.
+
+        ``gate=False`` skips the plausibility gate (studies of what the estimator does with any
+        input, e.g. the benchmark's stability table); the node, replay and the command line keep it.
 
         Raises :class:`FrameError` for a frame of the wrong length or with NaN/Inf in a used channel.
         """
@@ -217,19 +220,19 @@ class Pipeline:
             y /= self.model.v_scale
             y[~self._keep] = 0.0
             g = np.multiply(y, self._gate_w, out=self._g)
-            g2 = float(np.dot(g, g))
+            g2 = float(np.dot(g, g)) if gate else 0.0
             if not g2 <= self.gate_norm_bound**2:  # NaN/inf too
                 return FrameResult.implausible(
                     f"relative change of norm {np.sqrt(g2):.3g}, beyond {self.gate_norm_bound:.3g} (the largest a "
                     f"load up to max_force {self.max_force:g} N can cause)")
             np.abs(g, out=g)
-            if np.greater(g, self.gate_channel_bound, out=self._over).any():
+            if gate and np.greater(g, self.gate_channel_bound, out=self._over).any():
                 i = int(np.argmax(g / self.gate_channel_bound))
                 return FrameResult.implausible(
                     f"channel {i} changed by {g[i]:.3g} of its reference, beyond {self.gate_channel_bound[i]:.3g}")
         force = self.estimator.estimate(y)
         mag, el, az = force_angles(force)
-        if not mag <= self.max_force:
+        if gate and not mag <= self.max_force:
             return FrameResult.implausible(f"force {float(mag):.4g} N beyond max_force {self.max_force:g} N")
         field = None
         residual = float("nan")
