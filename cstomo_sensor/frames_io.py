@@ -59,19 +59,48 @@ def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | Non
     Path(path).write_text(buf.getvalue())
 
 
-def write_forces(path: str | os.PathLike, forces: np.ndarray) -> None:
-    """Write a forces file from (n, 3) force vectors (newtons, wrench frame)."""
+def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray | None = None) -> None:
+    """Write a forces file from (n, 3) force vectors (newtons, wrench frame).
 
+    ``valid`` (bool (n,)), when given, adds the optional ``valid`` column of REFERENCE_SENSOR.md
+    section 6: 1, or 0 for a frame rejected as implausible, whose force fields are left empty.
+    """
     f = np.atleast_2d(np.asarray(forces, dtype=float))
-    mag, el, az = force_angles(f)
-    table = np.column_stack([np.arange(len(f)), f, mag, el, az])
-    np.savetxt(path, table, delimiter=",", header=FORCES_HEADER, comments="", fmt=["%d"] + ["%.9g"] * 6)
+    ok = np.ones(len(f), bool) if valid is None else np.asarray(valid, bool)
+    if ok.shape != (len(f),):
+        raise FrameError(f"valid has shape {ok.shape}, expected ({len(f)},)")
+    mag, el, az = force_angles(np.where(ok[:, None], f, 0.0))
+    table = np.column_stack([f, mag, el, az])
+    lines = [FORCES_HEADER + (",valid" if valid is not None else "")]
+    for i, (row, good) in enumerate(zip(table, ok)):
+        fields = ",".join(f"{x:.9g}" for x in row) if good else ",,,,,"
+        lines.append(f"{i},{fields}" + ("" if valid is None else f",{int(good)}"))
+    Path(path).write_text("\n".join(lines) + "\n")
 
 
-def read_forces(path: str | os.PathLike) -> np.ndarray:
-    """Read a forces (or truth) file: (n, 3) force vectors."""
-    t = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    return t[:, 1:4]
+def read_forces(path: str | os.PathLike, with_valid: bool = False):
+    """Read a forces (or truth) file: (n, 3) force vectors, NaN where a field is empty (a frame
+    rejected as implausible). Columns are found by name; unknown ones are ignored. With
+    ``with_valid``, also the bool (n,) ``valid`` column (all True when the file has none)."""
+    lines = [ln for ln in Path(path).read_text().splitlines() if ln.strip()]
+    if not lines:
+        raise FrameError(f"{path}: empty, expected a header line {FORCES_HEADER!r}")
+    names = [n.strip() for n in lines[0].split(",")]
+    try:
+        cols = [names.index(n) for n in ("fx", "fy", "fz")]
+    except ValueError:
+        raise FrameError(f"{path}: header {lines[0]!r} lacks fx,fy,fz") from None
+    iv = names.index("valid") if "valid" in names else None
+    forces, valid = np.full((len(lines) - 1, 3), np.nan), np.ones(len(lines) - 1, bool)
+    for k, line in enumerate(lines[1:]):
+        t = line.split(",")
+        try:
+            forces[k] = [float(t[c]) if t[c].strip() else np.nan for c in cols]
+            if iv is not None:
+                valid[k] = t[iv].strip() not in ("0", "")
+        except (IndexError, ValueError) as err:
+            raise FrameError(f"{path}:{k + 2}: {err}") from None
+    return (forces, valid) if with_valid else forces
 
 
 def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:

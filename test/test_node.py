@@ -330,3 +330,42 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     rows[7] = True
     assert int(v["excluded_channels"]) == rows.sum()
     np.testing.assert_array_equal(bad, rows)  # excluded from the reconstruction
+
+
+class ZeroBurstSource(BagSource):
+    """The bag's device, but the board sends all-zero frames from 1.0 s to 2.0 s (a failing ADC)."""
+
+    def __init__(self, base):
+        self.frames, self.forces = base.frames, base.forces
+
+    def frame(self, t, rng):
+        return np.zeros(208) if 1.0 <= t < 2.0 else super().frame(t, rng)
+
+
+def test_all_zero_frames_are_not_published_and_diagnostics_say_implausible(ros, tmp_path, source, warm_model):
+    from geometry_msgs.msg import WrenchStamped
+    from std_msgs.msg import Float64
+
+    h, board = None, None
+    try:
+        h, board = start(ros, tmp_path, ZeroBurstSource(source), rate=100.0, tare_on_start=True, tare_frames=10)
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        mag = h.record("/cstomo_sensor/force_magnitude", Float64)
+        dg = diag_records(h)
+        board.start()
+        assert wait_for(lambda: any(int(diag(m)[2].get("implausible", 0)) >= 50 for _, m in dg), 10.0)
+        n = len(wr)
+        assert wait_for(lambda: len(wr) > n + 30, 10.0)  # plausible frames again: publishing resumes
+    finally:
+        if board is not None:
+            board.close()
+        if h is not None:
+            h.close()
+    forces = np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z] for _, m in wr])
+    assert np.linalg.norm(forces, axis=1).max() < 40.0  # no 1,800 N wrench from a zero frame
+    assert max(m.data for _, m in mag) < 40.0
+    times = np.array([t for t, _ in wr])
+    assert np.diff(times).max() > 0.8  # one silence of about a second, where the zeros came
+    level, message, v = next(diag(m) for _, m in dg if int(diag(m)[2].get("implausible", 0)) > 0)
+    assert level >= 1 and "implausible" in message and v["implausible_reason"], (level, message, v)
+    assert v["checksum"] == "crc32" and v["stale_reason"] == ""

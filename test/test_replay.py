@@ -163,3 +163,32 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
     clouds_node = [m.data for _, m in got["stress_field"]]
     clouds_replay = [m.data for _, m in want["/cstomo_sensor/stress_field"]]
     assert len(clouds_node) == len(clouds_replay) and all(a == b for a, b in zip(clouds_node, clouds_replay))
+
+
+def test_replay_writes_nothing_for_implausible_frames_and_counts_them(tmp_path, config, pipe, capsys):
+    """Frames 30..39 of the bag replaced by all-zero frames: no output for them, counted in the summary."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from rosbags.rosbag2 import Reader, Writer
+    from std_msgs.msg import Float32MultiArray
+
+    from cstomo_sensor.tools.replay import main
+
+    zeros = tmp_path / "zeros_in"
+    with Reader(BAG) as r, Writer(zeros, version=9) as w:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, msgdef=c.msgdef.data, rihs01=c.digest) for c in r.connections}
+        for k, (c, t, raw) in enumerate(r.messages()):
+            if 30 <= k < 40:
+                msg = deserialize_message(bytes(raw), Float32MultiArray)
+                msg.data = np.zeros(len(msg.data), np.float32)
+                raw = serialize_message(msg)
+            w.write(conns[c.id], t, raw)
+    args = [str(zeros), "--out", str(tmp_path / "out"), "--mesh-size", str(PIPE["mesh_size"]),
+            "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE)]
+    assert main(args) == 0
+    assert "; 10 implausible" in capsys.readouterr().out
+    msgs = read_bag(tmp_path / "out")
+    inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
+    want = [t for k, (t, _) in enumerate(inputs) if k >= TARE and not 30 <= k < 40]
+    for topic in FORCE_TOPICS:
+        assert [t for t, _ in msgs[f"/cstomo_sensor/{topic}"]] == want, topic
+    assert np.isfinite(force_rows(msgs)).all() and force_rows(msgs)[:, 3].max() < 40.0

@@ -1,8 +1,36 @@
-"""The per-frame path: tared difference -> image -> stress field -> force. No ROS, no serial.
+"""The per-frame path: tared difference -> plausibility gate -> image -> stress field -> force.
+No ROS, no serial.
 
 Everything the node does with a frame is here, so the node, ``cstomo replay`` and the command line
-give the same numbers. Per frame: one normalisation, one float32 matrix-vector product for the
-image (only when the field is asked for), the estimator, into preallocated buffers.
+give the same numbers. Per frame: one normalisation, the plausibility gate (a norm, one per-channel
+comparison), one float32 matrix-vector product for the image (only when the field is asked for),
+the estimator, into preallocated buffers.
+
+Plausibility gate
+-----------------
+A frame whose change from the reference lies far outside what any load in the sensor's rated range
+can cause is not a force (all-zero or scaled frames from a failing board, huge values, a bit-flipped
+text line). Its :class:`FrameResult` has ``valid=False``, a short ``reason`` and NaN force, angles
+and field. The gate works on the change relative to the device's *own* reference,
+``g = (V - V_ref) / max(|V_ref|, 0.05 rms(V_ref))`` per used channel, so a device whose rubber is
+0.2..5 times as resistive as the model (REFERENCE_SENSOR.md section 8) is judged alike. A frame is
+rejected when any of these holds:
+
+1. ``||g|| > DEVICE_MARGIN * k * max_force + NOISE_NORM_FACTOR * ||n40||``: ``k`` is the largest
+   ``||y|| / |F|`` of the estimator's calibration set (simulated socket loads 5..40 N; nearly
+   linear in |F|), ``||n40||`` the norm of the per-channel noise of a 40 dB board (section 5, the
+   poorest board of section 8), doubled to cover a single-frame reference.
+2. any channel's ``|g_i| > DEVICE_MARGIN * e_i * max_force + CHANNEL_NOISE_SIGMAS * n40_i``: ``e_i``
+   is channel i's largest ``|y_i| / |F|`` over the calibration set.
+3. the estimated force exceeds ``max_force`` (default 1.5 x the rated 40 N).
+
+``DEVICE_MARGIN`` = 3.5 covers a device at the ends of section 8 (E 0.7 MPa: 1.43 x the strain;
+d ln(rho) / d theta -19 instead of -12: 1.58 x; nu 0.43: more compressible) loaded to ``max_force``.
+Figures for the cuboid_joint (h = 4 mm model): k = 0.0209 /N, ||n40|| = 0.76, so the bound on
+``||g||`` is 5.9 at max_force = 60 N; honest simulation (independent mesh, mismatched electrodes)
+of 40 N at any direction at 40 dB with a single-frame reference gives ``||g||`` <= 1.6 and every
+channel under 0.84 of its bound *before* the margin; an all-zero frame gives ||g|| = 14.4, a frame
+scaled by 10 gives 130.
 """
 from __future__ import annotations
 
@@ -20,10 +48,18 @@ from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
 from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
-from .estimate import ESTIMATORS, build_estimator
+from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
 
 log = logging.getLogger(__name__)
 
+#: The rated force range of the socket (REFERENCE_SENSOR.md section 4): the calibration's largest load.
+RATED_FORCE = max(CalibrationSpec.magnitudes)  # N
+#: Plausibility gate (module docstring): device spread of section 8, the poorest board's SNR,
+#: the noise allowances of the norm and of one channel.
+DEVICE_MARGIN = 3.5
+GATE_SNR_DB = 40.0
+NOISE_NORM_FACTOR = 2.0
+CHANNEL_NOISE_SIGMAS = 6.0 * np.sqrt(2.0)  # 6 sigma of the difference of two noisy frames
 
 @dataclass(frozen=True)
 class PipelineConfig:
@@ -37,10 +73,13 @@ class PipelineConfig:
     grid: tuple[int, int, int] = ReconSpec.grid
     iterations: int = 0  # 0 = chosen by the discrepancy rule
     damping: float = ReconSpec.damping
+    max_force: float = 1.5 * RATED_FORCE  # N; larger estimates (and frames no such load explains) are implausible
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
             raise ConfigError.bad_value("estimator", self.estimator, f"one of {list(ESTIMATORS)}")
+        if not self.max_force > 0:
+            raise ConfigError.bad_value("max_force", self.max_force, "a force > 0 in newtons")
         if self.iterations < 0:
             raise ConfigError.bad_value("iterations", self.iterations, "0 (automatic) or a positive count")
         object.__setattr__(self, "grid", self.recon_spec.grid)  # validates mesh_size, grid, damping
@@ -53,7 +92,11 @@ class PipelineConfig:
 
 @dataclass
 class FrameResult:
-    """One frame's outputs. ``force`` in newtons in the wrench frame; angles in radians."""
+    """One frame's outputs. ``force`` in newtons in the wrench frame; angles in radians.
+
+    ``valid`` is False when the plausibility gate rejected the frame (module docstring): then
+    ``reason`` says why, and force, angles and residual are NaN and there is no field.
+    """
 
     force: np.ndarray
     magnitude: float
@@ -61,6 +104,13 @@ class FrameResult:
     azimuth: float
     residual: float
     field: StressField | None
+    valid: bool = True
+    reason: str = ""
+
+    @classmethod
+    def implausible(cls, reason: str) -> FrameResult:
+        nan = float("nan")
+        return cls(np.full(3, nan), nan, nan, nan, nan, None, False, reason)
 
 
 class Pipeline:
@@ -68,11 +118,11 @@ class Pipeline:
 
     Ready when constructed; :meth:`build` loads everything from the cache (or builds it).
     ``image_dtype`` is the precision of the per-frame image product (float32, or float64 to
-    measure what float32 costs).
+    measure what float32 costs). ``max_force`` (N) sets the plausibility gate (module docstring).
     """
 
     def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,
-                 image_dtype: type = np.float32) -> None:
+                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force) -> None:
         self.geometry = geometry
         self.model = model
         self.estimator = estimator
@@ -86,13 +136,29 @@ class Pipeline:
         self._y = np.empty(self.n_meas, dtype=np.float64)
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
+        # plausibility gate: calibration envelopes (per newton) and the 40 dB noise, in y units
+        if not max_force > 0:
+            raise ConfigError.bad_value("max_force", max_force, "a force > 0 in newtons")
+        self.max_force = float(max_force)
+        F, Y = np.asarray(estimator.forces), np.asarray(estimator.y)
+        mag = np.linalg.norm(F, axis=1)
+        loaded = mag > 0
+        per_n = np.abs(Y[loaded]) / mag[loaded, None]
+        self.gate_k = float(np.max(np.linalg.norm(Y[loaded], axis=1) / mag[loaded]))  # ||y|| per N
+        ref = model.model_reference
+        noise = np.sqrt(np.mean(ref**2)) * 10 ** (-GATE_SNR_DB / 20) / model.v_scale
+        self.gate_norm_bound = DEVICE_MARGIN * self.gate_k * self.max_force + NOISE_NORM_FACTOR * float(np.linalg.norm(noise))
+        self.gate_channel_bound = DEVICE_MARGIN * per_n.max(axis=0) * self.max_force + CHANNEL_NOISE_SIGMAS * noise
+        self._gate_w = np.ones(self.n_meas)  # y -> g: keep * v_scale / (device's reference scale)
+        self._g = np.empty(self.n_meas)
+        self._over = np.empty(self.n_meas, dtype=bool)
 
     @classmethod
     def build(cls, config: PipelineConfig, progress=None) -> Pipeline:
         geometry = load_sensor(config.sensor)
         model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
-        return cls(geometry, model, estimator)
+        return cls(geometry, model, estimator, max_force=config.max_force)
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -105,6 +171,15 @@ class Pipeline:
     def set_reference(self, frame: np.ndarray) -> None:
         """Use the device's own unloaded frame (tare) as the difference reference."""
         self.reference = check_frame(frame, self.n_meas, "reference").copy()
+        self._update_gate()
+
+    def _update_gate(self) -> None:
+        """The gate's per-channel weight: the change relative to the device's own reference."""
+        ref = self.reference if self.reference is not None else self.model_reference
+        scale = np.maximum(np.abs(ref), 0.05 * np.sqrt(np.mean(ref**2)))
+        with np.errstate(divide="ignore"):
+            w = np.where(scale > 0, self.model.v_scale / scale, np.inf)  # an all-zero reference: nothing passes
+        self._gate_w = np.where(self._keep, w, 0.0)
 
     def set_bad_channels(self, bad: np.ndarray) -> None:
         """Exclude measurements (saturated channel, dead electrode): R and the estimator get the mask.
@@ -127,9 +202,13 @@ class Pipeline:
             R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
         estimator = self.estimator.masked(keep)
         self._keep, self._R, self.estimator = keep, R, estimator
+        self._update_gate()
 
-    def process(self, frame: np.ndarray, with_field: bool = True) -> FrameResult:
+    def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
         """Estimate the force (and the field) from one frame of (n_meas,) volts.
+
+        ``gate=False`` skips the plausibility gate (studies of what the estimator does with any
+        input, e.g. the benchmark's stability table); the node, replay and the command line keep it.
 
         Raises :class:`FrameError` for a frame of the wrong length or with NaN/Inf in a used channel.
         """
@@ -137,11 +216,25 @@ class Pipeline:
             raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
         v = check_frame(frame, self.n_meas, used=self._keep)
         y = self._y
-        np.subtract(v, self.reference, out=y)
-        y /= self.model.v_scale
-        y[~self._keep] = 0.0
+        with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
+            np.subtract(v, self.reference, out=y)
+            y /= self.model.v_scale
+            y[~self._keep] = 0.0
+            g = np.multiply(y, self._gate_w, out=self._g)
+            g2 = float(np.dot(g, g)) if gate else 0.0
+            if not g2 <= self.gate_norm_bound**2:  # NaN/inf too
+                return FrameResult.implausible(
+                    f"relative change of norm {np.sqrt(g2):.3g}, beyond {self.gate_norm_bound:.3g} (the largest a "
+                    f"load up to max_force {self.max_force:g} N can cause)")
+            np.abs(g, out=g)
+            if gate and np.greater(g, self.gate_channel_bound, out=self._over).any():
+                i = int(np.argmax(g / self.gate_channel_bound))
+                return FrameResult.implausible(
+                    f"channel {i} changed by {g[i]:.3g} of its reference, beyond {self.gate_channel_bound[i]:.3g}")
         force = self.estimator.estimate(y)
         mag, el, az = force_angles(force)
+        if gate and not mag <= self.max_force:
+            return FrameResult.implausible(f"force {float(mag):.4g} N beyond max_force {self.max_force:g} N")
         field = None
         residual = float("nan")
         if with_field:
@@ -233,6 +326,9 @@ class FrameProcessor:
         self._tare_s2 = np.zeros(pipe.n_meas)
         self._tare_d = np.zeros(pipe.n_meas)
         self._tare_mask = np.zeros(pipe.n_meas, bool)  # channels excluded by any tare frame
+        self.implausible = 0  # frames the plausibility gate rejected (all time)
+        self.implausible_reason = ""  # the latest one's reason
+        self._implausible_run = 0  # consecutive rejected frames (logged at the start and the end)
         self._tare_left = self._tare_n = 0
 
     # --- tare ------------------------------------------------------------------------------------
@@ -340,7 +436,9 @@ class FrameProcessor:
                 contact_ok: np.ndarray | None = None) -> FrameResult | None:
         """The FrameResult of one frame, or None while the frame goes into a pending tare (or no
         reference exists yet). Raises :class:`FrameError` for a frame that must be dropped (it then
-        counts for nothing, not even for a pending tare)."""
+        counts for nothing, not even for a pending tare). A result the plausibility gate rejected
+        (``valid`` False) is counted in ``implausible``; a run of them is logged once when it starts
+        and once when it ends."""
         if self._tare_left:
             mask = self._mask_of(saturated, contact_ok)[0]
             v = check_frame(values, self.pipe.n_meas, "tare frame", used=~mask)
@@ -354,7 +452,17 @@ class FrameProcessor:
         every = self.stress_field_every
         with_field = every > 0 and self.processed % every == 0
         self.processed += 1
-        return self.pipe.process(values, with_field=with_field)
+        result = self.pipe.process(values, with_field=with_field)
+        if not result.valid:
+            self.implausible += 1
+            self.implausible_reason = result.reason
+            if not self._implausible_run:
+                log.warning("implausible frames (no force output): %s", result.reason)
+            self._implausible_run += 1
+        elif self._implausible_run:
+            log.warning("plausible frames again after %d implausible ones", self._implausible_run)
+            self._implausible_run = 0
+        return result
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         if outcome.ok:

@@ -97,6 +97,7 @@ class CstomoSensorNode(LifecycleNode):
         self._board_clock = ClockMapper()
         self._last_diag = time.monotonic()
         self._last_corrupt = self._last_rejected = 0
+        self._last_implausible = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
@@ -149,7 +150,9 @@ class CstomoSensorNode(LifecycleNode):
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
         self._stop.clear()
         if cfg.input == "serial":
-
+            if cfg.protocol == "text":
+                log.warning("protocol 'text' has no checksum: a corrupted line that still parses is taken as "
+                            "a frame (only the plausibility gate guards it); use 'binary' (CRC-32) if the board can")
             try:
                 self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
                                            rate_hz=cfg.rate_hz or None,
@@ -374,8 +377,8 @@ class CstomoSensorNode(LifecycleNode):
         if st.reject_reason:
             with st.lock:
                 st.reject_reason = ""  # frames go through again
-        if result is None or not self._active:
-            return
+        if result is None or not result.valid or not self._active:
+            return  # an implausible frame is no force: counted by the processor, shown in diagnostics
         for topic, msg in self.out.build(result, stamp_ns).items():
             self._pubs[topic].publish(msg)
         dt = time.perf_counter() - t0
@@ -452,6 +455,15 @@ class CstomoSensorNode(LifecycleNode):
                 level = max(level, DiagnosticStatus.WARN)
                 msgs.append(f"{ex.channels} channels excluded (saturated {ex.saturated}, dead electrodes "
                             f"{[e + 1 for e in ex.dead_electrodes]})")
+        proc = self.processor
+        imp = proc.implausible if proc is not None else 0
+        new_imp = imp - self._last_implausible if imp >= self._last_implausible else imp
+        self._last_implausible = imp
+        kv.update(implausible=imp, implausible_reason=proc.implausible_reason if proc is not None else "",
+                  checksum=("crc32" if cfg.protocol == "binary" else "none (text mode)") if cfg and cfg.input == "serial" else "n/a")
+        if new_imp:
+            level = max(level, DiagnosticStatus.WARN)
+            msgs.append(f"{new_imp} implausible frames not published ({proc.implausible_reason})")
         kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
                   processing_time_max_ms=f"{proc_max * 1e3:.3f}")
         reason = self.stale_reason() if self._active else ""

@@ -88,9 +88,16 @@ def cmd_estimate(a) -> int:
     pipe = Pipeline.build(pipeline_config(a))
     pipe.set_reference(read_frames(a.reference, pipe.n_meas).mean(axis=0))
     frames = read_frames(a.frames, pipe.n_meas)
-    forces = np.array([pipe.process(f, with_field=False).force for f in frames])
-    write_forces(a.out, forces)
-    print(f"wrote {a.out}: {len(forces)} forces ({a.estimator} estimator)")
+    results = [pipe.process(f, with_field=False) for f in frames]
+    forces = np.array([r.force for r in results])
+    valid = np.array([r.valid for r in results])
+    # the optional valid column (REFERENCE_SENSOR.md section 6) is written when a frame was
+    # rejected as implausible; without it, every row holds a force
+    write_forces(a.out, forces, valid=None if valid.all() else valid)
+    for i, r in enumerate(results):
+        if not r.valid:
+            print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)
+    print(f"wrote {a.out}: {valid.sum()} forces ({a.estimator} estimator); {(~valid).sum()} implausible")
     return 0
 
 

@@ -194,6 +194,9 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
         f = load.force_vector
         label = f"{np.linalg.norm(f):.0f} N at {np.degrees(planar_angle(f)):.0f} deg"
         res = pipe.process(v, with_field=True)
+        if not res.valid:
+            say(f"load {i}: implausible frame ({res.reason}): skipped")
+            continue
         pressure = pressure_of_theta(truth.theta(load), geometry.material)
         tg = _grid(tm.points, tm.tets, pressure_kPa=pressure * 1e-3)
         rg = _grid(mesh.points, mesh.tets, dsigma_mS=res.field.conductivity_change[cell_voxel] * 1e3)

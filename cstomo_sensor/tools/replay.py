@@ -38,13 +38,15 @@ STORAGES = ("sqlite3", "mcap")
 
 @dataclass(frozen=True)
 class ReplaySummary:
-    """What a replay did: input frames, results written, frames dropped as malformed, topics."""
+    """What a replay did: input frames, results written, frames dropped as malformed, topics, and
+    frames rejected as implausible (no output for them, as the node publishes none)."""
 
     frames_in: int
     results: int
     corrupt: int
     input_topic: str
     output_topics: tuple[str, ...]
+    implausible: int = 0
 
 
 def _typestore():
@@ -117,14 +119,14 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                     corrupt += 1
                     log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
                     continue
-                if result is None:
+                if result is None or not result.valid:
                     continue
                 n_out += 1
                 for name, msg in out.build(result, t_ns).items():
                     writer.write(conns[name], t_ns, serialize_message(msg))
     if proc.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
-    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names))
+    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -156,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cstomo replay: {err}", file=sys.stderr)
         return 2
     print(f"{s.frames_in} frames from {s.input_topic}: {s.results} results written to {args.out} "
-          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt")
+          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible")
     return 0
 
 

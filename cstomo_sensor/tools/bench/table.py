@@ -63,12 +63,12 @@ TABLE_COLS = ["setting", "varied", "mesh_mm", "grid", "iterations", "damping", "
               "estimator_med_ms", "estimator_p99_ms", "fps", "angle_med_deg", "angle_p90_deg",
               "mag_err_med_n", "mag_err_p90_n", "img_corr_med", "peak_dist_med_mm", "n_frames"]
 STAB_COLS = ["setting", "case", "value", "n_frames", "finite", "bounded", "max_force_n", "angle_med_deg",
-             "angle_p90_deg", "mag_err_med_n", "mag_err_p90_n", "residual_med", "max_abs_dsigma"]
+             "angle_p90_deg", "mag_err_med_n", "mag_err_p90_n", "residual_med", "max_abs_dsigma", "implausible"]
 
 
 def measure(s: Setting, builder: Builder, scenes: SceneSet, ref, frames, true, n_time: int) -> dict:
     pipe, build_s, mb = builder.pipeline(s)
-    forces, images, _ = run_frames(pipe, ref, frames)
+    forces, images, *_ = run_frames(pipe, ref, frames)
     s.row["forces"] = forces
     ang, mag = errors(forces, true)
     reps = len(frames) // len(scenes.forces)
@@ -96,7 +96,7 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
     def record(case, value, ref, frames, true, bad=None):
         pipe.set_bad_channels(np.zeros(pipe.n_meas, bool) if bad is None else bad)
         try:
-            forces, images, resid = run_frames(pipe, ref, frames)
+            forces, images, resid, implausible = run_frames(pipe, ref, frames)
         finally:
             pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
         finite = bool(np.all(np.isfinite(forces)) and np.all(np.isfinite(images)))
@@ -106,7 +106,8 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
                      "bounded": finite and fmax <= BOUND_N, "max_force_n": fmax,
                      "angle_med_deg": quantile(ang, 0.5), "angle_p90_deg": quantile(ang, 0.9),
                      "mag_err_med_n": quantile(mag, 0.5), "mag_err_p90_n": quantile(mag, 0.9),
-                     "residual_med": quantile(resid, 0.5), "max_abs_dsigma": float(np.max(np.abs(images)))})
+                     "residual_med": quantile(resid, 0.5), "max_abs_dsigma": float(np.max(np.abs(images))),
+                     "implausible": implausible})
 
     # force magnitude, one direction (elevation 60 deg, azimuth 30 deg)
     # (smoke: the vertical, shared with the elevation sweep, to save a mechanics solve)
