@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import ConfigError
+
 log = logging.getLogger(__name__)
 
 
@@ -81,3 +83,19 @@ def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:
     tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
     np.savez(tmp, cache_key=np.array(key), **arrays)
     os.replace(tmp, path)
+
+
+def check_writable(directory: str | os.PathLike) -> Path:
+    """``directory``, created if needed, after writing and removing a probe file in it; else a
+    :class:`~cstomo_sensor.errors.ConfigError` naming it and the cause (call this before a long
+    build, so an unwritable cache is reported at once, not after minutes of meshing)."""
+    d = Path(directory)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        probe = d / f".write_probe{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(f"cache directory {d} is not writable ({err.strerror or err}): set the parameter "
+                          "'cache_dir' (or $CSTOMO_CACHE_DIR) to a writable directory") from err
+    return d

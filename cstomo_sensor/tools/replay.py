@@ -7,7 +7,7 @@ mcap storage) with the ``rosbags`` library and writes a new bag with the node's 
 the same numbers the live node publishes: both go through
 :class:`~cstomo_sensor.force.pipeline.FrameProcessor` and :class:`~cstomo_sensor.ros.messages.OutputMessages`.
 
-Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>.csv``) that frame
+Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
 (the mean of its rows) is the reference; without it, the first ``tare_frames`` frames of the bag
 are averaged into the reference and give no output, exactly as the node in topic mode with
 ``tare_on_start: true``. Stamps: each output carries the bag's receive time of its input frame,
