@@ -9,9 +9,14 @@ import hashlib
 import json
 import logging
 import os
+import struct
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
+
+from .errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +42,18 @@ def _jsonable(o):
     raise TypeError(f"not hashable into a cache key: {type(o)}")
 
 
-def cache_load(path: Path, key: str) -> dict[str, np.ndarray] | None:
-    """Arrays of a cache entry if it exists and was written for ``key``; else None (a stale or
-    unreadable entry is logged and ignored, so the caller rebuilds it)."""
+#: What reading a damaged npz can raise: a truncated or empty file (EOFError, BadZipFile), a flipped
+#: bit (BadZipFile "Bad CRC-32", zlib.error, a header that no longer parses: ValueError, KeyError,
+#: struct.error), or a flag bit that turns an entry "encrypted" (RuntimeError) or "compressed with
+#: an unknown method" (NotImplementedError).
+UNREADABLE = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error, struct.error,
+              RuntimeError, NotImplementedError)
+
+
+def cache_load(path: Path, key: str, names: tuple[str, ...] = ()) -> dict[str, np.ndarray] | None:
+    """Arrays of a cache entry if it exists and was written for ``key`` and holds every array of
+    ``names``; else None (a stale, unreadable or damaged entry, one missing an array, or one holding
+    a non-finite float, is logged and ignored, so the caller rebuilds it)."""
     if not path.is_file():
         return None
     try:
@@ -47,10 +61,20 @@ def cache_load(path: Path, key: str) -> dict[str, np.ndarray] | None:
             if str(z["cache_key"]) != key:
                 log.warning("cache entry %s was built for other inputs: rebuilding", path)
                 return None
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, KeyError) as err:
-        log.warning("cache entry %s unreadable (%s): rebuilding", path, err)
+            arrays = {k: z[k] for k in z.files}
+    except UNREADABLE as err:
+        log.warning("cache entry %s unreadable (%s: %s): rebuilding", path, type(err).__name__, err)
         return None
+    missing = sorted(set(names) - set(arrays))
+    if missing:
+        log.warning("cache entry %s lacks the arrays %s: rebuilding", path, missing)
+        return None
+    for k, a in arrays.items():
+        if a.dtype.kind in "fc" and not np.isfinite(a).all():
+            log.warning("cache entry %s holds %d non-finite values in %r: rebuilding", path,
+                        int((~np.isfinite(a)).sum()), k)
+            return None
+    return arrays
 
 
 def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:
@@ -59,3 +83,19 @@ def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:
     tmp = path.with_name(path.name + f".tmp{os.getpid()}.npz")
     np.savez(tmp, cache_key=np.array(key), **arrays)
     os.replace(tmp, path)
+
+
+def check_writable(directory: str | os.PathLike) -> Path:
+    """``directory``, created if needed, after writing and removing a probe file in it; else a
+    :class:`~cstomo_sensor.errors.ConfigError` naming it and the cause (call this before a long
+    build, so an unwritable cache is reported at once, not after minutes of meshing)."""
+    d = Path(directory)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        probe = d / f".write_probe{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(f"cache directory {d} is not writable ({err.strerror or err}): set the parameter "
+                          "'cache_dir' (or $CSTOMO_CACHE_DIR) to a writable directory") from err
+    return d

@@ -1,14 +1,17 @@
 """File formats of REFERENCE_SENSOR.md section 6: frames, forces and load scripts (CSV)."""
 from __future__ import annotations
 
+import contextlib
 import io
+import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from .angles import force_angles
-from .errors import FrameError
+from .errors import ConfigError, FrameError
 
 FORCES_HEADER = "frame,fx,fy,fz,magnitude,elevation,azimuth"
 
@@ -32,21 +35,69 @@ def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame", used: np.
     return a
 
 
-def read_frames(path: str | os.PathLike, n_meas: int = 208) -> np.ndarray:
-    """Read a frames file: (n_frames, n_meas) volts; comment lines start with '#'."""
-    rows = []
-    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
+def _lines(path: str | os.PathLike, err: type[Exception], what: str) -> list[tuple[int, str]]:
+    """(line number, stripped text) of the non-blank, non-comment ('#') lines of a UTF-8 CSV file;
+    an unreadable, binary or non-UTF-8 file raises ``err`` naming the file (and line)."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as e:
+        raise err(f"{path}: cannot be read ({e.strerror or e}); expected a {what}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise err(f"{path}:{line}: not UTF-8 text (byte 0x{raw[e.start]:02x}); expected a {what}") from None
+    if "\x00" in text:
+        line = text[: text.index("\x00")].count("\n") + 1
+        raise err(f"{path}:{line}: binary data (a NUL byte); expected a {what}")
+    out = []
+    for lineno, line in enumerate(text.splitlines(), 1):
         s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        try:
-            vals = [float(t) for t in s.split(",")]
-        except ValueError as err:
-            raise FrameError(f"{path}:{lineno}: {err}; expected {n_meas} comma-separated numbers") from None
-        rows.append(check_frame(vals, n_meas, f"{path}:{lineno}"))
+        if s and not s.startswith("#"):
+            out.append((lineno, s))
+    return out
+
+
+def _cell(path, lineno: int, name: str, cell: str, err: type[Exception], empty_ok: bool = False) -> float:
+    """One finite number of a CSV cell (NaN for an empty cell where ``empty_ok``)."""
+    c = cell.strip()
+    if not c and empty_ok:
+        return math.nan
+    try:
+        v = float(c)
+    except ValueError:
+        raise err(f"{path}:{lineno}: {name}={cell!r}: expected a number") from None
+    if not math.isfinite(v):
+        raise err(f"{path}:{lineno}: {name}={cell!r}: expected a finite number")
+    return v
+
+
+def read_frames(path: str | os.PathLike, n_meas: int = 208) -> np.ndarray:
+    """Read a frames file: (n_frames, n_meas) volts; comment lines start with '#'. A malformed file
+    raises :class:`FrameError` naming the file and the line."""
+    rows = []
+    for lineno, s in _lines(path, FrameError, f"frames file ({n_meas} comma-separated volts a line)"):
+        cells = s.split(",")
+        if len(cells) != n_meas:
+            raise FrameError(f"{path}:{lineno}: {len(cells)} values, expected {n_meas} comma-separated volts")
+        rows.append([_cell(path, lineno, f"value {i + 1}", c, FrameError) for i, c in enumerate(cells)])
     if not rows:
         raise FrameError(f"{path}: no frames")
-    return np.array(rows)
+    return np.array(rows, dtype=float)
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike) -> Iterator[io.BufferedWriter]:
+    """A binary file that replaces ``path`` only when the block ends without an exception (written
+    beside it, then renamed): a failed or interrupted write never leaves a half-written file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            yield f
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | None = None) -> None:
@@ -56,7 +107,8 @@ def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | Non
         for c in comment.splitlines():
             buf.write(f"# {c}\n")
     np.savetxt(buf, frames, delimiter=",", fmt="%.9e")
-    Path(path).write_text(buf.getvalue())
+    with atomic_write(path) as f:
+        f.write(buf.getvalue().encode())
 
 
 def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray | None = None) -> None:
@@ -75,41 +127,60 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
     for i, (row, good) in enumerate(zip(table, ok)):
         fields = ",".join(f"{x:.9g}" for x in row) if good else ",,,,,"
         lines.append(f"{i},{fields}" + ("" if valid is None else f",{int(good)}"))
-    Path(path).write_text("\n".join(lines) + "\n")
+    with atomic_write(path) as out:
+        out.write("\n".join(lines) + "\n")
+
+
+def _table(path, err: type[Exception], what: str, required: tuple[str, ...]) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """(column names, [(line number, cells)]) of a CSV file with a header line naming ``required``;
+    every row has as many cells as the header."""
+    lines = _lines(path, err, what)
+    if not lines:
+        raise err(f"{path}: empty; expected a {what}")
+    lineno, head = lines[0]
+    names = [c.strip().lower() for c in head.split(",")]
+    missing = [c for c in required if c not in names]
+    if missing:
+        raise err(f"{path}:{lineno}: header {head[:60]!r} lacks {missing}; the first line must be the header "
+                  f"of a {what}")
+    rows = []
+    for lineno, s in lines[1:]:
+        cells = s.split(",")
+        if len(cells) != len(names):
+            raise err(f"{path}:{lineno}: {len(cells)} columns, expected {len(names)} as in the header")
+        rows.append((lineno, cells))
+    if not rows:
+        raise err(f"{path}: no rows after the header; expected a {what}")
+    return names, rows
 
 
 def read_forces(path: str | os.PathLike, with_valid: bool = False):
-    """Read a forces (or truth) file: (n, 3) force vectors, NaN where a field is empty (a frame
-    rejected as implausible). Columns are found by name; unknown ones are ignored. With
-    ``with_valid``, also the bool (n,) ``valid`` column (all True when the file has none)."""
-    lines = [ln for ln in Path(path).read_text().splitlines() if ln.strip()]
-    if not lines:
-        raise FrameError(f"{path}: empty, expected a header line {FORCES_HEADER!r}")
-    names = [n.strip() for n in lines[0].split(",")]
-    try:
-        cols = [names.index(n) for n in ("fx", "fy", "fz")]
-    except ValueError:
-        raise FrameError(f"{path}: header {lines[0]!r} lacks fx,fy,fz") from None
+    """Read a forces (or truth) file: (n, 3) force vectors. Columns are found by the header's names
+    (unknown ones are ignored); a row with ``valid`` 0 may leave its force empty (NaN here). With
+    ``with_valid``, also the bool (n,) ``valid`` column (all True when the file has none). A
+    malformed file raises :class:`FrameError` naming the file and the line."""
+    names, rows = _table(path, FrameError, f"forces file ({FORCES_HEADER})", ("fx", "fy", "fz"))
+    cols = [names.index(c) for c in ("fx", "fy", "fz")]
     iv = names.index("valid") if "valid" in names else None
-    forces, valid = np.full((len(lines) - 1, 3), np.nan), np.ones(len(lines) - 1, bool)
-    for k, line in enumerate(lines[1:]):
-        t = line.split(",")
-        try:
-            forces[k] = [float(t[c]) if t[c].strip() else np.nan for c in cols]
-            if iv is not None:
-                valid[k] = t[iv].strip() not in ("0", "")
-        except (IndexError, ValueError) as err:
-            raise FrameError(f"{path}:{k + 2}: {err}") from None
-    return (forces, valid) if with_valid else forces
+    out, valid = np.empty((len(rows), 3)), np.ones(len(rows), bool)
+    for k, (lineno, cells) in enumerate(rows):
+        rejected = iv is not None and cells[iv].strip() in ("0", "0.0")
+        valid[k] = not rejected
+        out[k] = [_cell(path, lineno, names[i], cells[i], FrameError, empty_ok=rejected) for i in cols]
+    return (out, valid) if with_valid else out
 
 
 def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a load script ``time,fx,fy,fz``: (times (n,), forces (n, 3)); times must increase."""
-    t = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    if t.shape[1] != 4:
-        raise FrameError(f"{path}: {t.shape[1]} columns, expected time,fx,fy,fz")
-    if np.any(np.diff(t[:, 0]) < 0):
-        raise FrameError(f"{path}: times must not decrease")
+    """Read a load script ``time,fx,fy,fz`` (header line first): (times (n,), forces (n, 3)); times
+    finite and not decreasing. A malformed file raises :class:`ConfigError` naming the file and line."""
+    names, rows = _table(path, ConfigError, "load script (header time,fx,fy,fz)", ("time", "fx", "fy", "fz"))
+    if names != ["time", "fx", "fy", "fz"]:
+        raise ConfigError(f"{path}: columns {names}, expected time,fx,fy,fz")
+    t = np.array([[_cell(path, lineno, names[i], c, ConfigError) for i, c in enumerate(cells)]
+                  for lineno, cells in rows])
+    back = np.flatnonzero(np.diff(t[:, 0]) < 0)
+    if len(back):
+        raise ConfigError(f"{path}:{rows[back[0] + 1][0]}: time {t[back[0] + 1, 0]:g} s: times must not decrease")
     return t[:, 0], t[:, 1:4]
 
 

@@ -70,7 +70,7 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     key = input_hash({"format": CALIB_FORMAT, "geometry": geometry.digest(), "mesh_h": model.meta["mesh_h"],
                       "v_scale": model.v_scale, "reference": model.model_reference, "spec": spec.__dict__})
     path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key)
+    hit = cache_load(path, key, names=("forces", "y"))
     if hit is not None:
         return hit["forces"], hit["y"]
     t0 = time.perf_counter()

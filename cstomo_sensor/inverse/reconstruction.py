@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import UNREADABLE, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError, ModelMismatchError
 from ..frames_io import check_frame
 from ..model.cem import ForwardModel
@@ -147,7 +147,7 @@ class ReconstructionModel:
 
     # -- one file, no pickle ----------------------------------------------------------------
     def save(self, path: str | Path) -> None:
-        arrays = {k: getattr(self, k) for k in ("R", "S", "v_scale", "model_reference", "centers", "volumes")}
+        arrays = {k: getattr(self, k) for k in MODEL_ARRAYS}
         scalars = {"sigma0": self.sigma0, "iterations": self.iterations, "damping": self.damping,
                    "step": self.step, "meta": self.meta}
         cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)
@@ -155,11 +155,15 @@ class ReconstructionModel:
     @classmethod
     def load(cls, path: str | Path, key: str | None = None) -> ReconstructionModel:
         """Load; with ``key``, a model built for other inputs raises :class:`ModelMismatchError`."""
-        with np.load(path, allow_pickle=False) as z:
-            found = str(z["cache_key"])
-            if key is not None and found != key:
-                raise ModelMismatchError(f"{path}: model built for inputs {found}, expected {key}; rebuild it")
-            return cls.from_arrays({k: z[k] for k in z.files})
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                found = str(z["cache_key"])
+                arrays = {k: z[k] for k in z.files}
+        except UNREADABLE as err:
+            raise ConfigError(f"model file {path}: unreadable ({type(err).__name__}: {err}); rebuild it") from err
+        if key is not None and found != key:
+            raise ModelMismatchError(f"{path}: model built for inputs {found}, expected {key}; rebuild it")
+        return cls.from_arrays(arrays)
 
     @classmethod
     def from_arrays(cls, z: dict[str, np.ndarray]) -> ReconstructionModel:
@@ -167,6 +171,10 @@ class ReconstructionModel:
         s = json.loads(str(z["scalars"]))
         return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
                    z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"])
+
+
+#: The arrays of a saved model (besides its key and its JSON ``scalars``).
+MODEL_ARRAYS = ("R", "S", "v_scale", "model_reference", "centers", "volumes")
 
 
 def model_inputs(geometry: SensorGeometry, spec: ReconSpec) -> dict:
@@ -188,7 +196,7 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     say = progress or (lambda msg: log.info("%s", msg))
     key = input_hash(model_inputs(geometry, spec))
     path = Path(cache_dir or default_cache_dir()) / "models" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key)
+    hit = cache_load(path, key, names=(*MODEL_ARRAYS, "scalars"))
     if hit is not None:
         model = ReconstructionModel.from_arrays(hit)
         model.meta["cache_hit"] = True

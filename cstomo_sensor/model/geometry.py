@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
+import re
 import sys
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -23,6 +25,10 @@ from ..errors import ConfigError, require_positive
 from .material import Material
 
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
+N_ELECTRODES = 16  # the board drives 16 electrodes and the measurement pattern has 208 values
+#: A sensor name: it names cache files and the default tare file, so no path separator, no '..'.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+NAME_EXPECTED = "1..64 letters, digits, '_', '.' or '-', not starting with '.' (it names cache files)"
 
 
 @dataclass(frozen=True)
@@ -55,6 +61,8 @@ class SensorGeometry:
     material: Material = field(default_factory=Material)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not NAME_PATTERN.fullmatch(self.name):
+            raise ConfigError.bad_value("name", self.name, NAME_EXPECTED)
         if self.shape not in ("cuboid", "cylinder"):
             raise ConfigError(f"body.shape={self.shape!r}: expected one of 'cuboid', 'cylinder'")
         expected = 3 if self.shape == "cuboid" else 2
@@ -64,14 +72,15 @@ class SensorGeometry:
             require_positive(f"body.size[{i}]", s)
         require_positive("drive_current", self.drive_current)
         require_positive("contact_impedance", self.contact_impedance)
-        if self.socket_radius < 0 or self.socket_radius >= min(self.horizontal_half_extent, self.height):
+        if not (0 <= self.socket_radius < min(self.horizontal_half_extent, self.height)):
             raise ConfigError(
                 f"socket.radius={self.socket_radius!r}: expected 0 <= radius < "
                 f"{min(self.horizontal_half_extent, self.height)} (half the body's width and its height)"
             )
         n = len(self.electrodes)
-        if n < 4:
-            raise ConfigError(f"electrodes: {n} given, expected at least 4")
+        if n != N_ELECTRODES:
+            raise ConfigError(f"electrodes: {n} given, expected {N_ELECTRODES} (the board and the measurement "
+                              "pattern drive 16)")
         if self.layers not in (1, 2) or n % self.layers:
             raise ConfigError(f"electrodes.layers={self.layers!r}: expected 1 or 2, dividing {n} electrodes")
         for e in self.electrodes:
@@ -182,55 +191,137 @@ def preset_names() -> list[str]:
 
 
 def load_sensor(name_or_path: str | os.PathLike) -> SensorGeometry:
-    """Load a sensor from a preset name (``cuboid_joint``, ``cylinder``, ``disc``) or a YAML path."""
+    """Load a sensor from a preset name (``cuboid_joint``, ``cylinder``, ``disc``) or a YAML path.
+
+    Every failure (a missing, unreadable, non-UTF-8 or malformed file, a bad value) is a
+    :class:`ConfigError` naming the file and the key."""
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.exists():
+    try:
+        is_path = p.suffix in (".yaml", ".yml") or p.exists()
+    except (OSError, ValueError):  # e.g. an embedded NUL byte
+        is_path = False
+    if is_path:
         if not p.is_file():
             raise ConfigError(f"sensor file {str(p)!r}: not found")
-        return sensor_from_dict(yaml.safe_load(p.read_text()), source=str(p))
-    for d in preset_dirs():
-        f = d / f"{name_or_path}.yaml"
-        if f.is_file():
-            return sensor_from_dict(yaml.safe_load(f.read_text()), source=str(f))
+        return sensor_from_dict(_read_yaml(p), source=str(p))
+    if NAME_PATTERN.fullmatch(str(name_or_path)):  # a preset name never leaves the preset folders
+        for d in preset_dirs():
+            f = d / f"{name_or_path}.yaml"
+            if f.is_file():
+                return sensor_from_dict(_read_yaml(f), source=str(f))
     raise ConfigError(f"sensor={str(name_or_path)!r}: expected a YAML file path or one of {preset_names()}")
 
 
-def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
-    """Build a :class:`SensorGeometry` from the YAML mapping (every missing key is named)."""
+def _read_yaml(path: Path) -> Any:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"sensor file {path}: not UTF-8 text (byte {err.start}); expected a YAML file") from None
+    except OSError as err:
+        raise ConfigError(f"sensor file {path}: cannot be read ({err.strerror or err})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        where = getattr(err, "problem_mark", None)
+        at = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
+        what = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"sensor file {path}: malformed YAML{at}: {what}") from None
+    except RecursionError:
+        raise ConfigError(f"sensor file {path}: malformed YAML (nested too deeply)") from None
 
-    def need(m: Any, key: str, where: str) -> Any:
-        if not isinstance(m, dict) or key not in m:
+
+_TOP_KEYS = ("name", "body", "socket", "electrodes", "drive_current", "contact_impedance", "material")
+
+
+def _bad(source: str, key: str, value: object, expected: str) -> ConfigError:
+    """A :class:`ConfigError` naming the file and the key (the value's repr cut to 60 characters)."""
+    r = repr(value)
+    err = ConfigError(f"{source}: {key}={r if len(r) <= 60 else r[:57] + '...'}: expected {expected}")
+    err.key, err.value, err.expected = key, value, expected
+    return err
+
+
+def _number(source: str, key: str, v: object) -> float:
+    """A finite float; numbers written as strings are taken (PyYAML reads ``1e-5`` as a string)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise _bad(source, key, v, "a finite number")
+    try:
+        f = float(v)
+    except (ValueError, OverflowError):
+        raise _bad(source, key, v, "a finite number") from None
+    if not math.isfinite(f):
+        raise _bad(source, key, v, "a finite number")
+    return f
+
+
+def _mapping(source: str, key: str, v: object, allowed) -> dict:
+    if not isinstance(v, dict):
+        raise _bad(source, key or "the file", v, "a mapping")
+    unknown = sorted(str(k) for k in v if k not in allowed)
+    if unknown:
+        raise ConfigError(f"{source}: unknown keys {unknown} in {key or 'the top level'}; expected some of {sorted(allowed)}")
+    return v
+
+
+def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
+    """Build a :class:`SensorGeometry` from the YAML mapping; every missing, unknown, mistyped,
+    non-finite or out-of-range value raises :class:`ConfigError` naming its key."""
+
+    def need(m: dict, key: str, where: str) -> Any:
+        if key not in m:
             raise ConfigError(f"{source}: missing key '{where}{key}'")
         return m[key]
 
-    body = need(d, "body", "")
+    _mapping(source, "", d, _TOP_KEYS)
+    name = need(d, "name", "")
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
+        raise _bad(source, "name", name, NAME_EXPECTED)
+    body = _mapping(source, "body", need(d, "body", ""), ("shape", "size"))
     shape = need(body, "shape", "body.")
-    size = tuple(float(v) for v in need(body, "size", "body."))
-    el = need(d, "electrodes", "")
-    radius = float(need(el, "radius", "electrodes."))
-    layers = int(need(el, "layers", "electrodes."))
-    positions = np.asarray(need(el, "positions", "electrodes."), dtype=float)
-    if positions.ndim != 2 or positions.shape[1] != 3:
-        raise ConfigError(f"{source}: electrodes.positions has shape {positions.shape}, expected (n, 3)")
+    if shape not in ("cuboid", "cylinder"):
+        raise _bad(source, "body.shape", shape, "one of 'cuboid', 'cylinder'")
+    size = need(body, "size", "body.")
+    n_size = 3 if shape == "cuboid" else 2
+    if not isinstance(size, list) or len(size) != n_size:
+        raise _bad(source, "body.size", size, f"a list of {n_size} lengths for a {shape}")
+    size = tuple(_number(source, f"body.size[{i}]", v) for i, v in enumerate(size))
+    socket = d.get("socket")
+    socket = {} if socket is None else _mapping(source, "socket", socket, ("radius",))
+    socket_radius = _number(source, "socket.radius", socket.get("radius", 0.0))
+    el = _mapping(source, "electrodes", need(d, "electrodes", ""), ("radius", "layers", "positions"))
+    radius = _number(source, "electrodes.radius", need(el, "radius", "electrodes."))
+    layers = need(el, "layers", "electrodes.")
+    if isinstance(layers, bool) or not isinstance(layers, int):
+        raise _bad(source, "electrodes.layers", layers, "an integer, 1 or 2")
+    positions = need(el, "positions", "electrodes.")
+    if not isinstance(positions, list) or len(positions) != N_ELECTRODES:
+        n = len(positions) if isinstance(positions, list) else positions
+        raise _bad(source, "electrodes.positions", n,
+                   f"a list of {N_ELECTRODES} electrode centres (the board and the measurement pattern drive 16)")
+    centres = []
+    for i, c in enumerate(positions):
+        if not isinstance(c, list) or len(c) != 3:
+            raise _bad(source, f"electrodes.positions[{i}]", c, "[x, y, z] in metres")
+        centres.append(np.array([_number(source, f"electrodes.positions[{i}][{j}]", v) for j, v in enumerate(c)]))
     electrodes = tuple(
         Electrode(f"e{i + 1}", tuple(map(float, c)), _outward_normal(shape, size, c), radius)
-        for i, c in enumerate(positions)
+        for i, c in enumerate(centres)
     )
-    mat = d.get("material", {}) or {}
-    unknown = set(mat) - set(Material.__dataclass_fields__)
-    if unknown:
-        raise ConfigError(f"{source}: unknown material keys {sorted(unknown)}")
+    mat = d.get("material")
+    mat = {} if mat is None else _mapping(source, "material", mat, tuple(Material.__dataclass_fields__))
     try:
         return SensorGeometry(
-            name=str(need(d, "name", "")),
+            name=name,
             shape=shape,
             size=size,
             electrodes=electrodes,
             layers=layers,
-            socket_radius=float((d.get("socket") or {}).get("radius", 0.0)),
-            drive_current=float(need(d, "drive_current", "")),
-            contact_impedance=float(need(d, "contact_impedance", "")),
-            material=Material(**{k: float(v) for k, v in mat.items()}),
+            socket_radius=socket_radius,
+            drive_current=_number(source, "drive_current", need(d, "drive_current", "")),
+            contact_impedance=_number(source, "contact_impedance", need(d, "contact_impedance", "")),
+            material=Material(**{k: _number(source, f"material.{k}", v) for k, v in mat.items()}),
         )
     except ConfigError as err:
+        if str(err).startswith(f"{source}: "):
+            raise
         raise ConfigError(f"{source}: {err}") from None

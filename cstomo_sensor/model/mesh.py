@@ -303,7 +303,7 @@ def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir:
     key = input_hash(inputs)
     path = Path(cache_dir or default_cache_dir()) / "meshes" / f"{geometry.shape}-{key}.npz"
     t0 = time.perf_counter()
-    hit = cache_load(path, key)
+    hit = cache_load(path, key, names=("points", "tets"))
     if hit is not None:
         mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),
                        info={"cache_hit": True, "key": key, "seconds": {"mesh": time.perf_counter() - t0}})

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import importlib
 import math
-import os
 import sys
 import threading
 import time
@@ -35,9 +34,11 @@ from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
-from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
+from ..cache import check_writable
+from ..errors import CstomoError, FrameError, NoUsableChannelsError
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..frames_io import read_frames, write_frames
+from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
     FORCE_TOPICS,
@@ -83,6 +84,7 @@ class CstomoSensorNode(LifecycleNode):
         self.pipe = None
         self.processor: FrameProcessor | None = None
         self.reference_source = "none"
+        self.tare_path = None  # where the tare is saved and read back (set at configure)
         self._active = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -119,22 +121,28 @@ class CstomoSensorNode(LifecycleNode):
             self.autostart_failed.set_result(True)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        # rclpy's lifecycle swallows an exception raised here (the node just stays unconfigured and
+        # main() exits 1 without a word): every failure is logged with its cause and refused here.
         try:
-            cfg = NodeConfig.from_parameters(lambda n: self.get_parameter(n).value)
-        except ConfigError as err:
-            self.get_logger().error(f"refusing to start: {err}")
+            return self._configure()
+        except Exception as err:  # noqa: BLE001 - see above; the cause is logged, nothing is hidden
+            self.get_logger().error(f"refusing to start: {failure_cause(err)}")
+            self.get_logger().debug("".join(traceback.format_exception(err)))
+            self._release()
             return TransitionCallbackReturn.FAILURE
+
+    def _configure(self) -> TransitionCallbackReturn:
+        cfg = NodeConfig.from_parameters(lambda n: self.get_parameter(n).value)
         log = self.get_logger()
+        load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
+        check_writable(cfg.cache_path)  # at once, not after a long model build
 
         t0 = time.monotonic()
-        try:
-            pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
-        except CstomoError as err:
-            log.error(f"refusing to start: {err}")
-            return TransitionCallbackReturn.FAILURE
+        pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
         self.config, self.pipe = cfg, pipe
+        self.tare_path = cfg.tare_path_for(pipe.geometry)
         self._board_clock = ClockMapper(cfg.clock_window)
         self._stats = _Stats()
         self._last_corrupt = self._last_rejected = 0
@@ -153,14 +161,9 @@ class CstomoSensorNode(LifecycleNode):
             if cfg.protocol == "text":
                 log.warning("protocol 'text' has no checksum: a corrupted line that still parses is taken as "
                             "a frame (only the plausibility gate guards it); use 'binary' (CRC-32) if the board can")
-            try:
-                self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
-                                           rate_hz=cfg.rate_hz or None,
-                                           stall_timeout=max(cfg.stale_timeout, 0.2))
-            except ConfigError as err:
-                log.error(f"refusing to start: {err}")
-                self._release()
-                return TransitionCallbackReturn.FAILURE
+            self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
+                                       rate_hz=cfg.rate_hz or None,
+                                       stall_timeout=max(cfg.stale_timeout, 0.2))
             self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
             self._thread.start()
         else:
@@ -221,36 +224,43 @@ class CstomoSensorNode(LifecycleNode):
             self.processor.start_tare(cfg.tare_frames)
             self.reference_source = "tare pending"
             return
-        path = cfg.tare_path
+        path = self.tare_path
         if path.is_file():
             try:
-                self.pipe.set_reference(read_frames(path).mean(axis=0))
-                self.reference_source = f"saved tare {path}"
-                return
+                ref = read_frames(path, self.pipe.n_meas).mean(axis=0)
+                problem = tare_problem(ref, self.pipe.model_reference)
+                if not problem:
+                    self.pipe.set_reference(ref)
+                    self.reference_source = f"saved tare {path}"
+                    return
+                log.warning(f"saved tare {path} not used: {problem}; falling back to the model reference "
+                            "(call ~/tare with the sensor unloaded)")
             except (CstomoError, OSError) as err:
                 log.warning(f"saved tare {path} unusable ({err}); falling back to the model reference")
         else:
-            log.warning(f"no saved tare at {path}: using the model's reference frame; call ~/tare with the "
+            legacy = cfg.cache_path / f"tare_{cfg.sensor_name}.csv"
+            was = (f" (the tare at {legacy} was saved by an earlier version, not keyed by the sensor's "
+                   "geometry: it is not used)") if not cfg.tare_file and legacy.is_file() else ""
+            log.warning(f"no saved tare at {path}{was}: using the model's reference frame; call ~/tare with the "
                         "sensor unloaded")
         self.pipe.set_reference(self.pipe.model_reference)
         self.reference_source = "model (untared)"
 
     def _save_tare(self, ref: np.ndarray) -> str:
-        """Write an accepted tare to ``tare_path``; returns '' or why it was not saved."""
-        cfg = self.config
+        """Write an accepted tare to ``tare_path`` (atomically); returns '' or why it was not saved."""
+        cfg, path = self.config, self.tare_path
         self.reference_source = "tare"
         try:
-            cfg.tare_path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = cfg.tare_path.with_suffix(".tmp")
-            write_frames(tmp, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}': mean of "
-                                           f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
-            os.replace(tmp, cfg.tare_path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_frames(path, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
+                                            f"(geometry {self.pipe.geometry.digest()}): mean of "
+                                            f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
         except OSError as err:
-            note = f"tare in use but not saved to {cfg.tare_path} ({err}): fix tare_file and tare again"
+            note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
             self.get_logger().error(note)
             return note
-        self.reference_source = f"tare saved to {cfg.tare_path}"
-        self.get_logger().info(f"tare saved to {cfg.tare_path}")
+        self.reference_source = f"tare saved to {path}"
+        self.get_logger().info(f"tare saved to {path}")
         return ""
 
     def _tare_ended(self, outcome: TareOutcome) -> None:
@@ -278,7 +288,7 @@ class CstomoSensorNode(LifecycleNode):
         with self._proc_lock:  # decided under the lock: a tare cannot end while it is cancelled
             ended, self._tare_outcome = self._tare_outcome, None
             taken = proc.cancel_tare() if ended is None else n
-        unchanged = f"the reference ({self.reference_source}) and {cfg.tare_path} are unchanged"
+        unchanged = f"the reference ({self.reference_source}) and {self.tare_path} are unchanged"
         if ended is None:
             why = self.stale_reason() or "frames late, dropped or rejected"
             msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call ~/tare " \
@@ -484,6 +494,39 @@ class CstomoSensorNode(LifecycleNode):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self.diagnostics()]
         self._diag_pub.publish(arr)
+
+
+#: A saved tare whose rms lies outside these multiples of the model reference's rms is not a frame of
+#: this sensor: voltages scale with the rubber's resistivity, 0.2..5 times nominal (REFERENCE_SENSOR.md s.8).
+TARE_RMS_RATIO = (0.2, 5.0)
+
+
+def tare_problem(ref: np.ndarray, model_reference: np.ndarray) -> str:
+    """Why the saved tare ``ref`` (n_meas,) is implausible for a model whose reference is
+    ``model_reference``; '' if it is plausible."""
+    if not np.all(np.isfinite(ref)):
+        return "it holds non-finite values"
+    if not np.any(ref):
+        return "all its values are zero"
+    ratio = float(np.sqrt(np.mean(ref**2)) / np.sqrt(np.mean(model_reference**2)))
+    lo, hi = TARE_RMS_RATIO
+    if not lo <= ratio <= hi:
+        return (f"its rms is {ratio:.3g} times the model reference's, outside {lo:g}..{hi:g} (a rubber "
+                "within REFERENCE_SENSOR.md section 8); a tare of another sensor or board?")
+    return ""
+
+
+def failure_cause(err: BaseException) -> str:
+    """One line naming what failed at configure and what to do."""
+    if isinstance(err, CstomoError):
+        return str(err)
+    if isinstance(err, ImportError):
+        return (f"missing optional dependency '{err.name or err}' ({err}): install it (e.g. pip install "
+                f"'cstomo_sensor[full]') or choose settings that do not need it")
+    if isinstance(err, OSError):
+        where = f"{err.filename}: " if err.filename else ""
+        return f"{where}{err.strerror or err} ({type(err).__name__}): check the file or device and its permissions"
+    return f"{type(err).__name__}: {err} (unexpected: please report it with the debug log)"
 
 
 def _msg_class(type_name: str):

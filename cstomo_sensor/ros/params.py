@@ -14,6 +14,7 @@ from ..board.wire import PROTOCOLS
 from ..cache import default_cache_dir
 from ..errors import ConfigError
 from ..force.pipeline import PipelineConfig
+from ..model.geometry import SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE
 
 INPUTS = ("serial", "topic")
@@ -48,7 +49,7 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "max_force": _d("Newtons; a frame implying a larger force, or a change no such load explains, is "
                     "implausible: not published, counted in diagnostics", read_only=True, lo=1.0, hi=100000.0),
     "tare_frames": _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000),
-    "tare_file": _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>.csv",
+    "tare_file": _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>-<geometry digest>.csv",
                          read_only=True),
     "tare_on_start": _d("Tare on the first tare_frames frames at start (else the saved tare, "
                                 "else the model reference)", read_only=True),
@@ -132,12 +133,13 @@ class NodeConfig:
     def sensor_name(self) -> str:
         return Path(self.pipeline.sensor).stem
 
-    @property
-    def tare_path(self) -> Path:
-        """Where the tare of this sensor is saved (frames-file format) and read back at start."""
+    def tare_path_for(self, geometry: SensorGeometry) -> Path:
+        """Where the tare of this sensor is saved (frames-file format) and read back at start:
+        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>.csv`` keyed by a digest of the whole
+        geometry (two sensor files with the same name never share a tare)."""
         if self.tare_file:
             return Path(self.tare_file)
-        return self.cache_path / f"tare_{self.sensor_name}.csv"
+        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}.csv"
 
     def qos(self) -> QoSProfile:
         rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,

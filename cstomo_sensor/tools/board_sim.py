@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             source, protocol=args.protocol, rate_hz=args.rate, duration=args.duration, link=args.link,
             faults=faults, seed=args.seed, layers=layers,
         )
-    except CstomoError as err:
+    except (CstomoError, OSError) as err:
         print(f"cstomo board-sim: {err}", file=sys.stderr)
         return 2
     previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import CstomoError
 from ..force.pipeline import Pipeline
-from ..frames_io import read_frames, write_forces, write_frames
+from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
 from ..model.cem import ForwardModel
 from ..model.geometry import load_sensor
@@ -74,20 +74,25 @@ def cmd_reconstruct(a) -> int:
 
     cfg = pipeline_config(a)
     g = load_sensor(cfg.sensor)
+    ref = read_frames(a.reference)  # the inputs are checked before any model is built
+    frames = read_frames(a.frames)
     model = build_model(g, cfg.recon_spec, cfg.cache_dir or None)
-    ref = read_frames(a.reference, model.n_meas)
-    frames = read_frames(a.frames, model.n_meas)
     dsigma = model.reconstruct(frames, ref.mean(axis=0))
-    np.savez(a.out, centers=model.centers, volumes=model.volumes, conductivity_change=dsigma)
-    print(f"wrote {a.out}: {len(frames)} frames x {model.n_cells} cells (k = {model.iterations})")
+    out = a.out if a.out.endswith(".npz") else a.out + ".npz"  # as np.savez names it
+    with atomic_write(out) as f:
+        np.savez(f, centers=model.centers, volumes=model.volumes, conductivity_change=dsigma)
+    print(f"wrote {out}: {len(frames)} frames x {model.n_cells} cells (k = {model.iterations})")
     return 0
 
 
 def cmd_estimate(a) -> int:
 
-    pipe = Pipeline.build(pipeline_config(a))
-    pipe.set_reference(read_frames(a.reference, pipe.n_meas).mean(axis=0))
-    frames = read_frames(a.frames, pipe.n_meas)
+    cfg = pipeline_config(a)
+    load_sensor(cfg.sensor)
+    ref = read_frames(a.reference)  # the inputs are checked before any model is built
+    frames = read_frames(a.frames)
+    pipe = Pipeline.build(cfg)
+    pipe.set_reference(ref.mean(axis=0))
     results = [pipe.process(f, with_field=False) for f in frames]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])

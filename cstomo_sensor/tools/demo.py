@@ -68,17 +68,17 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(a: argparse.Namespace) -> int:
 
+    if a.load_script:  # read before the (slow) model build: a bad file is reported at once
+        times, forces = read_load_script(a.load_script)
+        labels = [f"script row {i + 1}" for i in range(len(times))]
+    else:
+        times, forces, labels = load_script(a.hold)
     print("[1/3] model and force estimator (built once, then loaded from the cache)", flush=True)
     t = time.perf_counter()
     Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator), progress=lambda m: print("      " + m, flush=True))
     print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
 
     work = Path(tempfile.mkdtemp(prefix="cstomo_demo_"))
-    if a.load_script:
-        times, forces = read_load_script(a.load_script)
-        labels = [f"script row {i + 1}" for i in range(len(times))]
-    else:
-        times, forces, labels = load_script(a.hold)
     script = work / "load.csv"
     np.savetxt(script, np.column_stack([times, forces]), delimiter=",", header="time,fx,fy,fz", comments="")
     duration = float(times[-1] + a.hold)

@@ -7,7 +7,7 @@ mcap storage) with the ``rosbags`` library and writes a new bag with the node's 
 the same numbers the live node publishes: both go through
 :class:`~cstomo_sensor.force.pipeline.FrameProcessor` and :class:`~cstomo_sensor.ros.messages.OutputMessages`.
 
-Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>.csv``) that frame
+Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
 (the mean of its rows) is the reference; without it, the first ``tare_frames`` frames of the bag
 are averaged into the reference and give no output, exactly as the node in topic mode with
 ``tare_on_start: true``. Stamps: each output carries the bag's receive time of its input frame,
@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,13 +93,17 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
 
     if storage not in STORAGES:
         raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
-    with Reader(in_bag) as reader:  # the input is checked before any model is loaded
+    out_bag = Path(out_bag)
+    if out_bag.exists():
+        raise ConfigError(f"output bag {out_bag}: exists; expected a new directory")
+    with Reader(in_bag) as reader:  # the inputs are checked before any model is loaded
         raw_topic = find_raw_topic(reader.connections, topic)
+    ref = read_frames(reference).mean(axis=0) if reference is not None else None
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
     proc = FrameProcessor(pipe, stress_field_every=stress_field_every)
-    if reference is not None:
-        pipe.set_reference(read_frames(reference, pipe.n_meas).mean(axis=0))
+    if ref is not None:
+        pipe.set_reference(ref)
     else:
         proc.start_tare(tare_frames)
     out = OutputMessages(pipe.centers, frame_id)
@@ -107,23 +113,29 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         prefix = raw_topic[: -len(RAW_TOPIC)]
         names = list(FORCE_TOPICS) + ([STRESS_TOPIC] if stress_field_every else [])
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        with Writer(out_bag, version=9, storage_plugin=plugin) as writer:
-            conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
-            inputs = [c for c in reader.connections if c.topic == raw_topic]
-            for _conn, t_ns, raw in reader.messages(connections=inputs):
-                n_in += 1
-                try:
-                    values = values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray))
-                    result = proc.process(values)
-                except FrameError as err:
-                    corrupt += 1
-                    log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
-                    continue
-                if result is None or not result.valid:
-                    continue
-                n_out += 1
-                for name, msg in out.build(result, t_ns).items():
-                    writer.write(conns[name], t_ns, serialize_message(msg))
+        partial = out_bag.with_name(f".{out_bag.name}.partial{os.getpid()}")  # renamed when complete
+        shutil.rmtree(partial, ignore_errors=True)
+        try:
+            with Writer(partial, version=9, storage_plugin=plugin) as writer:
+                conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
+                inputs = [c for c in reader.connections if c.topic == raw_topic]
+                for _conn, t_ns, raw in reader.messages(connections=inputs):
+                    n_in += 1
+                    try:
+                        values = values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray))
+                        result = proc.process(values)
+                    except FrameError as err:
+                        corrupt += 1
+                        log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
+                        continue
+                    if result is None or not result.valid:
+                        continue
+                    n_out += 1
+                    for name, msg in out.build(result, t_ns).items():
+                        writer.write(conns[name], t_ns, serialize_message(msg))
+            os.replace(partial, out_bag)
+        finally:
+            shutil.rmtree(partial, ignore_errors=True)
     if proc.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
     return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible)

@@ -1,0 +1,69 @@
+"""The disk cache: a damaged or poisoned entry is reported and rebuilt, never used or crashed on.
+Every entry here is a tiny real one in tmp_path (the shared model cache is never touched)."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from cstomo_sensor.cache import cache_load, cache_save
+
+KEY = "k" * 24
+
+
+@pytest.fixture()
+def entry(tmp_path):
+    p = tmp_path / "models" / "tiny.npz"
+    cache_save(p, KEY, R=np.arange(12.0).reshape(3, 4).astype(np.float32), tets=np.arange(8).reshape(2, 4))
+    return p
+
+
+def test_a_good_entry_loads_and_a_stale_one_is_refused(entry):
+    hit = cache_load(entry, KEY)
+    assert hit is not None and hit["R"].shape == (3, 4) and hit["tets"].dtype.kind == "i"
+    assert cache_load(entry, "other") is None
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated_half", "truncated_tail", "bit_flip_data", "garbage"])
+def test_a_damaged_entry_is_rebuilt_not_used_or_crashed_on(entry, caplog, damage):
+    raw = entry.read_bytes()
+    if damage == "empty":
+        bad = b""
+    elif damage == "truncated_half":
+        bad = raw[: len(raw) // 2]
+    elif damage == "truncated_tail":
+        bad = raw[:-1]
+    elif damage == "bit_flip_data":  # inside R's stored bytes: the zip CRC no longer matches
+        i = raw.index(np.arange(12.0, dtype=np.float32).tobytes()) + 5
+        bad = raw[:i] + bytes([raw[i] ^ 0x10]) + raw[i + 1:]
+    else:
+        bad = b"PK\x03\x04" + bytes(range(256)) * 3
+    entry.write_bytes(bad)
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.cache"):
+        assert cache_load(entry, KEY) is None
+    assert str(entry) in caplog.text and "rebuilding" in caplog.text, caplog.text
+
+
+def test_every_single_bit_flip_is_either_harmless_or_refused(entry):
+    """No flip of any byte of the file escapes as an exception, and none gives different arrays."""
+    raw = entry.read_bytes()
+    good = cache_load(entry, KEY)
+    for i in range(len(raw)):
+        entry.write_bytes(raw[:i] + bytes([raw[i] ^ 0x01]) + raw[i + 1:])
+        hit = cache_load(entry, KEY, names=("R", "tets"))
+        if hit is not None:
+            assert set(hit) == set(good)
+            for k in good:
+                np.testing.assert_array_equal(hit[k], good[k])
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_an_entry_holding_non_finite_floats_is_refused(tmp_path, caplog, value):
+    R = np.ones((3, 4))
+    R[1, 2] = value
+    p = tmp_path / "poisoned.npz"
+    cache_save(p, KEY, R=R, v=np.ones(3))  # a valid zip with a correct CRC
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.cache"):
+        assert cache_load(p, KEY) is None
+    assert "non-finite" in caplog.text and "'R'" in caplog.text, caplog.text

@@ -1,0 +1,176 @@
+"""The CSV readers of REFERENCE_SENSOR.md section 6 and the command line on bad input files: every
+problem is a package error naming the file and the line, never a raw ValueError or a lost row; the
+tools print one line, exit 2 and leave no half-written output."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cstomo_sensor.errors import ConfigError, CstomoError, FrameError
+from cstomo_sensor.frames_io import (
+    read_forces,
+    read_frames,
+    read_load_script,
+    write_forces,
+    write_frames,
+)
+
+ROW = ",".join(["1.0"] * 208)
+
+
+def _write(tmp_path: Path, data: bytes | str, name: str = "f.csv") -> Path:
+    p = tmp_path / name
+    p.write_bytes(data.encode() if isinstance(data, str) else data)
+    return p
+
+
+# --- frames ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("data, where", [
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", ":1:"),                 # binary
+    (f"# ok\n{ROW}\n".encode() + b"1.0,\xff\xfe,2\n", ":3:"),        # not UTF-8 on line 3
+    (f"{ROW}\n{ROW},1.0\n", ":2:"),                                  # ragged: 209 values
+    (f"{ROW}\n" + ",".join(["1.0"] * 207) + ",x\n", ":2:"),          # a bad cell
+    (f"{ROW}\n" + ",".join(["1.0"] * 207) + ",\n", ":2:"),           # an empty cell
+    (f"{ROW}\n" + ",".join(["1.0"] * 207) + ",nan\n", ":2:"),        # NaN
+])
+def test_read_frames_names_file_and_line(tmp_path, data, where):
+    p = _write(tmp_path, data)
+    with pytest.raises(FrameError, match=f"{p}{where}"):
+        read_frames(p)
+
+
+def test_frames_round_trip(tmp_path):
+    f = np.random.default_rng(0).normal(size=(3, 208))
+    write_frames(tmp_path / "f.csv", f, comment="a\nb")
+    np.testing.assert_allclose(read_frames(tmp_path / "f.csv"), f, rtol=1e-8)
+
+
+# --- forces ---------------------------------------------------------------------------------------
+
+def test_forces_round_trip_and_optional_columns(tmp_path):
+    f = np.array([[1.0, 2.0, -3.0], [0.0, 0.5, -20.0]])
+    write_forces(tmp_path / "f.csv", f)
+    np.testing.assert_allclose(read_forces(tmp_path / "f.csv"), f, rtol=1e-8)
+    p = _write(tmp_path, "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,extra\n"
+                         "0,1,2,-3,3.7,0.9,1.1,1,0.5,0,x\n"
+                         "1,,,,,,,0,,,\n")
+    got = read_forces(p)
+    np.testing.assert_allclose(got[0], [1, 2, -3])
+    assert np.isnan(got[1]).all()  # a rejected frame: no force
+
+
+@pytest.mark.parametrize("data, where", [
+    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,2,3,4,5,6\n1,1,2,3\n", ":3:"),       # ragged
+    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,zz,3,4,5,6\n", ":2:"),               # bad cell
+    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,,3,4,5,6\n", ":2:"),                 # empty, no valid=0
+    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,inf,3,4,5,6\n", ":2:"),              # non-finite
+    ("0,1,2,3,4,5,6\n1,1,2,3,4,5,6\n", ":1:"),                                             # no header
+    (b"frame,fx,fy,fz\n0,1,2,\xff\n", ":2:"),                                              # not UTF-8
+])
+def test_read_forces_names_file_and_line(tmp_path, data, where):
+    p = _write(tmp_path, data)
+    with pytest.raises(FrameError, match=f"{p}{where}"):
+        read_forces(p)
+
+
+# --- load scripts ---------------------------------------------------------------------------------
+
+def test_load_script_round_trip(tmp_path):
+    p = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n# a comment\n1.5,0,0,-20\n")
+    t, f = read_load_script(p)
+    np.testing.assert_array_equal(t, [0.0, 1.5])
+    np.testing.assert_array_equal(f, [[0, 0, 0], [0, 0, -20]])
+
+
+@pytest.mark.parametrize("data, where, what", [
+    ("0,0,0,0\n1.5,0,0,-20\n", ":1:", "header"),                         # no header: its first row was lost
+    ("time,fx,fy,fz\n0,0,0,0\nnan,0,0,-20\n", ":3:", "time"),            # NaN time
+    ("time,fx,fy,fz\n0,0,0,0\n1,0,0\n", ":3:", "4"),                     # ragged
+    ("time,fx,fy,fz\n0,0,0,0\n1,0,0,lots\n", ":3:", "fz"),               # bad cell
+    ("time,fx,fy,fz\n2,0,0,0\n1,0,0,-20\n", ":3:", "decrease"),          # times go back
+    ("time,fx,fy,fz\n", "", "no rows"),                                  # header only
+    (b"time,fx,fy,fz\n\x00\x01\x02\n", ":2:", "UTF-8|binary"),           # binary
+])
+def test_read_load_script_names_file_and_line(tmp_path, data, where, what):
+    p = _write(tmp_path, data)
+    with pytest.raises(ConfigError, match=f"{p}{where}.*({what})"):
+        read_load_script(p)
+
+
+# --- fuzz: only package errors come out ------------------------------------------------------------
+
+_csv_text = st.lists(st.lists(st.one_of(st.sampled_from(["0", "1.5", "-2e-3", "", "nan", "inf", "x", " 3 ", "1e999"]),
+                                        st.text(max_size=4)), max_size=10), max_size=6) \
+    .map(lambda rows: "\n".join(",".join(r) for r in rows))
+_bytes = st.one_of(st.binary(max_size=300), _csv_text.map(lambda t: t.encode("utf-8", "surrogatepass")),
+                   st.builds(lambda h, t: (h + "\n" + t).encode("utf-8", "surrogatepass"),
+                             st.sampled_from(["time,fx,fy,fz", "frame,fx,fy,fz,magnitude,elevation,azimuth",
+                                              "frame,fx,fy,fz,valid", ROW]), _csv_text))
+
+
+@settings(max_examples=300, deadline=None)
+@given(raw=_bytes)
+def test_fuzz_readers_raise_only_package_errors(tmp_path_factory, raw):
+    p = tmp_path_factory.getbasetemp() / "fuzz.csv"
+    p.write_bytes(raw)
+    for reader in (read_frames, read_forces, read_load_script):
+        try:
+            out = reader(p)
+        except CstomoError:
+            continue
+        for a in (out if isinstance(out, tuple) else (out,)):
+            assert isinstance(a, np.ndarray) and a.dtype == float
+
+
+# --- the command line on bad input ------------------------------------------------------------------
+
+def _cstomo(*args: str) -> subprocess.CompletedProcess:
+    exe = Path(sys.executable).parent / "cstomo"
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+
+
+@pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
+def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
+    good = _write(tmp_path, f"{ROW}\n", "ref.csv")
+    bad = _write(tmp_path, f"{ROW}\n{ROW},1\n", "frames.csv")  # ragged line 2
+    out = tmp_path / ("out.csv" if cmd == "estimate" else "out.npz")
+    r = _cstomo(cmd, "--reference", str(good), "--frames", str(bad), "--out", str(out), "--cache-dir",
+                str(tmp_path / "cache"))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert f"{bad}:2:" in r.stderr
+    assert not out.exists() and not list(tmp_path.glob("out*"))
+    assert not (tmp_path / "cache").exists()  # the input was read before any model was built
+
+
+def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
+    script = _write(tmp_path, "0,0,0,0\n1.5,0,0,-20\n", "load.csv")
+    for args in (["board-sim", "--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "10"],
+                 ["demo", "--load-script", str(script)]):
+        r = _cstomo(*args)
+        assert r.returncode == 2, r.stdout + r.stderr
+        assert "Traceback" not in r.stderr and f"{script}:1:" in r.stderr and "header" in r.stderr, r.stderr
+
+
+def test_atomic_write_leaves_no_half_written_file(tmp_path):
+    from cstomo_sensor.frames_io import atomic_write
+
+    target = tmp_path / "out.csv"
+    target.write_text("old\n")
+    with pytest.raises(RuntimeError):
+        with atomic_write(target) as f:
+            f.write(b"half")
+            raise RuntimeError("disk full")
+    assert target.read_text() == "old\n" and os.listdir(tmp_path) == ["out.csv"]
+    with atomic_write(target) as f:
+        f.write(b"new\n")
+    assert target.read_text() == "new\n" and os.listdir(tmp_path) == ["out.csv"]

@@ -1,0 +1,151 @@
+"""Start-up failures of cstomo_sensor_node name their cause (rclpy's lifecycle swallows exceptions
+raised in on_configure), and a saved tare is validated and keyed by the sensor's geometry. Real node,
+real rclpy (the harness is in conftest.py); the ROS log reaches stderr (capfd)."""
+from __future__ import annotations
+
+import pytest
+from conftest import PIPE, Harness
+
+rclpy = pytest.importorskip("rclpy")
+
+
+@pytest.fixture(scope="module")
+def warm_model():
+    """The test pipeline, built once into the test cache (every node below loads it quickly)."""
+    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+
+    return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
+
+
+def configure(ros, capfd, name: str, **params):
+    """(transition result, reference source, tare path, stderr) of configuring a node with ``params``."""
+    capfd.readouterr()
+    h = Harness(ros, dict(PIPE, input="topic", autostart=False, **params), name=name)
+    try:
+        ret = h.node.trigger_configure()
+        source, tare_path = h.node.reference_source, h.node.tare_path
+    finally:
+        h.close()
+    return ret, source, tare_path, capfd.readouterr().err
+
+
+# --- failures at configure name their cause ---------------------------------------------------------
+
+def test_an_unwritable_cache_directory_is_named_before_any_build(ros, capfd, tmp_path):
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file where the cache directory should be\n")
+    cache = blocker / "cache"
+    ret, _, _, err = configure(ros, capfd, "ro_cache", cache_dir=str(cache))
+    assert ret == TransitionCallbackReturn.FAILURE
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert "ERROR" in line and str(cache) in line and "not writable" in line and "cache_dir" in line, err
+
+
+@pytest.mark.parametrize("text, what", [
+    (b"name: cuboid_joint\nbody: {shape: cuboid, size: [0.04, 0.04\n", "malformed YAML"),
+    (b"name: caf\xe9\n", "not UTF-8"),
+    (b"name: x\nelectrodes: {layers: 2.7}\n", "body"),
+])
+def test_a_malformed_sensor_yaml_is_named(ros, capfd, tmp_path, text, what):
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    f = tmp_path / "my_sensor.yaml"
+    f.write_bytes(text)
+    ret, _, _, err = configure(ros, capfd, "bad_yaml", sensor=str(f))
+    assert ret == TransitionCallbackReturn.FAILURE
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert "ERROR" in line and str(f) in line and what in line, err
+
+
+def test_the_cause_of_a_missing_optional_dependency_is_named():
+    from cstomo_sensor.ros.node import failure_cause
+
+    with pytest.raises(ImportError) as info:
+        import cstomo_no_such_optional_module  # noqa: F401
+    msg = failure_cause(info.value)
+    assert "cstomo_no_such_optional_module" in msg and "install" in msg
+
+
+def test_main_exits_non_zero_with_the_cause(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    f = tmp_path / "broken.yaml"
+    f.write_bytes(b"\x00\x01binary")
+    exe = Path(sys.executable).parent / "cstomo_sensor_node"
+    r = subprocess.run([str(exe), "--ros-args", "-p", f"sensor:={f}", "-p", "input:=topic"], capture_output=True,
+                       text=True, timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    assert r.returncode != 0
+    assert "refusing to start" in r.stderr and str(f) in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+# --- the saved tare: validated, keyed ----------------------------------------------------------------
+
+def _tare_file(tmp_path, frame) -> str:
+    from cstomo_sensor.frames_io import write_frames
+
+    p = tmp_path / "tare.csv"
+    write_frames(p, frame)
+    return str(p)
+
+
+def test_a_non_utf8_tare_file_falls_back_with_a_warning(ros, capfd, tmp_path, warm_model):
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    p = tmp_path / "tare.csv"
+    p.write_bytes(b"1.0,\xff\xfe\n")
+    ret, source, _, err = configure(ros, capfd, "tare_bytes", tare_file=str(p))
+    assert ret == TransitionCallbackReturn.SUCCESS and source.startswith("model")
+    line = next(ln for ln in err.splitlines() if "saved tare" in ln)
+    assert "WARN" in line and str(p) in line and "UTF-8" in line, err
+
+
+@pytest.mark.parametrize("scale, why", [(0.0, "zero"), (10.0, "rms"), (0.1, "rms")])
+def test_an_implausible_saved_tare_is_not_used(ros, capfd, tmp_path, warm_model, scale, why):
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    p = _tare_file(tmp_path, warm_model.model_reference * scale)
+    ret, source, _, err = configure(ros, capfd, "tare_bad", tare_file=p)
+    assert ret == TransitionCallbackReturn.SUCCESS and source.startswith("model"), source
+    line = next(ln for ln in err.splitlines() if "saved tare" in ln)
+    assert "WARN" in line and p in line and why in line and "not used" in line, err
+
+
+def test_a_plausible_saved_tare_is_used(ros, capfd, tmp_path, warm_model):
+    p = _tare_file(tmp_path, warm_model.model_reference * 2.5)  # a rubber 2.5 times as resistive
+    _, source, _, _ = configure(ros, capfd, "tare_ok", tare_file=p)
+    assert source == f"saved tare {p}"
+
+
+def test_the_default_tare_file_is_keyed_by_the_sensor_geometry(ros, capfd, tmp_path, warm_model):
+    import yaml
+
+    from cstomo_sensor.model.geometry import load_sensor, preset_dirs
+    from cstomo_sensor.ros.params import NodeConfig
+
+    d = yaml.safe_load(next(x / "cuboid_joint.yaml" for x in preset_dirs() if (x / "cuboid_joint.yaml").is_file())
+                       .read_text())
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    (a / "joint.yaml").write_text(yaml.safe_dump(d))
+    d["electrodes"]["radius"] = 0.0014  # another device, same file name and sensor name
+    (b / "joint.yaml").write_text(yaml.safe_dump(d))
+    cfg = NodeConfig.from_parameters(lambda n: dict(PIPE, cache_dir=str(tmp_path)).get(n, _default(n)))
+    pa, pb = (cfg.tare_path_for(load_sensor(x / "joint.yaml")) for x in (a, b))
+    assert pa != pb and pa.parent == pb.parent == tmp_path
+    assert pa.name.startswith("tare_cuboid_joint-") and pa.suffix == ".csv"
+    # the node uses it (the preset's geometry digest in the name)
+    _, _, path, err = configure(ros, capfd, "tare_key")
+    assert path.name == f"tare_cuboid_joint-{warm_model.geometry.digest()[:8]}.csv", path
+    assert f"no saved tare at {path}" in err
+
+
+def _default(name):
+    from cstomo_sensor.ros.params import PARAMETERS
+
+    v = PARAMETERS[name][0]
+    return tuple(v) if isinstance(v, list) else v
