@@ -95,6 +95,8 @@ def atomic_write(path: str | os.PathLike) -> Iterator[io.BufferedWriter]:
     try:
         with open(tmp, "wb") as f:
             yield f
+            f.flush()
+            os.fsync(f.fileno())  # on disk before it replaces the old file (a power cut keeps one of the two)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -128,7 +130,7 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
         fields = ",".join(f"{x:.9g}" for x in row) if good else ",,,,,"
         lines.append(f"{i},{fields}" + ("" if valid is None else f",{int(good)}"))
     with atomic_write(path) as out:
-        out.write("\n".join(lines) + "\n")
+        out.write(("\n".join(lines) + "\n").encode())
 
 
 def _table(path, err: type[Exception], what: str, required: tuple[str, ...]) -> tuple[list[str], list[tuple[int, list[str]]]]:

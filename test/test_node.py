@@ -145,14 +145,14 @@ def warm_model():
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
 
-def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, **params):
+def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, name="cstomo_sensor", **params):
     """A simulated board on a pty (link in tmp_path) and the node reading it; returns (harness, board)."""
     from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
 
     board = SimulatedBoard(source, rate_hz=rate, link=tmp_path / "board", faults=faults or FaultConfig(), seed=2)
     p = dict(PIPE, port=str(tmp_path / "board"), tare_file=str(tmp_path / "tare.csv"), stale_timeout=0.3)
     p.update(params)
-    h = Harness(ros, p)
+    h = Harness(ros, p, name=name)
     assert wait_for(lambda: h.state() == "active", 20.0), h.state()
     return h, board
 
@@ -300,9 +300,11 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
 
     faults = FaultConfig(disconnect_at=1.5, reappear_after=1.5, bit_flip=0.05, garbage=0.05,
                          saturate_channel=7, dead_electrode=3)
-    h, board = start(ros, tmp_path, source, faults=faults, rate=100.0, tare_on_start=True, tare_frames=5)
+    # a node name of its own: rcl registers one /rosout publisher per logger name in a process
+    h, board = start(ros, tmp_path, source, faults=faults, rate=100.0, name="cstomo_rosout", tare_on_start=True,
+                     tare_frames=5)
     try:
-        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        wr = h.record("/cstomo_rosout/wrench", WrenchStamped)
         dg = diag_records(h)
         rosout = h.record("/rosout", Log)
         board.start()
@@ -322,7 +324,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     # a bit-flipped frame fails its CRC: it is lost, and the next frame's sequence number shows the gap
     assert int(v["corrupt"]) > 0 and int(v["seq_gaps"]) > 0
     logs = [(m.level, m.name, m.msg) for _, m in rosout]
-    assert any(level == Log.WARN and name == "cstomo_sensor" and msg.startswith("force.pipeline: excluding")
+    assert any(level == Log.WARN and name == "cstomo_rosout" and msg.startswith("force.pipeline: excluding")
                for level, name, msg in logs), logs
 
     assert v["saturated_channels"] == "1" and v["dead_electrodes"] == "4"

@@ -18,7 +18,9 @@ from cstomo_sensor.tools.cli import main as cstomo
 def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     pytest.importorskip("rclpy")
     script = tmp_path / "load.csv"
-    script.write_text("time,fx,fy,fz\n0,0,0,0\n1.5,0,0,-20\n")
+    # unloaded for 3 s: the node reaches the board up to 2 s after it appears (reconnect backoff) and
+    # then tares on 50 frames; a tare across the load step is refused, and the next one would be loaded
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n")
     exe = Path(sys.executable).parent / "cstomo"
     out = subprocess.run([str(exe), "demo", "--load-script", str(script), "--hold", "2.5", "--rate", "100"],
                          capture_output=True, text=True, timeout=240, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
