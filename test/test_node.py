@@ -2,11 +2,9 @@
 and the local-only DDS set-up are in conftest.py)."""
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
-from conftest import PIPE, Harness, wait_for
+from conftest import BAG_RATE, PIPE, BagSource, Harness, diag, diag_records, start, wait_for
 
 from cstomo_sensor.board.clock import ClockMapper
 from cstomo_sensor.errors import ConfigError
@@ -100,73 +98,6 @@ def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_re
 
 
 # --- end to end: simulated board on a pty -> node -> subscriber ------------------------------------
-
-DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
-BAG_RATE = 50.0  # frames per second of the committed bag (test/data/make_bag.py)
-
-
-class BagSource:
-    """The simulated board measures the committed bag's frames (honest simulation of a scripted
-    load, test/data/make_bag.py) at their own time, looping; ``truth`` is the scripted force."""
-
-    def __init__(self):
-        from rclpy.serialization import deserialize_message
-        from rosbags.rosbag2 import Reader
-        from std_msgs.msg import Float32MultiArray
-
-        from cstomo_sensor.frames_io import read_forces
-
-        with Reader(os.path.join(DATA, "raw_voltages_bag")) as r:
-            self.frames = np.array([deserialize_message(bytes(raw), Float32MultiArray).data
-                                    for _, _, raw in r.messages()], dtype=float)
-        self.forces = read_forces(os.path.join(DATA, "raw_voltages_truth.csv"))
-
-    def _i(self, t):
-        return int(round(t * BAG_RATE)) % len(self.frames)
-
-    def frame(self, t, rng):
-        return self.frames[self._i(t)]
-
-    def truth(self, t):
-        return self.forces[self._i(t)]
-
-
-@pytest.fixture(scope="module")
-def source():
-    pytest.importorskip("rosbags")
-    return BagSource()
-
-
-@pytest.fixture(scope="module")
-def warm_model():
-    """Build the Pipeline once (into the test cache); every node below loads it in well under a second."""
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
-
-    return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
-
-
-def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, name="cstomo_sensor", **params):
-    """A simulated board on a pty (link in tmp_path) and the node reading it; returns (harness, board)."""
-    from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
-
-    board = SimulatedBoard(source, rate_hz=rate, link=tmp_path / "board", faults=faults or FaultConfig(), seed=2)
-    p = dict(PIPE, port=str(tmp_path / "board"), tare_file=str(tmp_path / "tare.csv"), stale_timeout=0.3)
-    p.update(params)
-    h = Harness(ros, p, name=name)
-    assert wait_for(lambda: h.state() == "active", 20.0), h.state()
-    return h, board
-
-
-def diag_records(h):
-    from diagnostic_msgs.msg import DiagnosticArray
-
-    return h.record("/diagnostics", DiagnosticArray)
-
-
-def diag(msg) -> tuple[int, str, dict]:
-    s = msg.status[0]
-    return s.level[0], s.message, {kv.key: kv.value for kv in s.values}
-
 
 def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model):
     """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared

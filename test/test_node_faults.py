@@ -11,8 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import PIPE, wait_for
-from test_node import BAG_RATE, BagSource, diag, diag_records, start
+from conftest import BAG_RATE, PIPE, BagSource, diag, diag_records, start, wait_for
 
 from cstomo_sensor.errors import NoUsableChannelsError
 
@@ -20,19 +19,6 @@ rclpy = pytest.importorskip("rclpy")
 
 UNLOADED = slice(0, 20)   # bag frames of the unloaded joint (test/data/make_bag.py)
 LOADED = slice(30, 60)    # bag frames under a held 20 N socket load
-
-
-@pytest.fixture(scope="module")
-def source():
-    pytest.importorskip("rosbags")
-    return BagSource()
-
-
-@pytest.fixture(scope="module")
-def warm_model():
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
-
-    return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
 
 @pytest.fixture
