@@ -8,7 +8,7 @@ reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md,
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
 - ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
-  60 dB noise augmentation. One 3 x 208 product per frame (about a microsecond of arithmetic).
+  noise augmentation (the device's measured noise after a tare of several frames, else 60 dB). One 3 x 208 product per frame (about a microsecond of arithmetic).
 - ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a radial-basis
   surrogate of the forward + mechanical model y(F) built on the calibration set, started from the
   linear estimate; a few milliseconds per frame.
@@ -96,7 +96,8 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
 
 
 def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
-    """Per-channel std of the normalised noise at ``db``."""
+    """Per-channel std of the normalised noise at ``db`` (the assumption without a measured noise:
+    :data:`~cstomo_sensor.force.device.DEFAULT_NOISE_DB`; a tare of several frames replaces it)."""
     ref = model.model_reference
     return np.sqrt(np.mean(ref**2)) * 10 ** (-db / 20) / model.v_scale
 
@@ -122,6 +123,10 @@ class LinearEstimator:
 
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
+
+    def with_noise(self, noise: np.ndarray) -> LinearEstimator:
+        """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
+        return LinearEstimator(self.forces, self.y, noise, self.ridge, self.keep)
 
 
 class ModelEstimator:
@@ -159,6 +164,10 @@ class ModelEstimator:
 
     def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+
+    def with_noise(self, noise: np.ndarray) -> ModelEstimator:
+        """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
+        return ModelEstimator(self.forces, self.y, noise, self.ridge, self.keep, self.iterations)
 
 
 #: The force estimators by name; the first is the default.

@@ -48,6 +48,7 @@ from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
 from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
+from .device import ScaleReport
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
 
 log = logging.getLogger(__name__)
@@ -149,7 +150,11 @@ class Pipeline:
         noise = np.sqrt(np.mean(ref**2)) * 10 ** (-GATE_SNR_DB / 20) / model.v_scale
         self.gate_norm_bound = DEVICE_MARGIN * self.gate_k * self.max_force + NOISE_NORM_FACTOR * float(np.linalg.norm(noise))
         self.gate_channel_bound = DEVICE_MARGIN * per_n.max(axis=0) * self.max_force + CHANNEL_NOISE_SIGMAS * noise
-        self._gate_w = np.ones(self.n_meas)  # y -> g: keep * v_scale / (device's reference scale)
+        self._gate_w = np.ones(self.n_meas)  # y -> g: keep * y_scale / (device's reference scale)
+        self._y_scale = model.v_scale  # c * v_scale, c the device's global factor (set_reference)
+        self._default_noise = np.asarray(estimator.noise)  # y units, DEFAULT_NOISE_DB
+        self.scale_report: ScaleReport | None = None
+        self.noise_measured = False  # True: the estimators use the tare's noise
         self._g = np.empty(self.n_meas)
         self._over = np.empty(self.n_meas, dtype=bool)
 
@@ -168,17 +173,37 @@ class Pipeline:
     def bad_channels(self) -> np.ndarray:
         return ~self._keep
 
-    def set_reference(self, frame: np.ndarray) -> None:
-        """Use the device's own unloaded frame (tare) as the difference reference."""
-        self.reference = check_frame(frame, self.n_meas, "reference").copy()
+    def set_reference(self, frame: np.ndarray, noise: np.ndarray | None = None) -> ScaleReport:
+        """Use the device's own unloaded frame (tare) as the difference reference; returns how it
+        compares with the model (:class:`~.device.ScaleReport`).
+
+        The change is normalised by ``c * v_scale``, ``c`` the reference's global factor against the
+        model's, so a device whose voltages are all scaled alike gives the same forces. ``noise``
+        (n_meas,) volts, the per-channel std of the tare frames, sets the estimators' noise; None
+        assumes :data:`~.device.DEFAULT_NOISE_DB` relative to the reference.
+        """
+        ref = check_frame(frame, self.n_meas, "reference").copy()
+        report = ScaleReport.of(ref, self.model_reference)
+        c = report.factor if np.isfinite(report.factor) and report.factor > 0 else 1.0
+        y_scale = c * self.model.v_scale
+        if noise is None:
+            noise_y = self._default_noise
+        else:
+            noise_y = check_frame(noise, self.n_meas, "noise") / y_scale
+            floor = 0.1 * float(np.median(noise_y))  # a channel that happened to read steady
+            noise_y = np.maximum(noise_y, floor if floor > 0 else 1e-12)
+        estimator = self.estimator.with_noise(noise_y)
+        self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
+        self.scale_report, self.noise_measured = report, noise is not None
         self._update_gate()
+        return report
 
     def _update_gate(self) -> None:
         """The gate's per-channel weight: the change relative to the device's own reference."""
         ref = self.reference if self.reference is not None else self.model_reference
         scale = np.maximum(np.abs(ref), 0.05 * np.sqrt(np.mean(ref**2)))
         with np.errstate(divide="ignore"):
-            w = np.where(scale > 0, self.model.v_scale / scale, np.inf)  # an all-zero reference: nothing passes
+            w = np.where(scale > 0, self._y_scale / scale, np.inf)  # an all-zero reference: nothing passes
         self._gate_w = np.where(self._keep, w, 0.0)
 
     def set_bad_channels(self, bad: np.ndarray) -> None:
@@ -218,7 +243,7 @@ class Pipeline:
         y = self._y
         with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
             np.subtract(v, self.reference, out=y)
-            y /= self.model.v_scale
+            y /= self._y_scale
             y[~self._keep] = 0.0
             g = np.multiply(y, self._gate_w, out=self._g)
             g2 = float(np.dot(g, g)) if gate else 0.0
@@ -267,13 +292,15 @@ TARE_MAX_SPREAD = 0.01
 class TareOutcome:
     """How a tare ended: ``reference`` (208,) if accepted, else None and ``reason`` says why.
 
-    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare).
+    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare);
+    ``noise`` (208,) volts the per-channel std of the frames (None for a one-frame tare).
     """
 
     reference: np.ndarray | None
     frames: int
     spread: float
     reason: str = ""
+    noise: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -375,11 +402,14 @@ class FrameProcessor:
         n = self._tare_n
         ref = self._tare_x0 + self._tare_s1 / n
         spread = 0.0
+        noise = None
         used = ~self._tare_mask
         rms = float(np.sqrt(np.mean(ref[used] ** 2))) if used.any() else 0.0
         if n > 1 and rms > 0:
             var = np.maximum(self._tare_s2 - self._tare_s1**2 / n, 0.0) / (n - 1)
             spread = float(np.sqrt(var[used].max()) / rms)
+            noise = np.sqrt(var)
+            noise[~used | ~np.isfinite(noise)] = float(np.median(noise[used]))  # excluded: no data
         if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
             return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
                                                 "channel; check the board's contacts and cable")
@@ -389,7 +419,7 @@ class FrameProcessor:
                                                 f"reference rms at measurement {worst}, limit "
                                                 f"{self.tare_max_spread:.2%}); keep the sensor still and unloaded "
                                                 "during the tare")
-        return TareOutcome(ref, n, spread)
+        return TareOutcome(ref.copy(), n, spread, noise=noise)
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -466,9 +496,10 @@ class FrameProcessor:
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         if outcome.ok:
-            self.pipe.set_reference(outcome.reference)
-            log.info("tare: new reference from %d frames (spread %.2f%% of its rms)", outcome.frames,
-                     100 * outcome.spread)
+            report = self.pipe.set_reference(outcome.reference, outcome.noise)
+            log.info("tare: new reference from %d frames (spread %.2f%% of its rms; noise %s)", outcome.frames,
+                     100 * outcome.spread, "measured" if outcome.noise is not None else "assumed 60 dB")
+            (log.warning if report.warn else log.info)("tare: %s", report.message)
         elif self.pipe.reference is None:
             log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, outcome.frames)
             self.start_tare(outcome.frames)
