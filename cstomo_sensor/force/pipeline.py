@@ -286,6 +286,10 @@ class Excluded:
 #: 20 N socket load moves a channel by up to 5.7 % of rms, so one arriving in the middle 80 % of
 #: a tare gives 1.7 % or more.
 TARE_MAX_SPREAD = 0.01
+#: On a noisy board the limit is this many times the median channel's spread instead, when larger: a
+#: 40 dB board (REFERENCE_SENSOR.md s.8) has a std of 1 % of rms on every channel, and a load arriving
+#: during the tare still shows as channels far noisier than the typical one (use >= 10 tare frames there).
+TARE_NOISE_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
@@ -315,7 +319,8 @@ class FrameProcessor:
     averaged into the reference and give no output; every later frame is processed against that
     reference. A tare is refused (the old reference stays) when its frames are not steady: the
     largest per-channel standard deviation over the channels not excluded during the tare, relative
-    to the rms of the averaged reference, is above ``tare_max_spread``; or when the average is not
+    to the rms of the averaged reference, is above ``tare_max_spread`` (or :data:`TARE_NOISE_FACTOR` x
+    the median channel's, when larger: a noisy board); or when the average is not
     finite. Without any reference a tare is always pending: a refused or cancelled one starts over.
 
     Parameters
@@ -413,11 +418,14 @@ class FrameProcessor:
         if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
             return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
                                                 "channel; check the board's contacts and cable")
-        if spread > self.tare_max_spread:
+        limit = self.tare_max_spread
+        if noise is not None:
+            limit = max(limit, TARE_NOISE_FACTOR * float(np.median(noise[used])) / rms)
+        if spread > limit:
             worst = int(np.argmax(np.where(used, var, -1.0))) + 1
             return TareOutcome(None, n, spread, f"tare refused: frames not steady (spread {spread:.2%} of the "
                                                 f"reference rms at measurement {worst}, limit "
-                                                f"{self.tare_max_spread:.2%}); keep the sensor still and unloaded "
+                                                f"{limit:.2%}); keep the sensor still and unloaded "
                                                 "during the tare")
         return TareOutcome(ref.copy(), n, spread, noise=noise)
 
