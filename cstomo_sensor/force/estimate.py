@@ -8,7 +8,8 @@ reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md,
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
 - ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
-  noise augmentation (the device's measured noise after a tare of several frames, else 60 dB). One 3 x 208 product per frame (about a microsecond of arithmetic).
+  noise augmentation (the device's noise measured by a tare of several frames, else 60 dB).
+  One 3 x 208 product per frame (about a microsecond of arithmetic).
 - ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a radial-basis
   surrogate of the forward + mechanical model y(F) built on the calibration set, started from the
   linear estimate; a few milliseconds per frame.

@@ -36,8 +36,8 @@ from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
 from ..cache import check_writable
 from ..errors import CstomoError, FrameError, NoUsableChannelsError
+from ..force.device import read_reference, write_reference
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
-from ..frames_io import read_frames, write_frames
 from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
@@ -227,11 +227,13 @@ class CstomoSensorNode(LifecycleNode):
         path = self.tare_path
         if path.is_file():
             try:
-                ref = read_frames(path, self.pipe.n_meas).mean(axis=0)
+                ref, noise, _ = read_reference(path, self.pipe.n_meas)
                 problem = tare_problem(ref, self.pipe.model_reference)
                 if not problem:
-                    self.pipe.set_reference(ref)
+                    report = self.pipe.set_reference(ref, noise)
                     self.reference_source = f"saved tare {path}"
+                    log.info(f"saved tare {path}: noise {'measured' if noise is not None else 'assumed 60 dB'}")
+                    (log.warning if report.warn else log.info)(f"tare: {report.message}")
                     return
                 log.warning(f"saved tare {path} not used: {problem}; falling back to the model reference "
                             "(call ~/tare with the sensor unloaded)")
@@ -246,15 +248,17 @@ class CstomoSensorNode(LifecycleNode):
         self.pipe.set_reference(self.pipe.model_reference)
         self.reference_source = "model (untared)"
 
-    def _save_tare(self, ref: np.ndarray) -> str:
-        """Write an accepted tare to ``tare_path`` (atomically); returns '' or why it was not saved."""
+    def _save_tare(self, outcome: TareOutcome) -> str:
+        """Write an accepted tare to ``tare_path`` and its noise beside it (``.noise.csv``, atomically);
+        returns '' or why it was not saved."""
         cfg, path = self.config, self.tare_path
         self.reference_source = "tare"
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_frames(path, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
-                                            f"(geometry {self.pipe.geometry.digest()}): mean of "
-                                            f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+            write_reference(path, outcome.reference, outcome.noise,
+                            comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
+                                    f"(geometry {self.pipe.geometry.digest()}): mean of "
+                                    f"{outcome.frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
         except OSError as err:
             note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
             self.get_logger().error(note)
@@ -266,7 +270,7 @@ class CstomoSensorNode(LifecycleNode):
     def _tare_ended(self, outcome: TareOutcome) -> None:
         """The processor ended a tare (frame thread, under ``_proc_lock``): save it if accepted and
         hand the outcome to a waiting ``~/tare`` call."""
-        note = self._save_tare(outcome.reference) if outcome.ok else ""
+        note = self._save_tare(outcome) if outcome.ok else ""
         self._tare_outcome = (outcome, note)
         self._tare_done.set()
 
@@ -484,6 +488,14 @@ class CstomoSensorNode(LifecycleNode):
         if self.reference_source.startswith("model"):
             level = max(level, DiagnosticStatus.WARN)
             msgs.append("untared: using the model reference")
+        pipe = self.pipe
+        report = pipe.scale_report if pipe is not None else None
+        if report is not None:
+            kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
+                      noise="measured by the tare" if pipe.noise_measured else "assumed 60 dB")
+            if report.warn and not self.reference_source.startswith("model"):
+                level = max(level, DiagnosticStatus.WARN)
+                msgs.append(report.message)
         status.level = level
         status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]

@@ -15,6 +15,7 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import CstomoError
+from ..force.device import DEFAULT_NOISE_DB, read_reference
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
@@ -89,10 +90,12 @@ def cmd_estimate(a) -> int:
 
     cfg = pipeline_config(a)
     load_sensor(cfg.sensor)
-    ref = read_frames(a.reference)  # the inputs are checked before any model is built
+    ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    pipe.set_reference(ref.mean(axis=0))
+    report = pipe.set_reference(ref, noise)
+    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
+          f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
     results = [pipe.process(f, with_field=False) for f in frames]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
@@ -127,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", required=True)
     r.add_argument("--out", required=True)
     e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
-    e.add_argument("--reference", required=True)
+    e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
     for q in (b, v, r):
