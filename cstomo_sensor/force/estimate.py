@@ -106,6 +106,8 @@ def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
 class LinearEstimator:
     """F = W y (ridge regression through the origin on the calibration set, kept channels only)."""
 
+    name = "linear"
+
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None) -> None:
         self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
@@ -125,6 +127,10 @@ class LinearEstimator:
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
 
+    def with_set(self, forces: np.ndarray, y: np.ndarray) -> LinearEstimator:
+        """The same estimator on another training set (a device calibration's corrected one)."""
+        return LinearEstimator(forces, y, self.noise, self.ridge, self.keep)
+
     def with_noise(self, noise: np.ndarray) -> LinearEstimator:
         """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
         return LinearEstimator(self.forces, self.y, noise, self.ridge, self.keep)
@@ -132,6 +138,8 @@ class LinearEstimator:
 
 class ModelEstimator:
     """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics."""
+
+    name = "model"
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None, iterations: int = 6) -> None:
@@ -165,6 +173,10 @@ class ModelEstimator:
 
     def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+
+    def with_set(self, forces: np.ndarray, y: np.ndarray) -> ModelEstimator:
+        """The same estimator on another training set (a device calibration's corrected one)."""
+        return ModelEstimator(forces, y, self.noise, self.ridge, self.keep, self.iterations)
 
     def with_noise(self, noise: np.ndarray) -> ModelEstimator:
         """The same estimator for a device whose per-channel noise (y units) is ``noise``."""

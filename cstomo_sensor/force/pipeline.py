@@ -48,6 +48,7 @@ from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
 from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
+from .calibration import DeviceCalibration
 from .device import ScaleReport
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
 
@@ -75,6 +76,7 @@ class PipelineConfig:
     iterations: int = 0  # 0 = chosen by the discrepancy rule
     damping: float = ReconSpec.damping
     max_force: float = 1.5 * RATED_FORCE  # N; larger estimates (and frames no such load explains) are implausible
+    calibration_file: str = ""  # a device calibration (cstomo calibrate); '' = the nominal model
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -154,6 +156,8 @@ class Pipeline:
         self._y_scale = model.v_scale  # c * v_scale, c the device's global factor (set_reference)
         self._default_noise = np.asarray(estimator.noise)  # y units, DEFAULT_NOISE_DB
         self.scale_report: ScaleReport | None = None
+        self.calibration: DeviceCalibration | None = None
+        self._base_set = (np.asarray(estimator.forces), np.asarray(estimator.y))  # the model's own
         self.noise_measured = False  # True: the estimators use the tare's noise
         self._g = np.empty(self.n_meas)
         self._over = np.empty(self.n_meas, dtype=bool)
@@ -162,8 +166,38 @@ class Pipeline:
     def build(cls, config: PipelineConfig, progress=None) -> Pipeline:
         geometry = load_sensor(config.sensor)
         model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
+        calibration = DeviceCalibration.load(config.calibration_file, model.n_meas) if config.calibration_file else None
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
-        return cls(geometry, model, estimator, max_force=config.max_force)
+        pipe = cls(geometry, model, estimator, max_force=config.max_force)
+        if calibration is not None:
+            pipe.set_calibration(calibration)
+        return pipe
+
+    def set_calibration(self, calibration: DeviceCalibration | None) -> None:
+        """Use a device calibration (None: the nominal model): the estimator is rebuilt on the model's
+        training set corrected to the device. Refuses one fitted against another model."""
+        forces, y = self._base_set
+        if calibration is None:
+            self.estimator = self.estimator.with_set(forces, y)
+        else:
+            calibration.check_model(self.model)
+            self.estimator = self.estimator.with_set(*calibration.corrected_set(forces, y))
+        self.calibration = calibration
+
+    @property
+    def base_estimator(self):
+        """The estimator without the device calibration (same noise and mask)."""
+        return self.estimator if self.calibration is None else self.estimator.with_set(*self._base_set)
+
+    @property
+    def estimator_name(self) -> str:
+        return self.estimator.name
+
+    def normalise(self, frames: np.ndarray) -> np.ndarray:
+        """``(V - V_ref) / (c v_scale)`` of (n_meas,) or (n, n_meas) frames, as :meth:`process` forms it."""
+        if self.reference is None:
+            raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
+        return (check_frame(frames, self.n_meas, "frame", batch=True) - self.reference) / self._y_scale
 
     @property
     def model_reference(self) -> np.ndarray:
