@@ -46,7 +46,7 @@ FORMAT = "cstomo_sensor device calibration 1"
 #: Prior std of each correction, relative to the channel's model sensitivity (rms over x, y, z).
 PRIOR_REL = 0.2
 #: Loads within this distance (N) are one load (its frames stay in one cross-validation fold).
-SAME_LOAD_N = 1e-3
+SAME_LOAD_N = 0.5
 #: Cross-validation: leave one load out up to this many loads, else this many folds.
 MAX_FOLDS = 10
 

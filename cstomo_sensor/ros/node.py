@@ -141,6 +141,8 @@ class CstomoSensorNode(LifecycleNode):
         pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
+        log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration
+                 else "calibration: none (the nominal model; `cstomo calibrate` fits one on known loads)")
         self.config, self.pipe = cfg, pipe
         self.tare_path = cfg.tare_path_for(pipe.geometry)
         self._board_clock = ClockMapper(cfg.clock_window)
@@ -496,6 +498,10 @@ class CstomoSensorNode(LifecycleNode):
             if report.warn and not self.reference_source.startswith("model"):
                 level = max(level, DiagnosticStatus.WARN)
                 msgs.append(report.message)
+        if pipe is not None:
+            cal = pipe.calibration
+            kv.update(calibration=cal.path if cal else "none (nominal model)",
+                      calibration_accuracy=cal.accuracy if cal else "")
         status.level = level
         status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]

@@ -1,7 +1,7 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
+``calibrate``, ``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
 """
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ from ..model.simulate import simulate_scene_files
 from .common import add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
-OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "demo": ".demo", "bench-node": ".bench.node",
-               "bench": ".bench.main", "render": ".render"}
+OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
+               "bench-node": ".bench.node", "bench": ".bench.main", "render": ".render"}
 
 
 def _peak_mb() -> float:
@@ -96,6 +96,8 @@ def cmd_estimate(a) -> int:
     report = pipe.set_reference(ref, noise)
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
           f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
+    cal = pipe.calibration
+    print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
     results = [pipe.process(f, with_field=False) for f in frames]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
@@ -142,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cache-dir", default="")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
+    sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")
     sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
     sub.add_parser("bench-node", help="latency, CPU and memory of the real node on the simulated board "
                    "(see cstomo bench-node -h)")
