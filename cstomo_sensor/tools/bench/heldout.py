@@ -7,15 +7,17 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import force_angles
+from ...force.calibration import DeviceCalibration
 from .models import Builder, Setting
 from .report import write_csv
 from .scenes import NOISE_SEED, SceneSet, errors, quantile
 from .timing import run_frames, time_frames
 
 
-def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibration: str = "") -> list[dict]:
     """Both estimators on ``n`` held-out random socket forces at 60 and 40 dB (one noise draw each),
-    elevations under 32 deg reported separately (REFERENCE_SENSOR.md s.4); writes heldout.csv."""
+    elevations under 32 deg reported separately (REFERENCE_SENSOR.md s.4); writes heldout.csv.
+    ``calibration``: a device calibration file applied to both (fitted on this held-out device)."""
 
     scenes = SceneSet(n, cache_dir, say)
     builder = Builder(cache_dir, say)
@@ -26,6 +28,7 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[d
         ref, frames = scenes.noisy(scenes.clean, 1, snr, NOISE_SEED + int(snr))
         for name in ("linear", "model"):
             pipe, *_ = builder.pipeline(Setting(name, "estimator", estimator=name))
+            pipe.set_calibration(DeviceCalibration.load(calibration) if calibration else None)
             est, *_ = run_frames(pipe, ref, frames, with_field=False)
             ang, mag = errors(est, scenes.forces)
             rel = 100 * mag / np.linalg.norm(scenes.forces, axis=1)
