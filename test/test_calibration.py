@@ -183,3 +183,23 @@ def test_a_rosbag_with_jittered_stamps_calibrates_as_the_csv_files(tmp_path, dev
     np.testing.assert_allclose(b.force_map, a.force_map, rtol=0, atol=1e-6)
     np.testing.assert_allclose(b.correction, a.correction, rtol=0, atol=1e-6 * np.abs(a.correction).max())
     assert (tmp_path / "csv.cv.csv").read_text().splitlines()[0].startswith("calibration,estimator,method")
+
+
+def test_the_node_runs_with_a_calibration_and_its_diagnostics_name_it(ros, tmp_path, device):
+    from conftest import PIPE, Harness, wait_for
+
+    tare, frames, forces, *_ = device
+    cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
+    pipe = Pipeline.build(cfg)  # the node's own model settings (another grid: the same calibration hash)
+    pipe.set_reference(*reference_of(tare))
+    path = tmp_path / "device.yaml"
+    calibrate(pipe, frames[:6], forces[:6]).save(path)
+    h = Harness(ros, dict(PIPE, input="topic", calibration_file=str(path), tare_file=str(tmp_path / "t.csv")),
+                name="calibrated")
+    try:
+        assert wait_for(lambda: h.state() == "active", 20.0)
+        kv = {v.key: v.value for v in h.node.diagnostics().values}
+        assert kv["calibration"] == str(path) and "leave one load out: angle" in kv["calibration_accuracy"], kv
+        assert h.node.pipe.calibration is not None
+    finally:
+        h.close()

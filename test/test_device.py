@@ -125,3 +125,21 @@ def test_reference_files_mean_spread_and_saved_noise(tmp_path, device):
         read_reference(tmp_path / "tare.csv")
     write_reference(tmp_path / "tare.csv", ref, None, comment="test")  # a later one-frame tare
     assert not (tmp_path / "tare.noise.csv").exists()
+
+
+def test_cli_estimate_reports_the_scale_and_the_noise(tmp_path, device, capsys):
+    from cstomo_sensor.frames_io import read_forces, write_frames
+    from cstomo_sensor.tools.cli import main
+
+    ref0, F, clean = device
+    rng = np.random.default_rng(12)
+    write_frames(tmp_path / "ref.csv", add_noise(np.repeat(ref0[None], 20, 0), ref0, 60, rng) * 4)
+    write_frames(tmp_path / "frames.csv", add_noise(clean[:4], ref0, 60, rng) * 4)
+    assert main(["estimate", "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
+                 "--out", str(tmp_path / "f.csv"), "--mesh-size", str(MODEL_H)]) == 0
+    err = capsys.readouterr().err
+    assert "20 frame(s), noise measured" in err and "WARNING: device reference = " in err, err
+    factor = float(err.split("device reference = ")[1].split(" x")[0])
+    assert 3.8 < factor < 4.2 and "calibrate" in err  # the device's factor, named, and what to do
+    assert "calibration: none" in err
+    assert np.degrees(angle_between(read_forces(tmp_path / "f.csv"), F[:4])).max() < 10

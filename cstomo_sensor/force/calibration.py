@@ -146,8 +146,8 @@ class DeviceCalibration:
     @property
     def accuracy(self) -> str:
         """One line: the cross-validated accuracy after (and before) calibration."""
-        if not self.cv:
-            return "no cross-validation"
+        if not self.cv or not self.cv.get("after"):
+            return "not cross-validated (needs 4 loads or more)"
         a, b = self.cv["after"], self.cv["before"]
         return (f"{self.cv['method']}: angle {a['angle_deg_median']:.2f}/{a['angle_deg_p90']:.2f} deg, magnitude "
                 f"{a['magnitude_pct_median']:.2f}/{a['magnitude_pct_p90']:.2f} % (median/p90; uncalibrated "
@@ -212,7 +212,8 @@ def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | No
     """Fit a :class:`DeviceCalibration` for ``pipe`` (built, uncalibrated, its reference the device's
     tare) from frames (n, n_meas) volts under known ``forces`` (n, 3) N, with a cross-validated table
     (leave one load out, or :data:`MAX_FOLDS` folds of whole loads) before and after, for the
-    pipeline's estimator."""
+    pipeline's estimator; a fold whose other loads cannot determine a calibration (fewer than three,
+    or not spanning three directions) is not judged (``after`` None when none is)."""
     frames, forces = np.atleast_2d(np.asarray(frames, float)), np.atleast_2d(np.asarray(forces, float))
     if len(frames) != len(forces):
         raise ConfigError(f"{len(frames)} frames but {len(forces)} forces: expected one force per frame")
@@ -233,19 +234,20 @@ def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | No
         return pipe.estimator.with_set(*cal.corrected_set(base.forces, base.y)), cal
 
     est_before = np.array([pipe.estimator.estimate(v) for v in y])
-    est_after = np.empty_like(est_before)
+    est_after = np.full_like(est_before, np.nan)
     n_folds = n_loads if n_loads <= 20 else MAX_FOLDS
     fold = groups % n_folds if n_loads > 20 else groups
     for k in range(n_folds):
         test = fold == k
-        if not test.any() or len(np.unique(groups[~test])) < 3:
-            est_after[test] = est_before[test]
-            continue
+        if np.linalg.matrix_rank(forces[~test]) < 3 or len(np.unique(groups[~test])) < 3:
+            continue  # the rest cannot determine a calibration: this fold is not judged
         e, _ = fitted(~test)
         est_after[test] = [e.estimate(v) for v in y[test]]
+    judged = np.isfinite(est_after[:, 0])
     method = "leave one load out" if n_loads <= 20 else f"{n_folds}-fold by load"
-    cv = {"method": method, "loads": n_loads, "frames": len(frames),
-          "before": summary(est_before, forces), "after": summary(est_after, forces)}
+    cv = {"method": method, "loads": n_loads, "frames": len(frames), "judged_loads": len(np.unique(groups[judged])),
+          "before": summary(est_before, forces),
+          "after": summary(est_after[judged], forces[judged]) if judged.any() else None}
     _, cal = fitted(np.ones(len(forces), bool))
     info = {"loads": n_loads, "frames": len(frames), "date": datetime.datetime.now().isoformat(timespec="seconds"),
             **(fitted_on or {})}

@@ -223,9 +223,9 @@ class Pipeline:
         if noise is None:
             noise_y = self._default_noise
         else:
-            noise_y = check_frame(noise, self.n_meas, "noise") / y_scale
-            floor = 0.1 * float(np.median(noise_y))  # a channel that happened to read steady
-            noise_y = np.maximum(noise_y, floor if floor > 0 else 1e-12)
+            noise_v = check_frame(noise, self.n_meas, "noise")
+            floor = 0.1 * float(np.median(noise_v))  # a channel that happened to read steady
+            noise_y = np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
         self.scale_report, self.noise_measured = report, noise is not None

@@ -144,6 +144,9 @@ def run(a) -> int:
           f"{cal.estimator} estimator):")
     print("               angle deg med/p90   magnitude % med/p90")
     for name, s in (("uncalibrated", b), ("calibrated", c)):
+        if s is None:
+            print(f"  {name:12s}  not cross-validated: every fold leaves fewer than 3 loads in 3 directions")
+            continue
         print(f"  {name:12s}  {s['angle_deg_median']:7.2f} / {s['angle_deg_p90']:6.2f}    "
               f"{s['magnitude_pct_median']:7.2f} / {s['magnitude_pct_p90']:6.2f}")
     print(f"wrote {out} and {out.with_suffix('.cv.csv')} in {time.perf_counter() - t0:.1f} s")
@@ -155,7 +158,7 @@ def cv_table(cal) -> str:
     keys = ["angle_deg_median", "angle_deg_p90", "magnitude_pct_median", "magnitude_pct_p90"]
     lines = ["calibration,estimator,method,loads,frames," + ",".join(keys)]
     for name in ("before", "after"):
-        s = cal.cv[name]
+        s = cal.cv[name] or dict.fromkeys(keys, float("nan"))
         lines.append(f"{name},{cal.estimator},{cal.cv['method']},{cal.cv['loads']},{cal.cv['frames']}," +
                      ",".join(f"{s[k]:g}" for k in keys))
     return "\n".join(lines) + "\n"
