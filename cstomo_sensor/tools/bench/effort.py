@@ -76,6 +76,7 @@ def calibration_effort(out: str | os.PathLike, n_held: int = 40, scene: str | os
 
 def plot(rows: list[dict], path: Path, device: str, n_held: int) -> None:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -92,6 +93,8 @@ def plot(rows: list[dict], path: Path, device: str, n_held: int) -> None:
         ax.set_xlabel("calibration loads")
         ax.set_ylabel(label)
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend()
     fig.suptitle(f"{device}: held-out accuracy ({n_held} loads) against calibration effort")
