@@ -257,6 +257,7 @@ class VoltageSource:
         self.snr_db = snr_db
         self.period = period
         self._frames = [truth.voltages(ld) for ld in loads]
+        elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
         self._ref = truth.reference
 
     @classmethod
