@@ -9,6 +9,8 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    # the default sensor's meshes (model/mesh.py): read by path, so the package is not zip-safe
+    package_data={package_name: ["data/meshes/*.npz"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -24,7 +26,7 @@ setup(
         "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
         "test": ["pytest", "hypothesis", "ruff"],
     },
-    zip_safe=True,
+    zip_safe=False,
     maintainer="cstomo_sensor developers",
     maintainer_email="cstomo@example.com",
     description="EIT force-direction sensor for a robot joint, as a ROS 2 node",
