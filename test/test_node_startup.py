@@ -153,7 +153,7 @@ def _default(name):
 
 def test_ctrl_c_twice_at_shutdown_prints_no_traceback(warm_model):
     """Ctrl-C, and a second one while the node shuts down (as a launch or an impatient user sends):
-    exit 0 without a KeyboardInterrupt traceback from the joins (before: 2 runs in 3 printed one)."""
+    exit 0 without a KeyboardInterrupt traceback from the joins (before: 3 runs in 5 printed one)."""
     import os
     import signal
     import subprocess
@@ -164,7 +164,7 @@ def test_ctrl_c_twice_at_shutdown_prints_no_traceback(warm_model):
     exe = Path(sys.executable).parent / "cstomo_sensor_node"
     args = [str(exe), "--ros-args", "-p", "input:=topic", "-p", f"mesh_size:={PIPE['mesh_size']}",
             "-p", f"grid:={PIPE['grid']}", "-p", f"estimator:={PIPE['estimator']}"]
-    for _ in range(2):
+    for _ in range(4):  # the race hit 3 runs in 5 before
         p = subprocess.Popen(args, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
                              env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
         err = ""
