@@ -51,6 +51,7 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
         board.close()
         h.close()
     after = [(t, m) for t, m in wr if t > t_step]
+    print(f"clock step: first wrench {(after[0][0] - t_step) * 1e3:.0f} ms after it, {late} late" if after else "")
     assert after and after[0][0] - t_step < 0.5, (after[:1], t_step)
     times = np.array([t for t, _ in after])
     assert len(times) > 150 and np.diff(times).max() < 0.3  # 2.5 s at 100 frames/s, no hole
@@ -101,3 +102,29 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
     level, message, v = diag(dg[-1][1])
     assert v["last_error"] == "" and v["connected"] == "True" and v["stale_reason"] == "", v
     assert int(v["reconnects"]) >= 1
+
+
+@pytest.mark.parametrize("drop, level", [(0.0, 0), (0.05, 1), (0.4, 2)])
+def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, source, warm_model, drop, level):
+    """A board that loses a fraction of its frames (measured, never sent: sequence gaps): none is OK,
+    5 % is WARN (above LOSS_WARN = 1 % over the last 5 s), 40 % is ERROR (above LOSS_ERROR = 20 %);
+    the message says how many and of what kind. Before issue 14 gaps never raised the level."""
+    from cstomo_sensor.board.sim import FaultConfig
+    from cstomo_sensor.ros.node import LOSS_ERROR, LOSS_WARN
+
+    assert LOSS_WARN < 0.05 < LOSS_ERROR < 0.4
+    h, board = start(ros, tmp_path, source, faults=FaultConfig(drop=drop), rate=100.0, tare_on_start=True,
+                     tare_frames=5)
+    try:
+        dg = diag_records(h)
+        t0 = time.monotonic()
+        board.start()
+        assert wait_for(lambda: sum(t > t0 + 2.5 for t, _ in dg) >= 2, 10.0)
+    finally:
+        board.close()
+        h.close()
+    late = [diag(m) for t, m in dg if t > t0 + 2.5]
+    assert all(lv == level for lv, _, _ in late), [(lv, msg) for lv, msg, _ in late]
+    if level:
+        assert all("frames lost or dropped in the last" in msg and "gaps" in msg for _, msg, _ in late), late
+        assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
