@@ -289,3 +289,25 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": "x.csv", "snr_db": 40.0, "seed": 0}
     assert len(frames) > 10 and all(f.saturated[3] for f in frames)
     assert not link.exists()
+
+
+def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
+    """A 400 Hz board is replaced on the same link by a 1 Hz one: after at most one stall (the old
+    period no longer holds; it is measured again) the driver stays connected and reads every frame."""
+    link = tmp_path / "board"
+    fast = SimulatedBoard(CountingSource(), rate_hz=RATE, link=link, seed=1)
+    with BoardDriver(str(link), stall_timeout=0.3) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        fast.start()
+        assert wait_for(lambda: driver.stats().frames > 50)
+        fast.close()
+        slow = SimulatedBoard(CountingSource(), rate_hz=1.0, link=link, seed=2).start()
+        try:
+            time.sleep(6.0)
+            st = driver.stats()
+        finally:
+            slow.close()
+        seqs = [f.seq for f in drain(driver, quiet=0.0)]
+    slow_seqs = seqs[seqs.index(0, 1):]  # after the fast board's frames 0..n
+    assert 1 <= st.reconnects <= 2 and st.period == pytest.approx(1.0, rel=0.05), st
+    assert slow_seqs == list(range(len(slow_seqs))) and len(slow_seqs) >= 6, seqs

@@ -9,6 +9,7 @@ stops sending for longer than a few of its own frame periods. Nothing raises out
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import OrderedDict, deque
@@ -114,8 +115,9 @@ class BoardDriver:
         Seconds one port read waits; bounds how fast :meth:`close` returns.
     stall_timeout : float
         Least number of seconds without any byte after which the port is closed and reopened; the
-        wait is at least :data:`STALL_PERIODS` frame periods of the board (measured), and
-        :data:`FIRST_PERIOD_WAIT` before the period is known.
+        wait is at least :data:`STALL_PERIODS` frame periods of the board (measured, else
+        ``1 / rate_hz``), and :data:`FIRST_PERIOD_WAIT` while the period is unknown (at the start
+        and after a stall), so boards down to 1 / FIRST_PERIOD_WAIT = 0.4 frames/s are followed.
     reconnect_backoff : (float, float)
         First and largest wait in seconds between reopening attempts (doubling in between); the
         largest bounds how long a replugged board waits to be opened again.
@@ -249,8 +251,12 @@ class BoardDriver:
         return sorted(self._intervals)[len(self._intervals) // 2]
 
     def _stall_after(self) -> float:
+        """Seconds without a byte that make a stall: STALL_PERIODS frame periods (measured, else the
+        rate asked for), FIRST_PERIOD_WAIT while neither is known; never less than stall_timeout."""
         period = self._period()
-        wait = FIRST_PERIOD_WAIT if period != period else STALL_PERIODS * period
+        if math.isnan(period) and self._rate_hz:
+            period = 1.0 / self._rate_hz
+        wait = FIRST_PERIOD_WAIT if math.isnan(period) else STALL_PERIODS * period
         return max(self._stall_timeout, wait)
 
     def _open(self) -> bool:
@@ -302,6 +308,7 @@ class BoardDriver:
                 stall = self._stall_after()
                 if now - last_byte > stall:
                     self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
+                    self._intervals.clear()  # its rate may have changed: measured again
                     self._close_port()
                 continue
             last_byte = now
