@@ -128,3 +128,26 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
     if level:
         assert all("frames lost or dropped in the last" in msg and "gaps" in msg for _, msg, _ in late), late
         assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
+
+
+def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path, source, warm_model):
+    """The node with a 1 frame/s board and stale_timeout 0.3 s: one connection and a wrench per frame
+    (the data is stale between frames, and the diagnostics say so: stale_timeout is below the
+    board's period). Before issue 14 the stall timeout followed stale_timeout: the node reopened the
+    port every 0.3 s for ever, each time re-reading the first frame after START."""
+    from geometry_msgs.msg import WrenchStamped
+
+    h, board = start(ros, tmp_path, source, rate=1.0, tare_on_start=True, tare_frames=1)
+    try:
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        dg = diag_records(h)
+        board.start()
+        time.sleep(6.5)
+        st = h.node._driver.stats()
+    finally:
+        board.close()
+        h.close()
+    assert st.reconnects == 0 and st.period == pytest.approx(1.0, rel=0.05), st
+    assert 5 <= len(wr) <= 6, len(wr)  # frames 1..6 (frame 0 is the tare)
+    _, _, v = diag(dg[-1][1])
+    assert v["frame_period_ms"].startswith(("99", "100")) and v["reconnects"] == "0", v
