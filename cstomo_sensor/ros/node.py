@@ -83,10 +83,11 @@ class CstomoSensorNode(LifecycleNode):
 
     def __init__(self, node_name: str = "cstomo_sensor", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        _coerce_overrides(self._parameter_overrides)  # rate_hz:=200 is 200.0
+        overrides = self._parameter_overrides  # rclpy's: given by files, launch, -p and the caller
+        overrides.update({n: _as_double(p) for n, p in overrides.items()})  # rate_hz:=200 is 200.0
         for name, (default, desc) in PARAMETERS.items():
             self.declare_parameter(name, default, desc)
-        _refuse_unknown(self, self._parameter_overrides)
+        _refuse_unknown(self, overrides)
         self.add_pre_set_parameters_callback(lambda params: [_as_double(p) for p in params])
         self.add_post_set_parameters_callback(self._parameters_set)
         self.config: NodeConfig | None = None
@@ -583,8 +584,8 @@ def failure_cause(err: BaseException) -> str:
     return f"{type(err).__name__}: {err} (unexpected: please report it with the debug log)"
 
 
-#: rclpy's own parameters (and its QoS override prefix): not unknown to the node.
-_RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+#: Parameters rclpy declares later (QoS overrides of publishers): not unknown to the node.
+_RCLPY_PREFIXES = ("qos_overrides.",)
 
 
 def _as_double(p: Parameter) -> Parameter:
@@ -595,15 +596,10 @@ def _as_double(p: Parameter) -> Parameter:
     return p
 
 
-def _coerce_overrides(overrides: dict) -> None:
-    for name, p in list(overrides.items()):
-        overrides[name] = _as_double(p)
-
-
 def _refuse_unknown(node: LifecycleNode, overrides: dict) -> None:
     """A parameter given to the node (file, launch, -p) that it does not have is a mistake
     (``tare_on_star``): refused with the nearest known name."""
-    unknown = sorted(n for n in overrides if n not in PARAMETERS and not n.startswith(_RCLPY_PARAMETERS)
+    unknown = sorted(n for n in overrides if n not in PARAMETERS and not n.startswith(_RCLPY_PREFIXES)
                      and not node.has_parameter(n))
     if unknown:
         hints = []
