@@ -130,6 +130,8 @@ class SimStats:
     generation_first_seq : tuple of int
         Per pty (0: the first, 1: after a disconnect, ...) the seq of the first frame sent on it,
         -1 while none was.
+    generation_opened : tuple of float
+        Per pty, the ``time.monotonic()`` at which it appeared (a replug's "board is back").
     injected : dict
         Count of each injected fault by name (``bit_flip``, ``drop``, ``nan``, ...), and
         ``overrun`` for frames the pty had no room for.
@@ -139,6 +141,7 @@ class SimStats:
     next_seq: int
     generation_first_seq: tuple[int, ...]
     injected: dict
+    generation_opened: tuple[float, ...] = ()
 
 
 class SimulatedBoard:
@@ -202,6 +205,7 @@ class SimulatedBoard:
         self._seq = 0
         self._sent = 0
         self._first_seq: list[int] = []
+        self._opened: list[float] = []
         self._injected: Counter[str] = Counter()
         self._current = DRIVE_CURRENT_A
         self._master = self._slave = -1
@@ -222,6 +226,7 @@ class SimulatedBoard:
             tmp = f"{self.link}.{os.getpid()}.tmp"
             os.symlink(self._slave_path, tmp)
             os.replace(tmp, self.link)
+        self._opened.append(time.monotonic())
         log.info("board on %s", self.device)
 
     def _close_pty(self) -> None:
@@ -270,7 +275,7 @@ class SimulatedBoard:
         self.close()
 
     def stats(self) -> SimStats:
-        return SimStats(self._sent, self._seq, tuple(self._first_seq), dict(self._injected))
+        return SimStats(self._sent, self._seq, tuple(self._first_seq), dict(self._injected), tuple(self._opened))
 
     # --- the board's loop --------------------------------------------------------------------
 

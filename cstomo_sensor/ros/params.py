@@ -62,7 +62,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
     "stale_timeout": _d("Seconds without frames after which the data is stale (force topics stop, "
-                              "diagnostics say why)", lo=0.01, hi=3600.0),
+                        "diagnostics say why), and the age beyond which a frame is dropped as late; "
+                        "may change at run time", lo=0.01, hi=3600.0),
     "clock_window": _d("Seconds of board time over which the board-to-host clock offset is "
                               "the minimum", read_only=True, lo=0.1, hi=3600.0),
 }
