@@ -135,6 +135,8 @@ class BoardDriver:
         self._port: serial.SerialBase | None = None
         self._closing = threading.Event()
         self._frames = self._dropped = self._gaps = self._reconnects = self._opens = 0
+        self._logged_error: str | None = None  # the error last logged (not logged again until it changes)
+        self._open_failures = 0  # failed opens since the last successful one
         self._last_seq: int | None = None
         self._last_error = ""
         self.identity: Identity | None = None
@@ -195,13 +197,20 @@ class BoardDriver:
     # --- reader thread -----------------------------------------------------------------------
 
     def _error(self, text: str) -> None:
+        """Record an error; log it once per change of state (a port that stays absent is logged at
+        the first failed open, then once more with the count when it opens)."""
         self._last_error = text
-        log.warning("%s: %s", self.url, text)
+        if text == self._logged_error:
+            log.debug("%s: %s (again)", self.url, text)
+            return
+        self._logged_error = text
+        log.warning("%s: %s%s", self.url, text, "; retrying (logged again when it changes)" if text.startswith("open") else "")
 
     def _open(self) -> bool:
         try:
             port = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=self._read_timeout)
         except (serial.SerialException, OSError, ValueError) as err:
+            self._open_failures += 1
             self._error(f"open failed: {err}")
             return False
         _set_low_latency(port, self.url)
@@ -210,7 +219,8 @@ class BoardDriver:
             self._port = port
         self._opens += 1
         self._reconnects = max(self._opens - 1, 0)
-        log.info("%s: connected", self.url)
+        failed, self._open_failures, self._logged_error = self._open_failures, 0, None
+        log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
         if self.protocol == "binary":
             self.send(encode(Identify()) + encode(Start(self._rate_hz or 0.0)))
         return True

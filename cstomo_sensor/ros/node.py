@@ -548,9 +548,25 @@ def _msg_class(type_name: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
+def usage() -> str:
+    """``cstomo_sensor_node --help``: how to run it and every parameter with its default."""
+    lines = ["usage: cstomo_sensor_node [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]",
+             "", __doc__.splitlines()[0].strip("`"), "",
+             "Publishes ~/wrench, ~/force_magnitude, ~/force_elevation, ~/force_azimuth, ~/stress_field, "
+             "~/raw_voltages, /diagnostics; service ~/tare (docs/node.md).", "", "parameters (default):"]
+    for name, (default, desc) in PARAMETERS.items():
+        lines.append(f"  {name:<20} {default!r:<16} {desc.description}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    argv = list(argv if argv is not None else sys.argv)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:
+        print(usage())
+        return 0
+    rclpy.init(args=argv)
     try:
         node = CstomoSensorNode()
     except (InvalidParameterTypeException, InvalidParameterValueException) as err:  # overrides refused

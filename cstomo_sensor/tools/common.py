@@ -158,21 +158,20 @@ class NodeWithBoard:
 
     def start(self) -> str:
         """Start both; the board's device path. Raises :class:`CstomoError` if the board fails."""
-        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out,
+        # sessions of their own: a terminal's Ctrl-C reaches the caller only, which stops them in order
+        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
                                      stderr=subprocess.STDOUT if self.node_out is not None else None)
-        self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True)
+        self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True,
+                                      start_new_session=True)
         first = self.board.stdout.readline().strip()
         if not first.startswith("device:"):
             raise CstomoError(f"board-sim failed to start ({first!r})")
         return first.split(":", 1)[1].strip()
 
     def stop(self) -> None:
-        procs = [p for p in (self.node, self.board) if p is not None]
-        for p in procs:
-            if p.poll() is None:
+        for p in (self.node, self.board):  # one after the other: the node ends before its board
+            if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        for p in procs:
-            if p.poll() is None:
                 try:
                     p.wait(5)
                 except subprocess.TimeoutExpired:
