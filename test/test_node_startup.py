@@ -155,3 +155,17 @@ def _default(name):
 
     v = PARAMETERS[name][0]
     return tuple(v) if isinstance(v, list) else v
+
+
+def test_help_prints_usage_and_every_parameter_instead_of_starting():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from cstomo_sensor.ros.params import PARAMETERS
+
+    exe = Path(sys.executable).parent / "cstomo_sensor_node"
+    r = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 0 and r.stdout.startswith("usage: cstomo_sensor_node"), r.stdout + r.stderr
+    assert all(f"  {name} " in r.stdout for name in PARAMETERS), r.stdout
+    assert "[INFO]" not in r.stdout + r.stderr  # nothing started

@@ -551,7 +551,7 @@ def _msg_class(type_name: str):
 def usage() -> str:
     """``cstomo_sensor_node --help``: how to run it and every parameter with its default."""
     lines = ["usage: cstomo_sensor_node [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]",
-             "", __doc__.splitlines()[0].strip("`"), "",
+             "", __doc__.splitlines()[0].replace("``", ""), "",
              "Publishes ~/wrench, ~/force_magnitude, ~/force_elevation, ~/force_azimuth, ~/stress_field, "
              "~/raw_voltages, /diagnostics; service ~/tare (docs/node.md).", "", "parameters (default):"]
     for name, (default, desc) in PARAMETERS.items():
