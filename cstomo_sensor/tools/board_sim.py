@@ -45,7 +45,21 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     args = _parser().parse_args(argv)
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM while the loads are computed: as Ctrl-C
+    try:
+        return _main(args)
+    except KeyboardInterrupt:  # stopped before streaming (computing the loads): quietly
+        print("cstomo board-sim: stopped before streaming", file=sys.stderr)
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _main(args: argparse.Namespace) -> int:
     try:
         faults = FaultConfig(
             bit_flip=args.bit_flip, drop=args.drop, truncate=args.truncate, garbage=args.garbage,
