@@ -131,10 +131,6 @@ class NodeConfig:
 
         return default_cache_dir()
 
-    @property
-    def sensor_name(self) -> str:
-        return Path(self.pipeline.sensor).stem
-
     def tare_path_for(self, geometry: SensorGeometry) -> Path:
         """Where the tare of this device is saved (frames-file format) and read back at start:
         ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>-<port>.csv``, keyed by a digest of the
