@@ -24,7 +24,8 @@ setup(
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
         "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
-        "test": ["pytest", "hypothesis", "ruff"],
+        # colcon and ament_package: test_colcon_install.py builds the package as a robot install does.
+        "test": ["pytest", "hypothesis", "ruff", "colcon-core", "colcon-ros", "ros-kilted-ament-package"],
     },
     zip_safe=False,
     maintainer="cstomo_sensor developers",

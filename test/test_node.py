@@ -222,7 +222,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
     # a tare needs a steady joint (issue 14): the bag's load steps at 0.4 s, inside a 50-frame tare
     h, board = start(ros, tmp_path, Unloaded(source), rate=100.0)
     try:
-        assert h.node.reference_source.startswith("model")  # no tare yet: the model's frame, with a WARN
+        assert h.node.reference_source == "tare pending"  # no saved tare: the node tares at start
         board.start()
         r = h.call_tare()
         assert r.success, r.message

@@ -168,13 +168,14 @@ class BoardDriver:
         self._closing = threading.Event()
         self._frames = self._dropped = self._gaps = self._reconnects = self._opens = 0
         self._corrupt = self._duplicates = self._reordered = self._resyncs = self._bad = 0
+        self._logged_error: str | None = None  # the error last logged (not logged again until it changes)
+        self._open_failures = 0  # failed opens since the last successful one
         self._last_seq: int | None = None
         self._fresh = True
         self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
         self._intervals: deque[float] = deque(maxlen=16)  # recent frame periods (s)
         self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
         self._last_error = ""
-        self._logged: tuple[str, float] = ("", -1e9)
         self.identity: Identity | None = None
         self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
         self._thread.start()
@@ -237,12 +238,14 @@ class BoardDriver:
     # --- reader thread -----------------------------------------------------------------------
 
     def _error(self, text: str) -> None:
-        """Record an error; log it, a repeat of the same text at most every 5 s."""
+        """Record an error; log it once per change of state (a port that stays absent is logged at
+        the first failed open, then once more with the count when it opens)."""
         self._last_error = text
-        now = time.monotonic()
-        if text != self._logged[0] or now - self._logged[1] > 5.0:
-            self._logged = (text, now)
-            log.warning("%s: %s", self.url, text)
+        if text == self._logged_error:
+            log.debug("%s: %s (again)", self.url, text)
+            return
+        self._logged_error = text
+        log.warning("%s: %s%s", self.url, text, "; retrying (logged again when it changes)" if text.startswith("open") else "")
 
     def _period(self) -> float:
         """The board's frame period (s): the median of the recent intervals; nan before two frames."""
@@ -263,6 +266,7 @@ class BoardDriver:
         try:
             port = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=self._read_timeout)
         except (serial.SerialException, OSError, ValueError) as err:
+            self._open_failures += 1
             self._error(f"open failed: {err}")
             return False
         _set_low_latency(port, self.url)
@@ -272,7 +276,8 @@ class BoardDriver:
         self._opens += 1
         self._fresh = True  # the first frame on a new connection may restart the counter
         self._reconnects = max(self._opens - 1, 0)
-        log.info("%s: connected", self.url)
+        failed, self._open_failures, self._logged_error = self._open_failures, 0, None
+        log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
         if self.protocol == "binary":
             self.send(encode(Identify()) + encode(Start(self._rate_hz or 0.0)))
         return True

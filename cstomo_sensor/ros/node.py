@@ -94,6 +94,9 @@ class CstomoSensorNode(LifecycleNode):
         self.pipe = None
         self.processor: FrameProcessor | None = None
         self.reference_source = "none"
+        self.tare_taken = ""    # when the reference in use was tared (log and diagnostics)
+        self.tare_refused = ""  # the latest refused tare: when and why
+        self._t_start = time.monotonic()
         self.tare_path = None  # where the tare is saved and read back (set at configure)
         self._active = False
         self._stop = threading.Event()
@@ -241,32 +244,31 @@ class CstomoSensorNode(LifecycleNode):
     # --- reference (tare) --------------------------------------------------------------------------
 
     def _init_reference(self) -> None:
-        cfg, log = self.config, self.get_logger()
-        if cfg.tare_on_start:
-            self.processor.start_tare(cfg.tare_frames)
-            self.reference_source = "tare pending"
-            return
-        path = self.tare_path
-        if path.is_file():
-            try:
-                ref = read_frames(path, self.pipe.n_meas).mean(axis=0)
-                problem = tare_problem(ref, self.pipe.model_reference)
-                if not problem:
-                    self.pipe.set_reference(ref)
-                    self.reference_source = f"saved tare {path}"
-                    return
-                log.warning(f"saved tare {path} not used: {problem}; falling back to the model reference "
-                            "(call ~/tare with the sensor unloaded)")
-            except (CstomoError, OSError) as err:
-                log.warning(f"saved tare {path} unusable ({err}); falling back to the model reference")
-        else:
-            legacy = cfg.cache_path / f"tare_{cfg.sensor_name}.csv"
-            was = (f" (the tare at {legacy} was saved by an earlier version, not keyed by the sensor's "
-                   "geometry: it is not used)") if not cfg.tare_file and legacy.is_file() else ""
-            log.warning(f"no saved tare at {path}{was}: using the model's reference frame; call ~/tare with the "
-                        "sensor unloaded")
-        self.pipe.set_reference(self.pipe.model_reference)
-        self.reference_source = "model (untared)"
+        """The saved tare of this device if usable, else a tare on the first frames (``tare_on_start``
+        always tares): no force is ever computed against the model's own reference frame, which is
+        not the device's (a phantom force of several newtons at zero load)."""
+        cfg, log, path = self.config, self.get_logger(), self.tare_path
+        self.tare_taken = self.tare_refused = ""
+        why = "tare_on_start is true"
+        if not cfg.tare_on_start:
+            why = f"no saved tare of this device at {path}"
+            if path.is_file():
+                try:
+                    ref = read_frames(path, self.pipe.n_meas).mean(axis=0)
+                    why = tare_problem(ref, self.pipe.model_reference)
+                    if not why:
+                        self.pipe.set_reference(ref)
+                        self.reference_source = f"saved tare {path}"
+                        return
+                    why = f"saved tare {path} not used: {why}"
+                except (CstomoError, OSError) as err:
+                    why = f"saved tare {path} unusable ({err})"
+        self.processor.start_tare(cfg.tare_frames)
+        self.reference_source = "tare pending"
+        elapsed = time.monotonic() - self._t_start  # a slow first model build delays the tare: say so
+        (log.info if cfg.tare_on_start and elapsed < 10.0 else log.warning)(
+            f"{why}: taring on the first {cfg.tare_frames} frames from now, {elapsed:.0f} s after start (the joint "
+            "must be unloaded); no force is published before the tare is taken")
 
     def _save_tare(self, ref: np.ndarray) -> str:
         """Write an accepted tare to ``tare_path`` (atomically); returns '' or why it was not saved."""
@@ -288,7 +290,17 @@ class CstomoSensorNode(LifecycleNode):
     def _tare_ended(self, outcome: TareOutcome) -> None:
         """The processor ended a tare (frame thread, under ``_proc_lock``): save it if accepted and
         hand the outcome to a waiting ``~/tare`` call."""
-        note = self._save_tare(outcome.reference) if outcome.ok else ""
+        log, when = self.get_logger(), time.strftime("%H:%M:%S")
+        if outcome.ok:
+            self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
+                              f"{outcome.frames} frames, spread {outcome.spread:.2%}"
+            log.info(f"tare taken at {self.tare_taken}")
+            note = self._save_tare(outcome.reference)
+        else:
+            self.tare_refused = f"{when}: {outcome.reason}"
+            log.warning(f"{outcome.reason}" + (" (no reference yet: taring again on the next frames)"
+                                               if self.processor.taring else ""))
+            note = ""
         self._tare_outcome = (outcome, note)
         self._tare_done.set()
 
@@ -322,7 +334,6 @@ class CstomoSensorNode(LifecycleNode):
             return response
         outcome, note = ended
         if not outcome.ok:
-            self.get_logger().warning(f"~/tare: {outcome.reason}")
             response.success, response.message = False, f"{outcome.reason}, then call ~/tare again; {unchanged}"
             return response
         response.success = True
@@ -509,9 +520,11 @@ class CstomoSensorNode(LifecycleNode):
         if reason:
             level = DiagnosticStatus.ERROR if ds is not None and not ds.connected else max(level, DiagnosticStatus.WARN)
             msgs.insert(0, f"stale: {reason}")
-        if self.reference_source.startswith("model"):
+        kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused)
+        if proc is not None and proc.taring and self.pipe is not None and self.pipe.reference is None:
             level = max(level, DiagnosticStatus.WARN)
-            msgs.append("untared: using the model reference")
+            msgs.append("no reference yet: taring on the first frames (the joint must be unloaded); no force "
+                        "published until then" + (f"; last tare refused at {self.tare_refused}" if self.tare_refused else ""))
         status.level = level
         status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
@@ -616,9 +629,25 @@ def _msg_class(type_name: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
+def usage() -> str:
+    """``cstomo_sensor_node --help``: how to run it and every parameter with its default."""
+    lines = ["usage: cstomo_sensor_node [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]",
+             "", __doc__.splitlines()[0].replace("``", ""), "",
+             "Publishes ~/wrench, ~/force_magnitude, ~/force_elevation, ~/force_azimuth, ~/stress_field, "
+             "~/raw_voltages, /diagnostics; service ~/tare (docs/node.md).", "", "parameters (default):"]
+    for name, (default, desc) in PARAMETERS.items():
+        lines.append(f"  {name:<20} {default!r:<16} {desc.description}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    argv = list(argv if argv is not None else sys.argv)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:
+        print(usage())
+        return 0
+    rclpy.init(args=argv)
     try:
         node = CstomoSensorNode()
     except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused

@@ -4,6 +4,7 @@
 same parameters with the same defaults (a test holds them equal)."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -49,10 +50,11 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "max_force": _d("Newtons; a frame implying a larger force, or a change no such load explains, is "
                     "implausible: not published, counted in diagnostics", read_only=True, lo=1.0, hi=100000.0),
     "tare_frames": _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000),
-    "tare_file": _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>-<geometry digest>.csv",
+    "tare_file": _d("Where the tare is saved and read back at start; '' = "
+                    "<cache_dir>/tare_<sensor>-<geometry digest>-<port>.csv",
                          read_only=True),
-    "tare_on_start": _d("Tare on the first tare_frames frames at start (else the saved tare, "
-                                "else the model reference)", read_only=True),
+    "tare_on_start": _d("Tare on the first tare_frames frames at start (else the saved tare of this "
+                        "device, else a tare at start too)", read_only=True),
     "frame_id": _d("frame_id of the wrench and the stress cloud (the wrench frame)",
                                      read_only=True),
     "autostart": _d("Walk to active by itself (no lifecycle manager needed)", read_only=True),
@@ -130,17 +132,16 @@ class NodeConfig:
 
         return default_cache_dir()
 
-    @property
-    def sensor_name(self) -> str:
-        return Path(self.pipeline.sensor).stem
-
     def tare_path_for(self, geometry: SensorGeometry) -> Path:
-        """Where the tare of this sensor is saved (frames-file format) and read back at start:
-        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>.csv`` keyed by a digest of the whole
-        geometry (two sensor files with the same name never share a tare)."""
+        """Where the tare of this device is saved (frames-file format) and read back at start:
+        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>-<port>.csv``, keyed by a digest of the
+        whole geometry and by the port (``topic`` for topic input): a tare belongs to one board on one
+        sensor, so two sensor files with the same name, or a simulated board and the real one, never
+        share it."""
         if self.tare_file:
             return Path(self.tare_file)
-        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}.csv"
+        device = re.sub(r"[^A-Za-z0-9]+", "_", self.port if self.input == "serial" else "topic").strip("_")
+        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}-{device[-48:]}.csv"
 
     def qos(self) -> QoSProfile:
         rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,
