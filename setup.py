@@ -23,7 +23,7 @@ setup(
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
-        "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
+        "full": ["pyvista", "pytetwild", "scikit-fem", "rosbags", "matplotlib"],
         # colcon and ament_package: test_colcon_install.py builds the package as a robot install does.
         "test": ["pytest", "hypothesis", "ruff", "colcon-core", "colcon-ros", "ros-kilted-ament-package"],
     },
