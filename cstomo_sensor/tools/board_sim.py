@@ -83,8 +83,13 @@ def _main(args: argparse.Namespace) -> int:
         return 2
     previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"device: {board.device}", flush=True)
+    streaming = False
     try:
-        board.run()
+        board.start()
+        while not board.join(0.1):  # the main thread stays free for the signal handlers
+            if board.script_started.is_set() and not streaming:
+                streaming = True
+                print("streaming", flush=True)  # the load script's t = 0 (NodeWithBoard.wait_streaming)
     finally:
         board.close()
         for sig, handler in previous.items():

@@ -127,8 +127,8 @@ def launch_plan(args: dict[str, str]) -> tuple[dict, list[str] | None, Path | No
 class NodeWithBoard:
     """``cstomo_sensor_node`` and ``cstomo board-sim`` on one pty link, as subprocesses.
 
-    The node is started first (it waits for the link), then the board; :meth:`start` returns the
-    board's device path once the board has printed it. :meth:`stop` (and leaving a ``with`` block)
+    The board is started first (it computes its loads, then prints its device), then the node on its
+    link; :meth:`start` returns the board's device path. :meth:`stop` (and leaving a ``with`` block)
     sends SIGINT to the node first, so it does not report the board's end as a lost port, then to
     the board, and kills what has not ended after 5 s.
 
@@ -156,17 +156,31 @@ class NodeWithBoard:
         self.node: subprocess.Popen | None = None
         self.board: subprocess.Popen | None = None
 
-    def start(self) -> str:
-        """Start both; the board's device path. Raises :class:`CstomoError` if the board fails."""
+    def start_board(self) -> None:
+        """Start the board alone (it computes its loads meanwhile; its script starts at the node's START)."""
         # sessions of their own: a terminal's Ctrl-C reaches the caller only, which stops them in order
-        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
-                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
-        self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True,
-                                      start_new_session=True)
+        if self.board is None:
+            self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True,
+                                          start_new_session=True)
+
+    def start(self) -> str:
+        """Start the board (unless :meth:`start_board` did), wait for its device, then start the node
+        on its link (so the node never finds the link missing); the board's device path. Raises
+        :class:`CstomoError` if the board fails."""
+        self.start_board()
         first = self.board.stdout.readline().strip()
         if not first.startswith("device:"):
             raise CstomoError(f"board-sim failed to start ({first!r})")
+        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
+                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
         return first.split(":", 1)[1].strip()
+
+    def wait_streaming(self) -> None:
+        """Block until the board's load script starts (the node has connected and sent START).
+        Raises :class:`CstomoError` if the board ends first."""
+        line = self.board.stdout.readline().strip()
+        if line != "streaming":
+            raise CstomoError(f"board-sim ended before streaming ({line!r})")
 
     def stop(self) -> None:
         for p in (self.node, self.board):  # one after the other: the node ends before its board
