@@ -9,6 +9,8 @@ setup(
     name=package_name,
     version="0.1.0",
     packages=find_packages(exclude=["test"]),
+    # the default sensor's meshes (model/mesh.py): read by path, so the package is not zip-safe
+    package_data={package_name: ["data/meshes/*.npz"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -21,10 +23,11 @@ setup(
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
-        "full": ["pyvista", "pytetwild", "scikit-fem", "pyamg", "rosbags", "matplotlib"],
-        "test": ["pytest", "hypothesis", "ruff"],
+        "full": ["pyvista", "pytetwild", "scikit-fem", "rosbags", "matplotlib"],
+        # colcon and ament_package: test_colcon_install.py builds the package as a robot install does.
+        "test": ["pytest", "hypothesis", "ruff", "colcon-core", "colcon-ros", "ros-kilted-ament-package"],
     },
-    zip_safe=True,
+    zip_safe=False,
     maintainer="cstomo_sensor developers",
     maintainer_email="cstomo@example.com",
     description="EIT force-direction sensor for a robot joint, as a ROS 2 node",

@@ -4,68 +4,52 @@
     ros2 launch cstomo_sensor cstomo_sensor.launch.py sim:=true        # board-sim on a pty, node on its link
     ros2 launch cstomo_sensor cstomo_sensor.launch.py config:=my.yaml namespace:=left_knee
 
-Arguments that are node parameters (``port``, ``sensor``, ``estimator``) override the ``config``
-file; ``sim``, ``config`` and ``namespace`` are for the launch itself.
+The node's parameters come from ``config`` (keyed ``/**/cstomo_sensor``: any namespace); ``port``,
+``sensor`` and ``estimator`` override it only when given (their default, empty, keeps the file's
+value). ``sim``, ``sim_load_script``, ``config`` and ``namespace`` are for the launch itself. With
+``sim:=true`` the simulated board, its link and the node's tare file live in a temporary directory of
+this launch, removed when it ends. Arguments are plain strings: nothing in them is evaluated.
 """
 import os
-import tempfile
+import shutil
 
 from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction
-from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, RegisterEventHandler
+from launch.event_handlers import OnShutdown
+from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode
 
+from cstomo_sensor.tools.common import launch_plan
 from launch import LaunchDescription
 
-SIM_LINK = "/tmp/cstomo_sim"
-# The simulated board's default load script (time,fx,fy,fz in s and N, wrench frame): unloaded for
-# the tare, then pressing straight down, tilted towards +x, towards +y, and released (held until the launch stops).
-SIM_LOAD = "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,10,0,-15\n9,0,10,-15\n12,0,0,0\n"
+ARGUMENTS = {  # name: (default, description)
+    "port": ("", "serial URL of the board (default: the config file's port)"),
+    "config": (None, "parameter file of the node"),
+    "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
+    "sensor": ("", "sensor preset or YAML path (default: the config file's)"),
+    "estimator": ("", "force estimator: linear or model (default: the config file's)"),
+    "namespace": ("", "namespace of the node's topics"),
+    "sim_load_script": ("", "with sim: load script CSV for the simulated board (default: built in)"),
+}
 
 
-def _board_sim(context):
-    """``cstomo board-sim`` on a pty behind SIM_LINK, playing ``sim_load_script`` (or SIM_LOAD)."""
-    script = LaunchConfiguration("sim_load_script").perform(context)
-    if not script:
-        fd, script = tempfile.mkstemp(prefix="cstomo_sim_load_", suffix=".csv")
-        with os.fdopen(fd, "w") as f:
-            f.write(SIM_LOAD)
-    sensor = LaunchConfiguration("sensor").perform(context)
-    return [ExecuteProcess(cmd=["cstomo", "board-sim", "--sensor", sensor, "--rate", "200", "--link", SIM_LINK,
-                                "--load-script", script], output="screen")]
+def _setup(context):
+    """The board (with ``sim``) and the node, from the arguments' values as plain strings."""
+    args = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
+    overrides, board_cmd, work = launch_plan(args)
+    actions = []
+    if work is not None:
+        actions.append(RegisterEventHandler(OnShutdown(on_shutdown=lambda *_: shutil.rmtree(work, ignore_errors=True))))
+        actions.append(ExecuteProcess(cmd=board_cmd, output="screen"))
+    actions.append(LifecycleNode(package="cstomo_sensor", executable="cstomo_sensor_node", name="cstomo_sensor",
+                                 namespace=args["namespace"], output="screen",
+                                 parameters=[args["config"], overrides]))
+    return actions
 
 
 def generate_launch_description() -> LaunchDescription:
-    share = get_package_share_directory("cstomo_sensor")
-    sim = LaunchConfiguration("sim")
-    port = LaunchConfiguration("port")
-    sensor = LaunchConfiguration("sensor")
-    return LaunchDescription([
-        DeclareLaunchArgument("port", default_value="/dev/cstomo", description="serial URL of the board"),
-        DeclareLaunchArgument("config", default_value=os.path.join(share, "config", "cstomo_sensor.yaml"),
-                              description="parameter file of the node"),
-        DeclareLaunchArgument("sim", default_value="false",
-                              description="true: also start `cstomo board-sim` and read its pty link"),
-        DeclareLaunchArgument("sensor", default_value="cuboid_joint", description="sensor preset or YAML path"),
-        DeclareLaunchArgument("estimator", default_value="linear", description="force estimator: linear or model"),
-        DeclareLaunchArgument("namespace", default_value="", description="namespace of the node's topics"),
-        DeclareLaunchArgument("sim_load_script", default_value="",
-                              description="with sim: load script CSV for the simulated board (default: built in)"),
-        OpaqueFunction(function=_board_sim, condition=IfCondition(sim)),
-        LifecycleNode(
-            package="cstomo_sensor",
-            executable="cstomo_sensor_node",
-            name="cstomo_sensor",
-            namespace=LaunchConfiguration("namespace"),
-            output="screen",
-            parameters=[
-                LaunchConfiguration("config"),
-                {
-                    "port": PythonExpression(["'", SIM_LINK, "' if '", sim, "'.lower() in ('true', '1') else '", port, "'"]),
-                    "sensor": sensor,
-                    "estimator": LaunchConfiguration("estimator"),
-                },
-            ],
-        ),
-    ])
+    config = os.path.join(get_package_share_directory("cstomo_sensor"), "config", "cstomo_sensor.yaml")
+    return LaunchDescription(
+        [DeclareLaunchArgument(name, default_value=config if default is None else default, description=desc)
+         for name, (default, desc) in ARGUMENTS.items()]
+        + [OpaqueFunction(function=_setup)])

@@ -22,8 +22,11 @@ def test_proc_readers_on_self():
 
 
 def test_bench_node_smoke(tmp_path):
+    from conftest import CALLER_DOMAIN
+
+    # a domain of its own, not the suite's, unless the caller chose one
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
-               ROS_DOMAIN_ID=str(30 + (os.getpid() + 35) % 70))  # a domain of its own, not the suite's
+               ROS_DOMAIN_ID=CALLER_DOMAIN or str(30 + (os.getpid() + 35) % 70))
     r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--rates", "100", "--stress", "1",
                         "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
                        env=env, capture_output=True, text=True, timeout=150)

@@ -80,7 +80,8 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
     check_values(frames, src)
     assert np.all(np.diff([f.board_time_us for f in frames]) > 0)
     assert all(f.contact_ok.all() and not f.saturated.any() for f in frames)
-    assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects) == (0, 0, 0, 0)
+    assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects, st.resyncs) == (0, 0, 0, 0, 0)
+    assert st.period == pytest.approx(1 / RATE, rel=0.2)
 
 
 @pytest.mark.parametrize("fault", ["bit_flip", "drop", "truncate", "garbage"])
@@ -95,12 +96,17 @@ def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
     check_values(frames, src)
     lost = board.next_seq - len(frames)
     missing_inside = seqs[-1] + 1 - len(frames)
-    assert st.seq_gaps == missing_inside
-    if fault == "garbage":  # a burst is a corrupt frame of its own; the frame after it survives
-        assert lost == overrun and st.corrupt >= n_faults
-    else:
+    assert st.corrupt + st.seq_gaps == missing_inside  # every lost frame counted once
+    assert st.duplicates == st.reordered == 0
+    if fault == "garbage":  # a burst is line noise, no lost frame: one resync each, the frame after it survives
+        assert lost == overrun and st.corrupt <= overrun
+        assert n_faults - overrun <= st.resyncs <= n_faults + overrun
+    elif fault == "drop":  # measured, not sent: a gap with nothing corrupt in between
+        assert n_faults <= lost <= n_faults + overrun and st.corrupt <= overrun
+        assert n_faults - overrun <= st.seq_gaps <= n_faults
+    else:  # a harmed frame is one corrupt frame (not one per piece), and no gap besides
         assert n_faults <= lost <= n_faults + overrun
-        assert st.corrupt >= (0 if fault == "drop" else n_faults)
+        assert n_faults <= st.corrupt <= n_faults + overrun and st.seq_gaps <= overrun, (st, board)
     assert seqs[-1] >= board.next_seq - 5 and len(frames) > 0.7 * board.next_seq  # it went on after faults
 
 
@@ -184,7 +190,63 @@ def test_loop_url(tmp_path):
         got = [driver.get(2.0) for _ in sent]
         st = driver.stats()
     assert [g.seq for g in got] == [3, 4, 6] and [g.values[0] for g in got] == [0.75, 1.0, 1.5]
-    assert st.corrupt == 1 and st.seq_gaps == 1 and st.frames == 3
+    assert (st.corrupt, st.resyncs, st.seq_gaps, st.frames) == (0, 1, 1, 3)  # garbage before a frame loses none
+
+
+def _flipped(data: bytes) -> bytes:
+    buf = bytearray(data)
+    buf[len(buf) // 2] ^= 0x10  # inside the frame: its CRC fails
+    return bytes(buf)
+
+
+def test_duplicates_late_frames_and_corruption_are_counted_per_frame():
+    """Sequence numbers 1 2 2 4 3 5, then 6, a bit-flipped 7, 8, a garbage burst, 9: the duplicate
+    and the late 3 are dropped and counted (3 was not lost: no gap), the flipped frame is one
+    corrupt frame, the burst one resync that loses nothing."""
+    def frame(s):
+        return encode(DataFrame(s, 1000 * s, np.full(208, float(s))))
+
+    wire = b"".join(frame(s) for s in (1, 2, 2, 4, 3, 5, 6)) + _flipped(frame(7)) + frame(8) \
+        + b"\x01\x02\x00\x07\x00\x00\xff\x13" + frame(9)
+    with BoardDriver("loop://", read_timeout=0.01) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        assert driver.send(wire)
+        assert wait_for(lambda: driver.stats().frames == 7)
+        got = drain(driver, quiet=0.1)
+        st = driver.stats()
+    assert [g.seq for g in got] == [1, 2, 4, 5, 6, 8, 9]
+    assert (st.duplicates, st.reordered, st.corrupt, st.seq_gaps, st.resyncs) == (1, 1, 1, 0, 1), st
+
+
+def test_a_one_frame_per_second_board_is_not_reopened(tmp_path):
+    """The stall timeout follows the board's frame period: a 1 Hz board with a 0.3 s stall floor
+    streams for 4.5 s on one connection, every frame in order (before: reopened every 0.3 s, START
+    again, the same first frame over and over)."""
+    src, board, st, frames = run(tmp_path, duration=4.5, rate=1.0, stall_timeout=0.3)
+    assert st.reconnects == 0 and [f.seq for f in frames] == [0, 1, 2, 3, 4], (st, [f.seq for f in frames])
+    assert st.period == pytest.approx(1.0, rel=0.05) and st.last_error == ""
+
+
+def test_replugged_board_is_read_again_within_a_quarter_second(tmp_path):
+    """Unplugged for 2.5 s (the old doubling backoff reached 2 s by then): the driver retries the
+    port every 0.25 s at most, so the first frame after the board is back comes within 0.3 s; the
+    driver's last_error ("read failed"/"open failed") clears with it."""
+    src = CountingSource()
+    faults = FaultConfig(disconnect_at=0.3, reappear_after=2.5)
+    board = SimulatedBoard(src, rate_hz=100.0, duration=3.5, link=tmp_path / "board", faults=faults, seed=1)
+    with BoardDriver(board.device, stall_timeout=0.3) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        board.start()
+        assert wait_for(lambda: not driver.stats().connected, 2.0)
+        assert wait_for(lambda: "failed" in driver.stats().last_error, 1.0)
+        drain(driver, quiet=0.0)
+        f = driver.get(5.0)
+        back_after = time.monotonic() - board.stats().generation_opened[1]
+        st = driver.stats()
+        board.close()
+    assert f is not None and f.seq >= board.stats().generation_first_seq[1]
+    assert back_after < 0.3, back_after
+    assert st.last_error == "" and st.reconnects == 1
 
 
 def test_missing_device_is_retried_not_raised(tmp_path):
@@ -227,3 +289,25 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": "x.csv", "snr_db": 40.0, "seed": 0}
     assert len(frames) > 10 and all(f.saturated[3] for f in frames)
     assert not link.exists()
+
+
+def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
+    """A 400 Hz board is replaced on the same link by a 1 Hz one: after at most one stall (the old
+    period no longer holds; it is measured again) the driver stays connected and reads every frame."""
+    link = tmp_path / "board"
+    fast = SimulatedBoard(CountingSource(), rate_hz=RATE, link=link, seed=1)
+    with BoardDriver(str(link), stall_timeout=0.3) as driver:
+        assert wait_for(lambda: driver.stats().connected)
+        fast.start()
+        assert wait_for(lambda: driver.stats().frames > 50)
+        fast.close()
+        slow = SimulatedBoard(CountingSource(), rate_hz=1.0, link=link, seed=2).start()
+        try:
+            time.sleep(6.0)
+            st = driver.stats()
+        finally:
+            slow.close()
+        seqs = [f.seq for f in drain(driver, quiet=0.0)]
+    slow_seqs = seqs[seqs.index(0, 1):]  # after the fast board's frames 0..n
+    assert 1 <= st.reconnects <= 2 and st.period == pytest.approx(1.0, rel=0.05), st
+    assert slow_seqs == list(range(len(slow_seqs))) and len(slow_seqs) >= 6, seqs

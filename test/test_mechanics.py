@@ -240,3 +240,57 @@ def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
         solve_socket_load(*coarse, GEOM, F)
     sol = solve_socket_load(*medium, GEOM, F)
     np.testing.assert_allclose(sol.resultant, F, rtol=0, atol=1e-9 * 20.0)
+
+
+# -- one factorisation for many loads, exact to rounding --------------------------------------
+def test_many_socket_loads_share_one_factorisation_and_solve_exactly(medium, monkeypatch):
+    """Every direction is one solve with the same factor (the pressure law depends on the ball's
+    displacement only), and each solution satisfies K u = f on the free dofs to rounding: K and f
+    assembled here independently (f from the returned k delta, constant traction per flat facet)."""
+    from skfem import FacetBasis, LinearForm
+
+    from cstomo_sensor.model import cem, elasticity
+
+    calls = []
+
+    def counting_lu(A):
+        calls.append(A.shape)
+        return cem.symmetric_lu(A)
+
+    monkeypatch.setattr(elasticity, "symmetric_lu", counting_lu)
+    elasticity.release()
+    p, t = medium
+    mesh = MeshTet(p.T, t.T)
+    basis = Basis(mesh, ElementVector(ElementTetP2()))
+    K = asm(linear_elasticity(*lame_parameters(1.0e6, 0.45)), basis)
+    free = np.setdiff1d(np.arange(basis.N), basis.get_dofs(lambda x: np.abs(x[2]) < 1e-9).flatten())
+    bf = mesh.boundary_facets()
+    fp = mesh.p[:, mesh.facets[:, bf]]
+    on = (np.abs(np.linalg.norm(fp - C[:, None, None], axis=0) - R) < 1e-9).all(axis=0) & (fp[2].mean(0) < 0.02 - 1e-9)
+    fb = FacetBasis(mesh, basis.elem, facets=bf[on], intorder=2)
+
+    @LinearForm
+    def traction(v, w):
+        pres = np.maximum(0.0, -(w.a[0] * w.n[0] + w.a[1] * w.n[1] + w.a[2] * w.n[2]))
+        return -pres * (w.n[0] * v[0] + w.n[1] * v[1] + w.n[2] * v[2])
+
+    for F in CASES.values():
+        sol = solve_socket_load(p, t, GEOM, F)
+        f = asm(traction, fb, a=sol.delta[:, None, None] * np.ones((3, *fb.dx.shape)))
+        r = K[free][:, free] @ sol.dofs[free] - f[free]
+        assert np.linalg.norm(r) <= 1e-10 * np.linalg.norm(f[free])  # AMG-CG stopped at 1e-9
+    assert len(calls) == 1
+    elasticity.release()
+
+
+def test_point_sampler_reproduces_a_linear_field(medium):
+    from cstomo_sensor.model.elasticity import point_sampler
+
+    p, t = medium
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal(3), 0.7
+    vertex_values = p[t] @ a + b  # (m, 4): a field linear on the whole body
+    cells = rng.integers(0, len(t), 200)
+    w = rng.dirichlet(np.ones(4), 200)
+    x = np.einsum("ki,kid->kd", w, p[t[cells]])  # random points inside random cells
+    np.testing.assert_allclose(point_sampler(p, t, x)(vertex_values), x @ a + b, rtol=0, atol=1e-12)

@@ -192,3 +192,51 @@ def test_replay_writes_nothing_for_implausible_frames_and_counts_them(tmp_path, 
     for topic in FORCE_TOPICS:
         assert [t for t, _ in msgs[f"/cstomo_sensor/{topic}"]] == want, topic
     assert np.isfinite(force_rows(msgs)).all() and force_rows(msgs)[:, 3].max() < 40.0
+
+
+def _bag(path, msgtype, messages, topic="/cstomo_sensor/raw_voltages"):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
+    with Writer(path, version=9) as w:
+        c = w.add_connection(topic, msgtype, typestore=store)
+        for k, raw in enumerate(messages):
+            w.write(c, 1000 * (k + 1), raw)
+
+
+def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tmp_path, capsys):
+    """A raw_voltages topic of another type, or whose every message is garbage CDR: one line, exit 2,
+    no output bag (before: an RMWError traceback and a half-written bag). A single garbage message
+    in a good bag is a corrupt frame: dropped, counted, the rest replayed."""
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import String
+
+    from cstomo_sensor.tools.replay import main
+
+    def run(bag):
+        out = tmp_path / f"out_{bag.name}"
+        code = main([str(bag), "--out", str(out), "--mesh-size", str(PIPE["mesh_size"]),
+                     "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE)])
+        return code, capsys.readouterr(), out
+
+    _bag(tmp_path / "strings", "std_msgs/msg/String", [serialize_message(String(data="hi"))] * 3)
+    code, io, out = run(tmp_path / "strings")
+    assert code == 2 and not out.exists() and "Traceback" not in io.err
+    assert io.err.strip().splitlines()[-1] == ("cstomo replay: topic /cstomo_sensor/raw_voltages: message type "
+                                               "std_msgs/msg/String, expected std_msgs/msg/Float32MultiArray")
+
+    _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 5)
+    code, io, out = run(tmp_path / "garbage")
+    assert code == 2 and not out.exists() and "Traceback" not in io.err
+    assert io.err.strip().splitlines()[-1].startswith("cstomo replay: ") and "none of the 5 messages" in io.err
+    assert not list(tmp_path.glob(".out_*"))  # no partial bag left behind
+
+    with Reader(BAG) as r:
+        raws = [bytes(raw) for _, _, raw in r.messages()]
+    raws[TARE + 5] = b"\x00\x01\x00\x00garbage!"
+    _bag(tmp_path / "one_bad", "std_msgs/msg/Float32MultiArray", raws)
+    code, io, out = run(tmp_path / "one_bad")
+    assert code == 0 and "; 1 corrupt;" in io.out, io
+    assert len(read_bag(out)["/cstomo_sensor/wrench"]) == len(raws) - TARE - 1

@@ -34,6 +34,43 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     assert angle < 5.0, summary  # 20 N straight down, honest simulation at 60 dB
 
 
+def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
+    """Ctrl-C in the middle of a held load: exit 0, the summary, no traceback, and the node's wait
+    for the board's link (which appears only after the board has computed its loads) logged once,
+    not once per retry."""
+    import signal
+    import time
+
+    pytest.importorskip("rclpy")
+    script = tmp_path / "load.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n")
+    exe = Path(sys.executable).parent / "cstomo"
+    out, err = tmp_path / "out.txt", tmp_path / "err.txt"
+    with open(out, "w") as fo, open(err, "w") as fe:
+        p = subprocess.Popen([str(exe), "demo", "--load-script", str(script), "--hold", "120", "--rate", "100"],
+                             stdout=fo, stderr=fe, text=True,
+                             env=dict(os.environ, OPENBLAS_NUM_THREADS="1", TMPDIR=str(tmp_path)))
+        try:
+            deadline = time.monotonic() + 200
+            # settled under the 20 N load (two lines of it), then Ctrl-C
+            while sum("script row 2" in ln and " N " in ln for ln in out.read_text().splitlines()) < 4:
+                assert p.poll() is None and time.monotonic() < deadline, out.read_text() + err.read_text()
+                time.sleep(0.2)
+            p.send_signal(signal.SIGINT)
+            code = p.wait(30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    text = out.read_text() + err.read_text()
+    assert code == 0, text
+    assert "Traceback" not in text and "Exception" not in text, text
+    assert "stopped at t =" in text and "median angle error" in text, text
+    opens = [ln for ln in text.splitlines() if "open failed" in ln]
+    assert len(opens) <= 1, opens
+    assert not list(tmp_path.glob("cstomo_demo_*"))  # its temporary files are removed
+
+
 def _rows(path: Path) -> list[dict]:
     with open(path) as f:
         return list(csv.DictReader(f))

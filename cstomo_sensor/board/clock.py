@@ -17,6 +17,8 @@ class ClockMapper:
     window_s. A stamp is never later than the host time at which its frame was handed over.
     When the board clock jumps backwards (board reset) the window restarts.
 
+    The node maps onto the host's monotonic clock (``time.monotonic_ns``), which cannot step, and
+    takes each frame's age from it; a wall-clock step then moves no offset here (docs/node.md).
     Text-mode boards carry no clock: the node stamps their frames with host time on reception.
 
     Parameters

@@ -1,15 +1,18 @@
 """Serial driver for the board: a pyserial port opened by URL, a reader thread, a bounded queue.
 
-The reader thread decodes frames (binary or text mode, docs/protocol.md), counts sequence gaps and
-corrupt frames, drops the oldest frame when the user falls behind, and reconnects with exponential
-backoff when the port disappears or the board stops sending. Nothing raises out of the thread.
+The reader thread decodes frames (binary or text mode, docs/protocol.md), counts lost frames once
+each (by sequence number: lost to corruption or to a gap), drops and counts duplicated and late
+(reordered) frames, drops the oldest frame when the user falls behind, and reconnects when the port
+disappears (retrying every 0.05..0.25 s: a replugged board is back within a second) or the board
+stops sending for longer than a few of its own frame periods. Nothing raises out of the thread.
 """
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import Literal
 
@@ -20,7 +23,15 @@ from .wire import PROTOCOLS, DataFrame, Decoder, Error, Identify, Identity, Star
 
 log = logging.getLogger(__name__)
 
-
+#: The board has stalled when no byte came for this many of its frame periods (and at least the
+#: driver's ``stall_timeout``): a 1 frame/s board is not reopened every second.
+STALL_PERIODS = 3.0
+#: Before the frame period is known (fewer than two frames since the driver started) a stall is
+#: declared only after this many seconds: a slow board's first two frames are awaited.
+FIRST_PERIOD_WAIT = 2.5
+#: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
+#: duplicate; further back, the board restarted its counter.
+REORDER_WINDOW = 256
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -31,13 +42,26 @@ class DriverStats:
     connected : bool
         The port is open now.
     frames : int
-        Valid data frames decoded (including those later dropped by queue overflow).
+        Valid data frames delivered to the queue (including those later dropped by queue overflow;
+        not duplicates or late frames).
     dropped_overflow : int
         Frames dropped (the oldest first) because the queue was full.
     corrupt : int
-        Frames dropped by the decoder (CRC, length, type, version, non-finite values).
+        Frames lost to corruption, each counted once. Binary mode: the frames missing by sequence
+        number where the decoder dropped something (CRC, length, type, version, NaN) in between; text
+        mode (no sequence number): lines dropped by the decoder.
     seq_gaps : int
-        Frames missing by sequence number (binary mode).
+        Frames missing by sequence number with nothing corrupt in between (the board or the link
+        dropped them whole); binary mode. ``corrupt + seq_gaps`` is every lost frame, once.
+    duplicates : int
+        Frames dropped because their sequence number was already delivered.
+    reordered : int
+        Frames dropped because a newer one was already delivered (too late to publish in order);
+        they were not lost, so they no longer count in ``corrupt`` or ``seq_gaps``.
+    resyncs : int
+        Times the decoder dropped bytes (line noise, a cut-off frame) and no frame was lost.
+    period : float
+        The board's frame period in seconds as measured (nan until two frames came).
     reconnects : int
         Times the port was opened again after losing it (unplugged or stalled).
     last_error : str
@@ -52,6 +76,10 @@ class DriverStats:
     dropped_overflow: int
     corrupt: int
     seq_gaps: int
+    duplicates: int
+    reordered: int
+    resyncs: int
+    period: float
     reconnects: int
     last_error: str
     bytes: int
@@ -86,9 +114,13 @@ class BoardDriver:
     read_timeout : float
         Seconds one port read waits; bounds how fast :meth:`close` returns.
     stall_timeout : float
-        Seconds without any byte after which the port is closed and reopened.
+        Least number of seconds without any byte after which the port is closed and reopened; the
+        wait is at least :data:`STALL_PERIODS` frame periods of the board (measured, else
+        ``1 / rate_hz``), and :data:`FIRST_PERIOD_WAIT` while the period is unknown (at the start
+        and after a stall), so boards down to 1 / FIRST_PERIOD_WAIT = 0.4 frames/s are followed.
     reconnect_backoff : (float, float)
-        First and largest wait in seconds between reopening attempts (doubling in between).
+        First and largest wait in seconds between reopening attempts (doubling in between); the
+        largest bounds how long a replugged board waits to be opened again.
     rate_hz : float or None
         Rate asked for in START; None asks for the board's default rate.
 
@@ -107,7 +139,7 @@ class BoardDriver:
         queue_size: int = 64,
         read_timeout: float = 0.05,
         stall_timeout: float = 1.0,
-        reconnect_backoff: tuple[float, float] = (0.05, 2.0),
+        reconnect_backoff: tuple[float, float] = (0.05, 0.25),
         rate_hz: float | None = None,
     ) -> None:
         if protocol not in PROTOCOLS:
@@ -135,7 +167,14 @@ class BoardDriver:
         self._port: serial.SerialBase | None = None
         self._closing = threading.Event()
         self._frames = self._dropped = self._gaps = self._reconnects = self._opens = 0
+        self._corrupt = self._duplicates = self._reordered = self._resyncs = self._bad = 0
+        self._logged_error: str | None = None  # the error last logged (not logged again until it changes)
+        self._open_failures = 0  # failed opens since the last successful one
         self._last_seq: int | None = None
+        self._fresh = True
+        self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
+        self._intervals: deque[float] = deque(maxlen=16)  # recent frame periods (s)
+        self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
         self._last_error = ""
         self.identity: Identity | None = None
         self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
@@ -170,8 +209,12 @@ class BoardDriver:
                 connected=self._port is not None,
                 frames=self._frames,
                 dropped_overflow=self._dropped,
-                corrupt=self._decoder.stats.corrupt,
+                corrupt=self._corrupt,
                 seq_gaps=self._gaps,
+                duplicates=self._duplicates,
+                reordered=self._reordered,
+                resyncs=self._resyncs,
+                period=self._period(),
                 reconnects=self._reconnects,
                 last_error=self._last_error,
                 bytes=self._decoder.stats.bytes,
@@ -195,13 +238,35 @@ class BoardDriver:
     # --- reader thread -----------------------------------------------------------------------
 
     def _error(self, text: str) -> None:
+        """Record an error; log it once per change of state (a port that stays absent is logged at
+        the first failed open, then once more with the count when it opens)."""
         self._last_error = text
-        log.warning("%s: %s", self.url, text)
+        if text == self._logged_error:
+            log.debug("%s: %s (again)", self.url, text)
+            return
+        self._logged_error = text
+        log.warning("%s: %s%s", self.url, text, "; retrying (logged again when it changes)" if text.startswith("open") else "")
+
+    def _period(self) -> float:
+        """The board's frame period (s): the median of the recent intervals; nan before two frames."""
+        if not self._intervals:
+            return float("nan")
+        return sorted(self._intervals)[len(self._intervals) // 2]
+
+    def _stall_after(self) -> float:
+        """Seconds without a byte that make a stall: STALL_PERIODS frame periods (measured, else the
+        rate asked for), FIRST_PERIOD_WAIT while neither is known; never less than stall_timeout."""
+        period = self._period()
+        if math.isnan(period) and self._rate_hz:
+            period = 1.0 / self._rate_hz
+        wait = FIRST_PERIOD_WAIT if math.isnan(period) else STALL_PERIODS * period
+        return max(self._stall_timeout, wait)
 
     def _open(self) -> bool:
         try:
             port = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=self._read_timeout)
         except (serial.SerialException, OSError, ValueError) as err:
+            self._open_failures += 1
             self._error(f"open failed: {err}")
             return False
         _set_low_latency(port, self.url)
@@ -209,8 +274,10 @@ class BoardDriver:
         with self._port_lock:
             self._port = port
         self._opens += 1
+        self._fresh = True  # the first frame on a new connection may restart the counter
         self._reconnects = max(self._opens - 1, 0)
-        log.info("%s: connected", self.url)
+        failed, self._open_failures, self._logged_error = self._open_failures, 0, None
+        log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
         if self.protocol == "binary":
             self.send(encode(Identify()) + encode(Start(self._rate_hz or 0.0)))
         return True
@@ -234,6 +301,7 @@ class BoardDriver:
                     continue
                 backoff = self._backoff[0]
                 last_byte = time.monotonic()
+                self._last_frame_at = None  # no period across a reconnect
             try:
                 data = self._port.read(max(1, self._port.in_waiting))
             except (serial.SerialException, OSError) as err:
@@ -242,16 +310,20 @@ class BoardDriver:
                 continue
             now = time.monotonic()
             if not data:
-                if now - last_byte > self._stall_timeout:
-                    self._error(f"stalled: no bytes for {self._stall_timeout} s, reopening")
+                stall = self._stall_after()
+                if now - last_byte > stall:
+                    self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
+                    self._intervals.clear()  # its rate may have changed: measured again
                     self._close_port()
                 continue
             last_byte = now
-            self._handle(self._decoder.feed(data))
+            self._handle(self._decoder.feed(data, marks=True))
 
     def _handle(self, messages: list) -> None:
         for msg in messages:
-            if isinstance(msg, DataFrame):
+            if msg is None:  # a piece the decoder dropped
+                self._bad += 1
+            elif isinstance(msg, DataFrame):
                 self._push(msg)
             elif isinstance(msg, Identity):
                 self.identity = msg
@@ -262,17 +334,57 @@ class BoardDriver:
                 log.debug("%s: %s", self.url, msg)
 
     def _push(self, frame: DataFrame) -> None:
+        now = time.monotonic()
         with self._cond:
-            if frame.seq is not None:
-                if self._last_seq is not None:
-                    step = (frame.seq - self._last_seq) & 0xFFFFFFFF
-                    if 1 < step < 2**31:
-                        self._gaps += step - 1
-                    # step >= 2**31: the board restarted its counter; follow it without counting
-                self._last_seq = frame.seq
+            bad, self._bad = self._bad, 0  # pieces dropped since the last frame
+            if frame.seq is None:
+                self._corrupt += bad  # text mode: a dropped line is a lost frame
+            elif not self._in_order(frame.seq, bad):
+                return
+            if self._last_frame_at is not None:
+                t, seq = self._last_frame_at
+                steps = 1 if seq is None or frame.seq is None else max((frame.seq - seq) & 0xFFFFFFFF, 1)
+                self._intervals.append((now - t) / steps)
+            self._last_frame_at = (now, frame.seq)
             self._frames += 1
             self._last_error = ""
             if len(self._queue) == self._queue.maxlen:
                 self._dropped += 1
             self._queue.append(frame)
             self._cond.notify()
+
+    def _in_order(self, seq: int, bad: int) -> bool:
+        """Count what the sequence number ``seq`` says (``bad`` pieces were dropped since the last
+        frame); False for a frame to drop (a duplicate or a late one)."""
+        last = self._last_seq
+        step = (seq - last) & 0xFFFFFFFF if last is not None else 1
+        if step == 0:
+            self._duplicates += 1
+            return False
+        fresh, self._fresh = self._fresh, False
+        if not fresh and 2**32 - step <= REORDER_WINDOW:
+            kind = self._missing.pop(seq, None)
+            if kind is None:
+                self._duplicates += 1
+            else:  # counted as lost when the newer frame came: it was only late
+                self._reordered += 1
+                if kind == "corrupt":
+                    self._corrupt -= 1
+                else:
+                    self._gaps -= 1
+            return False
+        if step >= 2**31:  # behind on a new connection or far behind: the board restarted its counter
+            self._missing.clear()
+            step = 1
+        missing = step - 1
+        corrupt = min(missing, bad)
+        self._corrupt += corrupt
+        self._gaps += missing - corrupt
+        if bad and not missing:
+            self._resyncs += 1
+        for k in range(max(missing - REORDER_WINDOW, 0), missing):
+            self._missing[(seq - missing + k) & 0xFFFFFFFF] = "corrupt" if k < corrupt else "gap"
+        while len(self._missing) > REORDER_WINDOW:
+            self._missing.popitem(last=False)
+        self._last_seq = seq
+        return True

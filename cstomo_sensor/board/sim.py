@@ -130,6 +130,8 @@ class SimStats:
     generation_first_seq : tuple of int
         Per pty (0: the first, 1: after a disconnect, ...) the seq of the first frame sent on it,
         -1 while none was.
+    generation_opened : tuple of float
+        Per pty, the ``time.monotonic()`` at which it appeared (a replug's "board is back").
     injected : dict
         Count of each injected fault by name (``bit_flip``, ``drop``, ``nan``, ...), and
         ``overrun`` for frames the pty had no room for.
@@ -139,6 +141,7 @@ class SimStats:
     next_seq: int
     generation_first_seq: tuple[int, ...]
     injected: dict
+    generation_opened: tuple[float, ...] = ()
 
 
 class SimulatedBoard:
@@ -147,13 +150,15 @@ class SimulatedBoard:
     Parameters
     ----------
     source : object with ``frame(t, rng) -> (208,) volts`` and ``truth(t) -> (3,) newtons``
-        Voltages at time t since the start (at 8 mA; scaled by SET_CURRENT), noise included.
+        Voltages at time t of the load script (at 8 mA; scaled by SET_CURRENT), noise included. The
+        script's clock starts at the first START (text boards: when the board starts), so a host that
+        connects late still sees the whole script.
     protocol : {'binary', 'text'}
         Binary boards wait for START and answer commands; text boards stream at once, deaf.
     rate_hz : float
         Default frame rate (START with rate 0 keeps it).
     duration : float or None
-        Seconds to run; None runs until :meth:`stop`.
+        Seconds of the load script to stream (from its start, see ``source``); None runs until :meth:`stop`.
     link : str or None
         Path of a symlink kept pointing at the current pty (removed while disconnected).
     faults : FaultConfig
@@ -186,6 +191,8 @@ class SimulatedBoard:
         self.protocol = protocol
         self.rate_hz = float(rate_hz)
         self.duration = duration
+        self._script_t0: float | None = None  # monotonic time of the load script's t = 0
+        self.script_started = threading.Event()  # set when the load script's clock starts
         self.link = os.fspath(link) if link is not None else None
         self.faults = faults
         self.layers = layers
@@ -202,6 +209,7 @@ class SimulatedBoard:
         self._seq = 0
         self._sent = 0
         self._first_seq: list[int] = []
+        self._opened: list[float] = []
         self._injected: Counter[str] = Counter()
         self._current = DRIVE_CURRENT_A
         self._master = self._slave = -1
@@ -222,6 +230,7 @@ class SimulatedBoard:
             tmp = f"{self.link}.{os.getpid()}.tmp"
             os.symlink(self._slave_path, tmp)
             os.replace(tmp, self.link)
+        self._opened.append(time.monotonic())
         log.info("board on %s", self.device)
 
     def _close_pty(self) -> None:
@@ -270,7 +279,7 @@ class SimulatedBoard:
         self.close()
 
     def stats(self) -> SimStats:
-        return SimStats(self._sent, self._seq, tuple(self._first_seq), dict(self._injected))
+        return SimStats(self._sent, self._seq, tuple(self._first_seq), dict(self._injected), tuple(self._opened))
 
     # --- the board's loop --------------------------------------------------------------------
 
@@ -280,10 +289,14 @@ class SimulatedBoard:
         t0 = time.monotonic()
         self._t0_ns = time.monotonic_ns()
         self._stream_t0, self._k = t0, 0
+        self._script_t0 = None
+        if self.protocol == "text":  # binary boards: at the first START
+            self._start_script(t0)
         disconnected = stalled = False
         while not self._stop.is_set():
             now = time.monotonic() - t0
-            if self.duration is not None and now >= self.duration:
+            if self.duration is not None and self._script_t0 is not None and \
+                    time.monotonic() - self._script_t0 >= self.duration:
                 break
             if f.disconnect_at is not None and not disconnected and now >= f.disconnect_at:
                 disconnected = True
@@ -309,8 +322,12 @@ class SimulatedBoard:
             if time.monotonic() - due > _RESYNC_S:
                 self._resync()
                 continue
-            self._emit(due - t0)
+            self._emit(due - self._script_t0)
             self._k += 1
+
+    def _start_script(self, t0: float) -> None:
+        self._script_t0 = t0
+        self.script_started.set()
 
     def _resync(self) -> None:
         """Next frame slot at or after now (missed slots are not measured)."""
@@ -344,6 +361,8 @@ class SimulatedBoard:
                 self.rate_hz = float(msg.rate_hz)
             self._streaming = True
             self._stream_t0, self._k = time.monotonic(), 0
+            if self._script_t0 is None:
+                self._start_script(self._stream_t0)
             return Ack(kind)
         if isinstance(msg, Stop):
             self._streaming = False

@@ -317,16 +317,26 @@ class _Splitter:
         """Forget a partial frame (after a reconnect); the counts stay."""
         self._buf.clear()
 
-    def feed(self, data: bytes) -> list:
-        """Add bytes; return the messages completed by them, in order. Never raises."""
+    def feed(self, data: bytes, marks: bool = False) -> list:
+        """Add bytes; return the messages completed by them, in order. Never raises. With ``marks``
+        a dropped piece appears as None in its place (the driver attributes losses to frames)."""
         self.stats.bytes += len(data)
         self._buf += data
         *pieces, rest = self._buf.split(self.DELIM)
         self._buf = bytearray(rest)
+        out = []
+        for p in pieces:
+            if p:
+                before = self.stats.corrupt
+                m = self._decode(bytes(p))
+                if m is not None or (marks and self.stats.corrupt > before):
+                    out.append(m)
         if len(self._buf) > self.MAX_PIECE:  # no delimiter for too long: drop it
             self._buf.clear()
             self.stats.bad_length += 1
-        return [m for p in pieces if p and (m := self._decode(bytes(p))) is not None]
+            if marks:
+                out.append(None)
+        return out
 
     def _decode(self, piece: bytes):
         raise NotImplementedError

@@ -79,10 +79,11 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     fm = ForwardModel(geometry, fwd_mesh)
     mech = build_mesh(geometry, MeshSpec(h=spec.mechanics_mesh_size, h_electrode=spec.mechanics_mesh_size), cache_dir)
     dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
+    sample = elasticity.point_sampler(mech.points, mech.tets, fwd_mesh.centers)  # located once
     forces, ys = [], []
     for i, d in enumerate(dirs):
-        sol = elasticity.solve_socket_load(mech.points, mech.tets, geometry, d)
-        theta1 = sol.theta_at(fwd_mesh.centers)  # per newton
+        # one factorisation of the mechanics serves every direction (elasticity module docstring)
+        theta1 = sample(elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices)  # per N
         for m in spec.magnitudes:
             sigma, _ = conductivity_of_theta(m * theta1, geometry.material)
             v = fm.voltages(sigma)
@@ -90,6 +91,7 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
             ys.append((v - model.model_reference) / model.v_scale)
         if i % 10 == 0:
             say(f"calibrating force estimators: direction {i + 1}/{len(dirs)}")
+    elasticity.release()
     forces, ys = np.array(forces), np.array(ys)
     cache_save(path, key, forces=forces, y=ys)
     log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)

@@ -35,7 +35,7 @@ from .landweber import LandweberSVD, choose_by_discrepancy
 
 log = logging.getLogger(__name__)
 
-RECON_FORMAT = 3
+RECON_FORMAT = 4  # 4: built on the shipped meshes (model/mesh.py), not on a cached pytetwild mesh
 V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation is floored
 
 

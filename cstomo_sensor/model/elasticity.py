@@ -24,6 +24,14 @@ Loads (REFERENCE_SENSOR.md section 4):
   the mesh; a warning is logged.
 * :func:`solve_patch_load` - uniform normal pressure on regions of the top face.
 
+Solver: the condensed stiffness (symmetric positive definite) is factorised once per mesh and set
+of fixed dofs (SuperLU in symmetric mode, :func:`~cstomo_sensor.model.cem.symmetric_lu`: about 2 s
+and 250 MB on the 6 mm calibration mesh) and kept with the assembled problem in a small cache, so
+every further load on that mesh is two triangular solves (tens of ms) and exact to rounding. The
+contact needs no refactorisation: the pressure law depends only on the ball's displacement a, not
+on the rubber's, so each load is one linear solve with the same matrix. :func:`release` frees the
+factors.
+
 scikit-fem is imported only by this module; nothing else in the package imports it at import time.
 """
 from __future__ import annotations
@@ -37,12 +45,12 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike
 from scipy.optimize import nnls
 from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
+from .cem import symmetric_lu
 from .geometry import SensorGeometry
 from .material import Material
 
@@ -51,6 +59,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "CARRIED_ELEVATION_DEG",
     "MechanicsSolution",
+    "PointSampler",
+    "point_sampler",
     "solve",
     "solve_patch_load",
     "solve_socket_load",
@@ -118,20 +128,9 @@ class MechanicsSolution:
         """
         return self.theta_vertices.mean(axis=1)
 
-    @cached_property
-    def _locator(self) -> tuple[cKDTree, np.ndarray, np.ndarray]:
-        v = self.points[self.tets]  # (m, 4, 3)
-        T = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))  # columns v1-v0, v2-v0, v3-v0
-        return cKDTree(v.mean(axis=1)), np.linalg.inv(T), v[:, 0, :]
-
     def theta_at(self, x: ArrayLike) -> np.ndarray:
-        """Volumetric compression at arbitrary points.
-
-        Each point is located in a cell (among the 32 cells with the nearest centroids) and the
-        cell's linear field is evaluated there. A point outside the mesh (e.g. a reconstruction
-        cell centre a rounding error outside a curved face) takes the value of the candidate cell
-        it is least outside of, at its barycentric coordinates clipped to that cell, i.e. a value
-        the field takes on the mesh; far-away points get such a value too, without an error.
+        """Volumetric compression at arbitrary points (see :class:`PointSampler`; to sample many
+        solutions on one mesh at the same points, build the sampler once with :func:`point_sampler`).
 
         Parameters
         ----------
@@ -142,20 +141,51 @@ class MechanicsSolution:
         -------
         (k,) ndarray
         """
-        x = np.atleast_2d(np.asarray(x, dtype=float))
-        if x.ndim != 2 or x.shape[1] != 3:
-            raise ConfigError(f"points.shape={x.shape}: expected (k, 3)")
-        tree, inv, v0 = self._locator
-        kk = min(32, len(self.tets))
-        _, cand = tree.query(x, k=kk)
-        cand = cand.reshape(len(x), kk)
-        lam123 = np.einsum("kcij,kcj->kci", inv[cand], x[:, None, :] - v0[cand])  # (k, kk, 3)
-        lam = np.concatenate([1.0 - lam123.sum(-1, keepdims=True), lam123], axis=-1)  # (k, kk, 4)
-        best = np.argmax(lam.min(axis=-1), axis=1)
-        rows = np.arange(len(x))
-        lam_b = np.clip(lam[rows, best], 0.0, None)
-        lam_b /= lam_b.sum(axis=1, keepdims=True)
-        return np.einsum("ki,ki->k", lam_b, self.theta_vertices[cand[rows, best]])
+        return point_sampler(self.points, self.tets, x)(self.theta_vertices)
+
+
+@dataclass(frozen=True)
+class PointSampler:
+    """Points located in a tetrahedral mesh: the cell holding each and its barycentric coordinates.
+
+    Each point is located among the 32 cells with the nearest centroids. A point outside the mesh
+    (e.g. a reconstruction cell centre a rounding error outside a curved face) takes the candidate
+    cell it is least outside of, at its barycentric coordinates clipped to that cell, i.e. a value
+    the field takes on the mesh; far-away points get such a value too, without an error.
+
+    Attributes
+    ----------
+    cells : (k,) int ndarray
+    weights : (k, 4) ndarray, non-negative, rows summing to 1.
+    """
+
+    cells: np.ndarray
+    weights: np.ndarray
+
+    def __call__(self, vertex_values: np.ndarray) -> np.ndarray:
+        """(k,) values at the points of a field linear per cell, given at the cells' vertices
+        (``vertex_values`` (m, 4), e.g. :attr:`MechanicsSolution.theta_vertices`)."""
+        return np.einsum("ki,ki->k", self.weights, vertex_values[self.cells])
+
+
+def point_sampler(points: ArrayLike, tets: ArrayLike, x: ArrayLike) -> PointSampler:
+    """Locate points ``x`` (k, 3) in the mesh ``points`` (n, 3), ``tets`` (m, 4) (one KD-tree)."""
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ConfigError(f"points.shape={x.shape}: expected (k, 3)")
+    v = np.asarray(points)[np.asarray(tets)]  # (m, 4, 3)
+    T = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))  # columns v1-v0, v2-v0, v3-v0
+    inv, v0 = np.linalg.inv(T), v[:, 0, :]
+    kk = min(32, len(v))
+    _, cand = cKDTree(v.mean(axis=1)).query(x, k=kk)
+    cand = cand.reshape(len(x), kk)
+    lam123 = np.einsum("kcij,kcj->kci", inv[cand], x[:, None, :] - v0[cand])  # (k, kk, 3)
+    lam = np.concatenate([1.0 - lam123.sum(-1, keepdims=True), lam123], axis=-1)  # (k, kk, 4)
+    best = np.argmax(lam.min(axis=-1), axis=1)
+    rows = np.arange(len(x))
+    lam_b = np.clip(lam[rows, best], 0.0, None)
+    lam_b /= lam_b.sum(axis=1, keepdims=True)
+    return PointSampler(cand[rows, best], lam_b)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -171,36 +201,6 @@ def _check_mesh(points: ArrayLike, tets: ArrayLike) -> tuple[np.ndarray, np.ndar
     if not np.isfinite(p).all():
         raise ConfigError("points: contain NaN or inf")
     return p, t.astype(np.int64)
-
-
-def _elasticity_solver(A, locs: np.ndarray, comp: np.ndarray):
-    """``f -> u`` for the condensed stiffness: conjugate gradients preconditioned by smoothed-aggregation
-    AMG with the six rigid-body modes as near-null space (pyamg), to 1e-9 relative residual; falls
-    back to a sparse LU (SuperLU) where pyamg is not installed. AMG sets up in about a second where
-    the LU of a P2 elasticity matrix takes tens of seconds."""
-    try:
-        import pyamg  # heavy: only for the elasticity solve
-    except ImportError:  # pragma: no cover - pyamg is a dependency; LU is the plain fallback
-        return spla.splu(A.tocsc()).solve
-    x, y, z = locs
-    B = np.zeros((A.shape[0], 6))
-    for c in range(3):
-        B[comp == c, c] = 1.0
-    rot = [(0, -y, 1, x), (1, -z, 2, y), (2, -x, 0, z)]  # about z, x, y
-    for j, (c1, v1, c2, v2) in enumerate(rot):
-        B[comp == c1, 3 + j] = v1[comp == c1]
-        B[comp == c2, 3 + j] = v2[comp == c2]
-    ml = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric", max_coarse=500)
-    M = ml.aspreconditioner(cycle="V")
-
-    def solve(f: np.ndarray) -> np.ndarray:
-        u, info = spla.cg(A, f, rtol=1e-9, atol=0.0, maxiter=2000, M=M)
-        if info != 0:
-            log.warning("elasticity CG did not converge (info=%d); falling back to LU", info)
-            u = spla.spsolve(A.tocsc(), f)
-        return u
-
-    return solve
 
 
 class _Problem:
@@ -274,7 +274,7 @@ class _Problem:
             key = hashlib.sha1(np.ascontiguousarray(fixed, dtype=np.int64).tobytes()).hexdigest()
             if key not in self._lu:  # set up once per set of fixed dofs, reuse for every load
                 A, _, _, I = condense(self.K, f, D=fixed)
-                self._lu = {key: (_elasticity_solver(A.tocsr(), self.basis.doflocs[:, I], I % 3), I)}
+                self._lu = {key: (symmetric_lu(A).solve, I)}
             solve, I = self._lu[key]
             u[I] = solve(f[I])
         disp = u[self.basis.nodal_dofs].T.copy()  # (n, 3)
@@ -291,13 +291,17 @@ class _Problem:
             load=dict(load),
         )
 
-    def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
-        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
+    @cached_property
+    def _vertex_basis(self):
+        """The basis evaluated at the reference vertices of each cell (built once per mesh)."""
         from skfem import Basis  # heavy: only where the elasticity is assembled
 
         X = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-        vb = Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
-        g = vb.interpolate(u).grad  # (3, 3, m, 4)
+        return Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
+
+    def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
+        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
+        g = self._vertex_basis.interpolate(u).grad  # (3, 3, m, 4)
         th = -(g[0, 0] + g[1, 1] + g[2, 2])  # (m, 4) in the order of self.tets
         flipped = (self.tets != self.tets_in).any(axis=1)
         th[flipped] = th[flipped][:, [0, 1, 3, 2]]
@@ -323,6 +327,12 @@ def _problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> _Problem:
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.pop(next(iter(_CACHE)))
     return prob
+
+
+def release() -> None:
+    """Drop the assembled problems and their factors (call after a batch of loads, e.g. the
+    calibration, so that a long-running process does not keep hundreds of MB)."""
+    _CACHE.clear()
 
 
 def _fixed_bottom(prob: _Problem, geometry: SensorGeometry) -> np.ndarray:

@@ -1,6 +1,11 @@
 """Tetrahedral meshes of the sensor bodies, their electrode patches, quality.
 
-Meshes are cached on disk (:mod:`cstomo_sensor.cache`).
+Meshes are cached on disk (:mod:`cstomo_sensor.cache`). The meshes the default sensor needs (the
+model's, the calibration's mechanics and the honest simulation's) ship with the package in
+``cstomo_sensor/data/meshes`` (compressed npz, keyed like a cache entry by a hash of every input
+but the mesher's version): a build whose inputs match one uses it instead of meshing, so the
+default model is the same on every machine and needs no pytetwild (pytetwild gives a slightly
+different mesh on every run). Any other geometry or size is meshed and cached as before.
 
 The surface is made with pyvista, the tetrahedra with pytetwild (both imported only when a mesh is
 actually built). One knob sets the size: ``h``, the target edge length in metres; a sizing field
@@ -19,7 +24,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
-from importlib.metadata import version
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
@@ -279,7 +284,17 @@ def _sizing_field(geometry: SensorGeometry, spec: MeshSpec):
 
 
 def _mesh_inputs(geometry: SensorGeometry, spec: MeshSpec) -> dict:
+    return {**_mesh_inputs_base(geometry, spec), "pytetwild": _pytetwild_version()}
 
+
+def _pytetwild_version() -> str:
+    try:
+        return version("pytetwild")
+    except PackageNotFoundError:  # only shipped meshes can be used; meshing will say what is missing
+        return "none"
+
+
+def _mesh_inputs_base(geometry: SensorGeometry, spec: MeshSpec) -> dict:
     return {
         "format": MESH_FORMAT,
         "shape": geometry.shape,
@@ -289,8 +304,27 @@ def _mesh_inputs(geometry: SensorGeometry, spec: MeshSpec) -> dict:
         "h": spec.h,
         "he": spec.he,
         "refine_socket": spec.refine_socket,
-        "pytetwild": version("pytetwild"),
     }
+
+
+#: Where the shipped meshes live (package data; see the module docstring).
+SHIPPED_DIR = Path(__file__).resolve().parent.parent / "data" / "meshes"
+
+
+def _shipped(geometry: SensorGeometry, inputs: dict) -> tuple[Path, str]:
+    """Path and key of the shipped mesh for ``inputs``: the cache key without the mesher's version
+    (a shipped mesh is the mesh of these inputs, whichever pytetwild is installed, if any)."""
+    key = input_hash({k: v for k, v in inputs.items() if k != "pytetwild"})
+    return SHIPPED_DIR / f"{geometry.shape}-{key}.npz", key
+
+
+def ship_mesh(geometry: SensorGeometry, spec: MeshSpec, mesh: TetMesh) -> Path:
+    """Write ``mesh`` as the shipped mesh of (geometry, spec) (maintainers: README, "Reproducible
+    models"); int32 cells, compressed."""
+    path, key = _shipped(geometry, _mesh_inputs_base(geometry, spec))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, cache_key=np.array(key), points=mesh.points, tets=mesh.tets.astype(np.int32))
+    return path
 
 
 def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir: str | os.PathLike | None = None,
@@ -299,10 +333,16 @@ def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir:
 
     ``info`` of the result holds ``cache_hit``, ``seconds`` (per stage) and the cache ``key``.
     """
+    t0 = time.perf_counter()
+    shipped, skey = _shipped(geometry, _mesh_inputs_base(geometry, spec))
+    hit = cache_load(shipped, skey, names=("points", "tets"))  # None when absent or not for these inputs
+    if hit is not None:
+        return TetMesh(hit["points"], hit["tets"].astype(np.int64),
+                       info={"cache_hit": True, "shipped": True, "key": skey,
+                             "seconds": {"mesh": time.perf_counter() - t0}})
     inputs = _mesh_inputs(geometry, spec)
     key = input_hash(inputs)
     path = Path(cache_dir or default_cache_dir()) / "meshes" / f"{geometry.shape}-{key}.npz"
-    t0 = time.perf_counter()
     hit = cache_load(path, key, names=("points", "tets"))
     if hit is not None:
         mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),

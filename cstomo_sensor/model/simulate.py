@@ -135,6 +135,12 @@ class Truth:
         return build_mesh(self.geometry, MeshSpec(h=self.mechanics_h, h_electrode=self.mechanics_h), self.cache_dir)
 
     @cached_property
+    def _sampler(self) -> elasticity.PointSampler:
+        """The truth mesh's cell centres located in the mechanics mesh (once, for every load)."""
+        m = self.mechanics_mesh
+        return elasticity.point_sampler(m.points, m.tets, self.forward.mesh.centers)
+
+    @cached_property
     def reference(self) -> np.ndarray:
         """Noise-free unloaded frame of the simulated device."""
         return self.forward.voltages()
@@ -150,7 +156,7 @@ class Truth:
                 patches = [{"shape": s, ("size" if s == "square" else "radius"): v, "center": c}
                            for s, v, c in load.patches]
                 sol = elasticity.solve_patch_load(m.points, m.tets, self.geometry, patches, -load.force[2])
-            self._theta_cache[key] = sol.theta_at(self.forward.mesh.centers)
+            self._theta_cache[key] = self._sampler(sol.theta_vertices)
         return self._theta_cache[key]
 
     def conductivity(self, load: Load) -> np.ndarray:
@@ -251,6 +257,7 @@ class VoltageSource:
         self.snr_db = snr_db
         self.period = period
         self._frames = [truth.voltages(ld) for ld in loads]
+        elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
         self._ref = truth.reference
 
     @classmethod

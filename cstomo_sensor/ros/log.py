@@ -17,7 +17,9 @@ ROOT = logging.getLogger(__name__.split(".")[0])  # the package's logger tree
 
 class RosLogHandler(logging.Handler):
     """Forwards records to ``ros_logger`` while ``context_ok()`` (the node's ROS context is up);
-    after a shutdown, records go to stderr as Python's own last-resort handler writes them."""
+    after a shutdown (SIGINT, SIGTERM: the node is ending), errors go to stderr as Python's own
+    last-resort handler writes them, and warnings are dropped: they are the board's port closing
+    as a launch or a terminal stops the board together with the node."""
 
     def __init__(self, ros_logger: RcutilsLogger, context_ok=lambda: True) -> None:
         super().__init__()
@@ -26,7 +28,8 @@ class RosLogHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         if not self.context_ok():  # /rosout is gone (SIGINT): rcl would print an error per record
-            logging.lastResort.handle(record)
+            if record.levelno >= logging.ERROR:
+                logging.lastResort.handle(record)
             return
         try:
             msg = f"{record.name.partition('.')[2] or record.name}: {self.format(record)}"

@@ -13,12 +13,16 @@ See docs/node.md.
 """
 from __future__ import annotations
 
+import difflib
 import importlib
 import math
+import signal
 import sys
 import threading
 import time
 import traceback
+from collections import deque
+from dataclasses import replace
 
 import numpy as np
 import rclpy
@@ -28,6 +32,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from rclpy.task import Future
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
@@ -35,7 +40,7 @@ from std_srvs.srv import Trigger
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
 from ..cache import check_writable
-from ..errors import CstomoError, FrameError, NoUsableChannelsError
+from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..force.device import read_reference, write_reference
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..model.geometry import load_sensor
@@ -65,7 +70,7 @@ class _Stats:
         self.errors = 0          # ... of which an unexpected exception (a bug) was the cause
         self.reject_reason = ""  # why the latest frame was dropped; '' once a frame goes through
         self.period_reason = ""  # the latest reason this diagnostics period
-        self.late = 0            # frames dropped as older than stale_timeout
+        self.late = 0            # frames dropped as measured longer than stale_timeout ago (monotonic clock)
         self.proc_sum = 0.0      # per-frame processing seconds, this period
         self.proc_max = 0.0
         self.proc_n = 0
@@ -78,12 +83,20 @@ class CstomoSensorNode(LifecycleNode):
 
     def __init__(self, node_name: str = "cstomo_sensor", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        overrides = self._parameter_overrides  # rclpy's: given by files, launch, -p and the caller
+        overrides.update({n: _as_double(p) for n, p in overrides.items()})  # rate_hz:=200 is 200.0
         for name, (default, desc) in PARAMETERS.items():
             self.declare_parameter(name, default, desc)
+        _refuse_unknown(self, overrides)
+        self.add_pre_set_parameters_callback(lambda params: [_as_double(p) for p in params])
+        self.add_post_set_parameters_callback(self._parameters_set)
         self.config: NodeConfig | None = None
         self.pipe = None
         self.processor: FrameProcessor | None = None
         self.reference_source = "none"
+        self.tare_taken = ""    # when the reference in use was tared (log and diagnostics)
+        self.tare_refused = ""  # the latest refused tare: when and why
+        self._t_start = time.monotonic()
         self.tare_path = None  # where the tare is saved and read back (set at configure)
         self._active = False
         self._stop = threading.Event()
@@ -97,8 +110,9 @@ class CstomoSensorNode(LifecycleNode):
         self._tare_done = threading.Event()
         self._tare_outcome: tuple[TareOutcome, str] | None = None  # set by the frame thread
         self._board_clock = ClockMapper()
-        self._last_diag = time.monotonic()
-        self._last_corrupt = self._last_rejected = 0
+        self._last_diag = self._last_diag_start = time.monotonic()
+        self._loss_history: deque = deque()  # (monotonic, frames, losses by kind) per diagnostics
+        self._last_rejected = 0
         self._last_implausible = 0
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
@@ -106,8 +120,17 @@ class CstomoSensorNode(LifecycleNode):
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
+    def _parameters_set(self, params: list[Parameter]) -> None:
+        """Apply a run-time change (rclpy refused the read-only parameters already, with the reason
+        "read-only"): ``stale_timeout`` is the only one that may change while running."""
+        for p in params:
+            if p.name == "stale_timeout" and self.config is not None:
+                self.config = replace(self.config, stale_timeout=p.value)
+                self.get_logger().info(f"stale_timeout is now {p.value} s")
+
     def destroy_node(self) -> None:
-        ros_log.detach(self._log_handler)
+        if hasattr(self, "_log_handler"):  # not when __init__ refused the parameters
+            ros_log.detach(self._log_handler)
         super().destroy_node()
 
     # --- lifecycle ---------------------------------------------------------------------------------
@@ -147,7 +170,9 @@ class CstomoSensorNode(LifecycleNode):
         self.tare_path = cfg.tare_path_for(pipe.geometry)
         self._board_clock = ClockMapper(cfg.clock_window)
         self._stats = _Stats()
-        self._last_corrupt = self._last_rejected = 0
+        self._loss_history.clear()
+        self._last_diag_start = time.monotonic()
+        self._last_rejected = 0
         self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._tare_ended)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
         self._init_reference()
@@ -221,34 +246,33 @@ class CstomoSensorNode(LifecycleNode):
     # --- reference (tare) --------------------------------------------------------------------------
 
     def _init_reference(self) -> None:
-        cfg, log = self.config, self.get_logger()
-        if cfg.tare_on_start:
-            self.processor.start_tare(cfg.tare_frames)
-            self.reference_source = "tare pending"
-            return
-        path = self.tare_path
-        if path.is_file():
-            try:
-                ref, noise, _ = read_reference(path, self.pipe.n_meas)
-                problem = tare_problem(ref, self.pipe.model_reference)
-                if not problem:
-                    report = self.pipe.set_reference(ref, noise)
-                    self.reference_source = f"saved tare {path}"
-                    log.info(f"saved tare {path}: noise {'measured' if noise is not None else 'assumed 60 dB'}")
-                    (log.warning if report.warn else log.info)(f"tare: {report.message}")
-                    return
-                log.warning(f"saved tare {path} not used: {problem}; falling back to the model reference "
-                            "(call ~/tare with the sensor unloaded)")
-            except (CstomoError, OSError) as err:
-                log.warning(f"saved tare {path} unusable ({err}); falling back to the model reference")
-        else:
-            legacy = cfg.cache_path / f"tare_{cfg.sensor_name}.csv"
-            was = (f" (the tare at {legacy} was saved by an earlier version, not keyed by the sensor's "
-                   "geometry: it is not used)") if not cfg.tare_file and legacy.is_file() else ""
-            log.warning(f"no saved tare at {path}{was}: using the model's reference frame; call ~/tare with the "
-                        "sensor unloaded")
-        self.pipe.set_reference(self.pipe.model_reference)
-        self.reference_source = "model (untared)"
+        """The saved tare of this device if usable, else a tare on the first frames (``tare_on_start``
+        always tares): no force is ever computed against the model's own reference frame, which is
+        not the device's (a phantom force of several newtons at zero load)."""
+        cfg, log, path = self.config, self.get_logger(), self.tare_path
+        self.tare_taken = self.tare_refused = ""
+        why = "tare_on_start is true"
+        if not cfg.tare_on_start:
+            why = f"no saved tare of this device at {path}"
+            if path.is_file():
+                try:
+                    ref, noise, _ = read_reference(path, self.pipe.n_meas)
+                    why = tare_problem(ref, self.pipe.model_reference)
+                    if not why:
+                        report = self.pipe.set_reference(ref, noise)
+                        self.reference_source = f"saved tare {path}"
+                        log.info(f"saved tare {path}: noise {'measured' if noise is not None else 'assumed 60 dB'}")
+                        (log.warning if report.warn else log.info)(f"tare: {report.message}")
+                        return
+                    why = f"saved tare {path} not used: {why}"
+                except (CstomoError, OSError) as err:
+                    why = f"saved tare {path} unusable ({err})"
+        self.processor.start_tare(cfg.tare_frames)
+        self.reference_source = "tare pending"
+        elapsed = time.monotonic() - self._t_start  # a slow first model build delays the tare: say so
+        (log.info if cfg.tare_on_start and elapsed < 10.0 else log.warning)(
+            f"{why}: taring on the first {cfg.tare_frames} frames from now, {elapsed:.0f} s after start (the joint "
+            "must be unloaded); no force is published before the tare is taken")
 
     def _save_tare(self, outcome: TareOutcome) -> str:
         """Write an accepted tare to ``tare_path`` and its noise beside it (``.noise.csv``, atomically);
@@ -272,7 +296,17 @@ class CstomoSensorNode(LifecycleNode):
     def _tare_ended(self, outcome: TareOutcome) -> None:
         """The processor ended a tare (frame thread, under ``_proc_lock``): save it if accepted and
         hand the outcome to a waiting ``~/tare`` call."""
-        note = self._save_tare(outcome) if outcome.ok else ""
+        log, when = self.get_logger(), time.strftime("%H:%M:%S")
+        if outcome.ok:
+            self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
+                              f"{outcome.frames} frames, spread {outcome.spread:.2%}"
+            log.info(f"tare taken at {self.tare_taken}")
+            note = self._save_tare(outcome)
+        else:
+            self.tare_refused = f"{when}: {outcome.reason}"
+            log.warning(f"{outcome.reason}" + (" (no reference yet: taring again on the next frames)"
+                                               if self.processor.taring else ""))
+            note = ""
         self._tare_outcome = (outcome, note)
         self._tare_done.set()
 
@@ -306,7 +340,6 @@ class CstomoSensorNode(LifecycleNode):
             return response
         outcome, note = ended
         if not outcome.ok:
-            self.get_logger().warning(f"~/tare: {outcome.reason}")
             response.success, response.message = False, f"{outcome.reason}, then call ~/tare again; {unchanged}"
             return response
         response.success = True
@@ -323,12 +356,14 @@ class CstomoSensorNode(LifecycleNode):
                 frame = drv.get(0.1)
                 if frame is None:
                     continue
-                host_ns = self.get_clock().now().nanoseconds
+                # the board clock is mapped onto the host's monotonic clock (it cannot step), which
+                # gives the frame's age; the stamp is the ROS time now minus that age
+                now_ns = self.get_clock().now().nanoseconds
+                age_ns = 0  # text mode: no board clock
                 if frame.board_time_us is not None:
-                    stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
-                else:
-                    stamp_ns = host_ns  # text mode: no board clock
-                self._handle(frame.values, frame.saturated, frame.contact_ok, stamp_ns, host_ns, raw=True)
+                    mono_ns = time.monotonic_ns()
+                    age_ns = mono_ns - self._board_clock.stamp_ns(frame.board_time_us, mono_ns)
+                self._handle(frame.values, frame.saturated, frame.contact_ok, now_ns - age_ns, age_ns, raw=True)
             except RCLError as err:
                 if not self.context.ok():
                     return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
@@ -346,7 +381,7 @@ class CstomoSensorNode(LifecycleNode):
             self.get_logger().warning(f"dropped input frame: {err}", throttle_duration_sec=5.0)
             return
         try:
-            self._handle(values, None, None, host_ns, host_ns, raw=False)
+            self._handle(values, None, None, host_ns, 0, raw=False)
         except Exception as err:  # noqa: BLE001 - the frame boundary, as in _serial_loop
             self._frame_dropped(err)
 
@@ -367,8 +402,9 @@ class CstomoSensorNode(LifecycleNode):
         else:
             self.get_logger().warning(f"dropped frame: {reason}", throttle_duration_sec=5.0)
 
-    def _handle(self, values, saturated, contact_ok, stamp_ns: int, host_ns: int, raw: bool) -> None:
-        """One frame: count it, maybe publish raw, process (tare or result), publish outputs.
+    def _handle(self, values, saturated, contact_ok, stamp_ns: int, age_ns: int, raw: bool) -> None:
+        """One frame measured ``age_ns`` ago (monotonic): count it, drop it if older than
+        ``stale_timeout``, maybe publish raw, process (tare or result), publish outputs.
 
         Raises whatever the frame path raises; the callers count it (:meth:`_frame_dropped`)."""
         t0 = time.perf_counter()
@@ -379,7 +415,7 @@ class CstomoSensorNode(LifecycleNode):
             st.last_frame = time.monotonic()
         if proc is None:
             return
-        if host_ns - stamp_ns > cfg.stale_timeout * 1e9:
+        if age_ns > cfg.stale_timeout * 1e9:
             with st.lock:
                 st.late += 1
             return
@@ -447,17 +483,20 @@ class CstomoSensorNode(LifecycleNode):
               "late_dropped": late}
         level, msgs = DiagnosticStatus.OK, []
         ds = self._driver.stats() if self._driver is not None else None
+        losses = {"corrupt": corrupt, "late": late}
         if ds is not None:
             kv.update(connected=ds.connected, dropped_overflow=ds.dropped_overflow, reconnects=ds.reconnects,
-                      seq_gaps=ds.seq_gaps, last_error=ds.last_error)
-            corrupt += ds.corrupt
+                      seq_gaps=ds.seq_gaps, duplicates=ds.duplicates, reordered=ds.reordered, resyncs=ds.resyncs,
+                      frame_period_ms=f"{ds.period * 1e3:.1f}", last_error=ds.last_error)
+            losses.update(corrupt=corrupt + ds.corrupt, gaps=ds.seq_gaps, duplicates=ds.duplicates,
+                          reordered=ds.reordered, overflow=ds.dropped_overflow)
             if not ds.connected:
                 level, msgs = DiagnosticStatus.ERROR, msgs + ["board disconnected"]
-        kv["corrupt"] = corrupt
-        if corrupt > self._last_corrupt:
-            level = max(level, DiagnosticStatus.WARN)
-            msgs.append(f"{corrupt - self._last_corrupt} corrupt frames")
-        self._last_corrupt = corrupt
+        kv["corrupt"] = losses["corrupt"]
+        loss_level, loss_msg = self._loss_level(now, frames, losses)
+        if loss_msg:
+            level = max(level, loss_level)
+            msgs.append(loss_msg)
         kv.update(kv_rejected)
         if rejected > self._last_rejected:
             level = max(level, DiagnosticStatus.WARN)
@@ -487,15 +526,17 @@ class CstomoSensorNode(LifecycleNode):
         if reason:
             level = DiagnosticStatus.ERROR if ds is not None and not ds.connected else max(level, DiagnosticStatus.WARN)
             msgs.insert(0, f"stale: {reason}")
-        if self.reference_source.startswith("model"):
+        kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused)
+        if proc is not None and proc.taring and self.pipe is not None and self.pipe.reference is None:
             level = max(level, DiagnosticStatus.WARN)
-            msgs.append("untared: using the model reference")
+            msgs.append("no reference yet: taring on the first frames (the joint must be unloaded); no force "
+                        "published until then" + (f"; last tare refused at {self.tare_refused}" if self.tare_refused else ""))
         pipe = self.pipe
         report = pipe.scale_report if pipe is not None else None
         if report is not None:
             kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
                       noise="measured by the tare" if pipe.noise_measured else "assumed 60 dB")
-            if report.warn and not self.reference_source.startswith("model"):
+            if report.warn:
                 level = max(level, DiagnosticStatus.WARN)
                 msgs.append(report.message)
         if pipe is not None:
@@ -507,12 +548,39 @@ class CstomoSensorNode(LifecycleNode):
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
         return status
 
+    def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:
+        """The level and message of the frames lost or dropped over the last :data:`LOSS_WINDOW` s
+        (``losses``: running totals by kind); WARN above :data:`LOSS_WARN`, ERROR above
+        :data:`LOSS_ERROR` of the frames the board sent meanwhile."""
+        hist = self._loss_history
+        if not hist:
+            hist.append((self._last_diag_start, 0, {}))
+        hist.append((now, frames, dict(losses)))
+        while len(hist) > 2 and now - hist[1][0] >= LOSS_WINDOW:
+            hist.popleft()
+        t0, f0, old = hist[0]
+        d = {k: v - old.get(k, 0) for k, v in losses.items()}
+        lost = sum(d.values())
+        sent = frames - f0 + lost - d["late"]  # late frames were received (and counted in frames)
+        if lost <= 0 or sent <= 0 or lost <= LOSS_WARN * sent:
+            return DiagnosticStatus.OK, ""
+        level = DiagnosticStatus.ERROR if lost > LOSS_ERROR * sent else DiagnosticStatus.WARN
+        parts = ", ".join(f"{k} {v}" for k, v in d.items() if v)
+        return level, f"{lost} of {sent} frames lost or dropped in the last {now - t0:.0f} s ({parts})"
+
     def _publish_diagnostics(self) -> None:
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self.diagnostics()]
         self._diag_pub.publish(arr)
 
+
+#: Seconds over which lost and dropped frames (corrupt, sequence gaps, late, duplicated, reordered,
+#: queue overflow) are judged, and the fractions of the frames sent in that time above which the
+#: status is WARN and ERROR.
+LOSS_WINDOW = 5.0
+LOSS_WARN = 0.01
+LOSS_ERROR = 0.2
 
 #: A saved tare whose rms lies outside these multiples of the model reference's rms is not a frame of
 #: this sensor: voltages scale with the rubber's resistivity, 0.2..5 times nominal (REFERENCE_SENSOR.md s.8).
@@ -547,18 +615,60 @@ def failure_cause(err: BaseException) -> str:
     return f"{type(err).__name__}: {err} (unexpected: please report it with the debug log)"
 
 
+#: Parameters rclpy declares later (QoS overrides of publishers): not unknown to the node.
+_RCLPY_PREFIXES = ("qos_overrides.",)
+
+
+def _as_double(p: Parameter) -> Parameter:
+    """An integer given for a parameter whose default is a float, as that float (``rate_hz:=200``)."""
+    default = PARAMETERS.get(p.name, (None,))[0]
+    if isinstance(default, float) and p.type_ == Parameter.Type.INTEGER:
+        return Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+    return p
+
+
+def _refuse_unknown(node: LifecycleNode, overrides: dict) -> None:
+    """A parameter given to the node (file, launch, -p) that it does not have is a mistake
+    (``tare_on_star``): refused with the nearest known name."""
+    unknown = sorted(n for n in overrides if n not in PARAMETERS and not n.startswith(_RCLPY_PREFIXES)
+                     and not node.has_parameter(n))
+    if unknown:
+        hints = []
+        for n in unknown:
+            near = difflib.get_close_matches(n, list(PARAMETERS), n=1)
+            hints.append(f"'{n}'" + (f" (did you mean '{near[0]}'?)" if near else ""))
+        raise ConfigError(f"unknown parameter{'s' if len(hints) > 1 else ''} {', '.join(hints)}: expected names "
+                          f"from config/cstomo_sensor.yaml ({', '.join(PARAMETERS)})")
+
+
 def _msg_class(type_name: str):
     pkg, _, name = type_name.split("/")
 
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
+def usage() -> str:
+    """``cstomo_sensor_node --help``: how to run it and every parameter with its default."""
+    lines = ["usage: cstomo_sensor_node [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]",
+             "", __doc__.splitlines()[0].replace("``", ""), "",
+             "Publishes ~/wrench, ~/force_magnitude, ~/force_elevation, ~/force_azimuth, ~/stress_field, "
+             "~/raw_voltages, /diagnostics; service ~/tare (docs/node.md).", "", "parameters (default):"]
+    for name, (default, desc) in PARAMETERS.items():
+        lines.append(f"  {name:<20} {default!r:<16} {desc.description}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
-    rclpy.init(args=argv if argv is not None else sys.argv)
+    argv = list(argv if argv is not None else sys.argv)
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in own or "--help" in own:
+        print(usage())
+        return 0
+    rclpy.init(args=argv)
     try:
         node = CstomoSensorNode()
-    except (InvalidParameterTypeException, InvalidParameterValueException) as err:  # overrides refused
+    except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused
         print(f"cstomo_sensor_node: {err}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
@@ -572,6 +682,9 @@ def main(argv: list[str] | None = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # a second Ctrl-C (or the one rclpy's handler passes on just after shutting the context
+        # down) must not interrupt the joins below with a KeyboardInterrupt traceback
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         node._release()
         node.destroy_node()
         rclpy.try_shutdown()

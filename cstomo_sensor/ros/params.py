@@ -4,6 +4,7 @@
 same parameters with the same defaults (a test holds them equal)."""
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -51,10 +52,11 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "calibration_file": _d("Device calibration file written by `cstomo calibrate`; '' = the nominal model. A "
                            "missing, damaged or other-model file makes configure fail with the reason", read_only=True),
     "tare_frames": _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000),
-    "tare_file": _d("Where the tare is saved and read back at start; '' = <cache_dir>/tare_<sensor>-<geometry digest>.csv",
+    "tare_file": _d("Where the tare is saved and read back at start; '' = "
+                    "<cache_dir>/tare_<sensor>-<geometry digest>-<port>.csv",
                          read_only=True),
-    "tare_on_start": _d("Tare on the first tare_frames frames at start (else the saved tare, "
-                                "else the model reference)", read_only=True),
+    "tare_on_start": _d("Tare on the first tare_frames frames at start (else the saved tare of this "
+                        "device, else a tare at start too)", read_only=True),
     "frame_id": _d("frame_id of the wrench and the stress cloud (the wrench frame)",
                                      read_only=True),
     "autostart": _d("Walk to active by itself (no lifecycle manager needed)", read_only=True),
@@ -64,7 +66,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
     "stale_timeout": _d("Seconds without frames after which the data is stale (force topics stop, "
-                              "diagnostics say why)", lo=0.01, hi=3600.0),
+                        "diagnostics say why), and the age beyond which a frame is dropped as late; "
+                        "may change at run time", lo=0.01, hi=3600.0),
     "clock_window": _d("Seconds of board time over which the board-to-host clock offset is "
                               "the minimum", read_only=True, lo=0.1, hi=3600.0),
 }
@@ -131,17 +134,16 @@ class NodeConfig:
 
         return default_cache_dir()
 
-    @property
-    def sensor_name(self) -> str:
-        return Path(self.pipeline.sensor).stem
-
     def tare_path_for(self, geometry: SensorGeometry) -> Path:
-        """Where the tare of this sensor is saved (frames-file format) and read back at start:
-        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>.csv`` keyed by a digest of the whole
-        geometry (two sensor files with the same name never share a tare)."""
+        """Where the tare of this device is saved (frames-file format) and read back at start:
+        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>-<port>.csv``, keyed by a digest of the
+        whole geometry and by the port (``topic`` for topic input): a tare belongs to one board on one
+        sensor, so two sensor files with the same name, or a simulated board and the real one, never
+        share it."""
         if self.tare_file:
             return Path(self.tare_file)
-        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}.csv"
+        device = re.sub(r"[^A-Za-z0-9]+", "_", self.port if self.input == "serial" else "topic").strip("_")
+        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}-{device[-48:]}.csv"
 
     def qos(self) -> QoSProfile:
         rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,

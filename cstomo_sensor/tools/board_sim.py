@@ -45,7 +45,24 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     args = _parser().parse_args(argv)
+    # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent
+    # left it ignored, as a shell does for a background job)
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _main(args)
+    except KeyboardInterrupt:
+        print("cstomo board-sim: stopped before streaming", file=sys.stderr)
+        return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _main(args: argparse.Namespace) -> int:
     try:
         faults = FaultConfig(
             bit_flip=args.bit_flip, drop=args.drop, truncate=args.truncate, garbage=args.garbage,
@@ -66,8 +83,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"device: {board.device}", flush=True)
+    streaming = False
     try:
-        board.run()
+        board.start()
+        while not board.join(0.1):  # the main thread stays free for the signal handlers
+            if board.script_started.is_set() and not streaming:
+                streaming = True
+                print("streaming", flush=True)  # the load script's t = 0 (NodeWithBoard.wait_streaming)
     finally:
         board.close()
         for sig, handler in previous.items():

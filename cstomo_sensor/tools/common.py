@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 from typing import IO
+
+import yaml
 
 from ..errors import ConfigError, CstomoError
 from ..force.estimate import ESTIMATORS
@@ -57,16 +61,77 @@ def local_ros_env(domain_base: int) -> None:
     os.environ.setdefault("ROS_DOMAIN_ID", str(domain_base + os.getpid() % 70))
 
 
+PACKAGE = "cstomo_sensor"
+
+
 def executable(name: str) -> str:
-    """Path of one of the package's console scripts (installed beside the running interpreter)."""
-    return str(Path(sys.executable).parent / name)
+    """Path of one of the package's console scripts: in a colcon install ``<prefix>/lib/cstomo_sensor/``
+    (prefixes from ``AMENT_PREFIX_PATH`` that hold the package), else beside the running interpreter
+    (a virtual environment), else on ``PATH``. Raises :class:`CstomoError` naming where it looked."""
+    places = [Path(prefix) / "lib" / PACKAGE / name for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+              if prefix and (Path(prefix) / "share" / "ament_index" / "resource_index" / "packages" / PACKAGE).is_file()]
+    places.append(Path(sys.executable).parent / name)
+    for place in places:
+        if place.is_file() and os.access(place, os.X_OK):
+            return str(place)
+    found = shutil.which(name)
+    if found:
+        return found
+    raise CstomoError(f"executable {name!r} not found in {[str(p) for p in places]} nor on PATH: "
+                      "install the package (pip install . or colcon build) and source its set-up")
+
+
+def config_parameter(config_file: str | Path, name: str) -> object | None:
+    """The value of node parameter ``name`` in a ROS parameter file (any node key, e.g.
+    ``/**/cstomo_sensor``), or None if the file does not set it."""
+    with open(config_file, encoding="utf-8") as f:
+        doc = yaml.safe_load(f) or {}
+    for section in doc.values():
+        params = section.get("ros__parameters", {}) if isinstance(section, dict) else {}
+        if name in params:
+            return params[name]
+    return None
+
+
+#: The simulated board's default load script in a launch (time,fx,fy,fz in s and N, wrench frame):
+#: unloaded for the tare, then pressing straight down, tilted towards +x, towards +y, and released.
+SIM_LOAD = "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,10,0,-15\n9,0,10,-15\n12,0,0,0\n"
+
+
+def launch_plan(args: dict[str, str]) -> tuple[dict, list[str] | None, Path | None]:
+    """What ``launch/cstomo_sensor.launch.py`` starts, from its arguments (strings, never evaluated).
+
+    Returns the node's parameter overrides (only the arguments given: an empty one leaves the
+    parameter file's value) and, with ``sim`` true, the command of the simulated board and a new
+    temporary directory ``work`` (else None) that the caller removes at shutdown. The board's link,
+    its load script (``sim_load_script`` or :data:`SIM_LOAD`) and the node's tare file live there, in
+    a directory of this launch only: two launches never
+    share a link, a killed board leaves no stale link for the next launch, and the simulated board's
+    tare never replaces a real board's saved tare.
+    """
+    sim = args.get("sim", "").strip().lower()
+    if sim not in ("true", "false", "1", "0", ""):
+        raise ConfigError.bad_value("sim", sim, "true or false")
+    overrides = {k: args[k] for k in ("port", "sensor", "estimator") if args.get(k)}
+    if sim not in ("true", "1"):
+        return overrides, None, None
+    sensor = args.get("sensor") or config_parameter(args["config"], "sensor") or DEFAULTS.sensor
+    work = Path(tempfile.mkdtemp(prefix="cstomo_sim_"))
+    script = args.get("sim_load_script") or str(work / "load.csv")
+    if not args.get("sim_load_script"):
+        (work / "load.csv").write_text(SIM_LOAD)
+    link = str(work / "board")
+    overrides.update(port=link, tare_file=str(work / "tare.csv"))
+    cmd = [executable("cstomo"), "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
+           "--load-script", script]
+    return overrides, cmd, work
 
 
 class NodeWithBoard:
     """``cstomo_sensor_node`` and ``cstomo board-sim`` on one pty link, as subprocesses.
 
-    The node is started first (it waits for the link), then the board; :meth:`start` returns the
-    board's device path once the board has printed it. :meth:`stop` (and leaving a ``with`` block)
+    The board is started first (it computes its loads, then prints its device), then the node on its
+    link; :meth:`start` returns the board's device path. :meth:`stop` (and leaving a ``with`` block)
     sends SIGINT to the node first, so it does not report the board's end as a lost port, then to
     the board, and kills what has not ended after 5 s.
 
@@ -94,23 +159,36 @@ class NodeWithBoard:
         self.node: subprocess.Popen | None = None
         self.board: subprocess.Popen | None = None
 
+    def start_board(self) -> None:
+        """Start the board alone (it computes its loads meanwhile; its script starts at the node's START)."""
+        # sessions of their own: a terminal's Ctrl-C reaches the caller only, which stops them in order
+        if self.board is None:
+            self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True,
+                                          start_new_session=True)
+
     def start(self) -> str:
-        """Start both; the board's device path. Raises :class:`CstomoError` if the board fails."""
-        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out,
-                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
-        self.board = subprocess.Popen(self.board_cmd, stdout=subprocess.PIPE, stderr=self.board_err, text=True)
+        """Start the board (unless :meth:`start_board` did), wait for its device, then start the node
+        on its link (so the node never finds the link missing); the board's device path. Raises
+        :class:`CstomoError` if the board fails."""
+        self.start_board()
         first = self.board.stdout.readline().strip()
         if not first.startswith("device:"):
             raise CstomoError(f"board-sim failed to start ({first!r})")
+        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
+                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
         return first.split(":", 1)[1].strip()
 
+    def wait_streaming(self) -> None:
+        """Block until the board's load script starts (the node has connected and sent START).
+        Raises :class:`CstomoError` if the board ends first."""
+        line = self.board.stdout.readline().strip()
+        if line != "streaming":
+            raise CstomoError(f"board-sim ended before streaming ({line!r})")
+
     def stop(self) -> None:
-        procs = [p for p in (self.node, self.board) if p is not None]
-        for p in procs:
-            if p.poll() is None:
+        for p in (self.node, self.board):  # one after the other: the node ends before its board
+            if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGINT)
-        for p in procs:
-            if p.poll() is None:
                 try:
                     p.wait(5)
                 except subprocess.TimeoutExpired:

@@ -12,6 +12,8 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -59,11 +61,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")
     a = p.parse_args(argv)
     local_ros_env(150)
+    signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM ends the demo as Ctrl-C does
     try:
         return _run(a)
     except (CstomoError, OSError) as err:
         print(f"cstomo demo: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # before the board streams (the watch handles its own)
+        print("\ncstomo demo: stopped before the board streamed", file=sys.stderr)
+        return 0
+
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
 
 
 def _run(a: argparse.Namespace) -> int:
@@ -73,30 +83,48 @@ def _run(a: argparse.Namespace) -> int:
         labels = [f"script row {i + 1}" for i in range(len(times))]
     else:
         times, forces, labels = load_script(a.hold)
-    print("[1/3] model and force estimator (built once, then loaded from the cache)", flush=True)
-    t = time.perf_counter()
-    Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator), progress=lambda m: print("      " + m, flush=True))
-    print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
-
     work = Path(tempfile.mkdtemp(prefix="cstomo_demo_"))
     script = work / "load.csv"
     np.savetxt(script, np.column_stack([times, forces]), delimiter=",", header="time,fx,fy,fz", comments="")
     duration = float(times[-1] + a.hold)
     params = {"sensor": a.sensor, "estimator": a.estimator, "tare_on_start": "true", "tare_frames": 50,
               "tare_file": work / "tare.csv", "stress_field_every": 0}
-    board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate), "--duration", str(duration)]
-    with NodeWithBoard(work / "board", params, board_args) as run:
-        print("[2/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
-              flush=True)
-        device = run.start()
-        t0 = time.monotonic()
-        print(f"[3/3] board streaming on {device}; the node tares on its first frames\n", flush=True)
-        return _watch(a, t0, duration, times, forces, labels, run.board)
+    board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate),
+                  "--duration", str(duration + 2.0)]  # the board outlives the watch: the node is stopped first
+    try:
+        with NodeWithBoard(work / "board", params, board_args) as run:
+            # the board computes its loads (its script starts when the node connects) while the model builds
+            print("[1/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
+                  flush=True)
+            run.start_board()
+            print("[2/3] model and force estimator (built once, then loaded from the cache)", flush=True)
+            t = time.perf_counter()
+            Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator),
+                           progress=lambda m: print("      " + m, flush=True))
+            print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
+            device = run.start()
+            print(f"[3/3] board on {device}; waiting for the node to connect", flush=True)
+            run.wait_streaming()
+            t0 = time.monotonic()  # the load script's t = 0
+            print("      streaming; the node tares on its first frames\n", flush=True)
+            return _watch(a, t0, duration, times, forces, labels, run.board)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)  # the load script, the link and the demo's own tare
 
 
 def _watch(a, t0, duration, times, forces, labels, board) -> int:
-    rclpy.init()
+    # Ctrl-C and SIGTERM end the watch quietly: the summary is printed, the node and the board are
+    # stopped in order by NodeWithBoard (they run in sessions of their own, so a terminal's Ctrl-C
+    # reaches only this process).
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("cstomo_demo_view")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     latest: dict = {}
     count = [0]
 
@@ -105,15 +133,20 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
         latest["f"] = np.array([f.x, f.y, f.z])
         count[0] += 1
 
+    def spin() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass  # rclpy shut down under the spin: the watch is over
+
     node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", on_wrench, 10)
-    spin = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
-    spin.start()
+    spinner = threading.Thread(target=spin, daemon=True)
+    spinner.start()
     print(f"{'t [s]':>6}  {'load':<22} {'true':<34} {'estimated':<34} {'angle err':>9} {'rate':>7}")
     errors = []
     last_n, last_t = 0, time.monotonic()
     try:
-        while time.monotonic() - t0 < duration and board.poll() is None:
-            time.sleep(0.5)
+        while time.monotonic() - t0 < duration and board.poll() is None and not stop.wait(0.5):
             now = time.monotonic()
             t = now - t0
             i = load_index(times, t)
@@ -132,12 +165,24 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
             print(f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true):<34} {_fmt(est):<34} "
                   f"{shown} {rate:6.0f}/s", flush=True)
     finally:
+        executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown()
+        spinner.join(2.0)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if stop.is_set():
+        print(f"\nstopped at t = {time.monotonic() - t0:.1f} s", flush=True)
     if errors:
         e = np.array(errors)
         print(f"\n{count[0]} wrenches received; settled loads: median angle error {np.median(e[:, 0]):.2f} deg, "
               f"median magnitude error {100 * np.median(e[:, 1]):.1f} % ({a.estimator} estimator)")
+        return 0
+    if count[0]:
+        print(f"\n{count[0]} wrenches received; no load held long enough (0.6 s) to summarise")
+        return 0
+    if stop.is_set():
+        print("no wrench received yet")
         return 0
     print("\nno wrench received from the node", file=sys.stderr)
     return 1

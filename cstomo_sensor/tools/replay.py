@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rclpy._rclpy_pybind11 import RMWError
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Float32MultiArray
 
@@ -60,16 +61,21 @@ def _typestore():
 
 
 def find_raw_topic(connections, topic: str | None = None) -> str:
-    """The input topic: ``topic`` if given, else the one topic whose name ends in ``raw_voltages``."""
+    """The input topic: ``topic`` if given, else the one topic whose name ends in ``raw_voltages``;
+    its messages must be of the raw voltages' type."""
     names = sorted({c.topic for c in connections})
     if topic is not None:
         if topic not in names:
             raise ConfigError(f"topic={topic!r}: not in the bag; it holds {names}")
-        return topic
-    raw = [n for n in names if n.rstrip("/").endswith(RAW_TOPIC)]
-    if len(raw) != 1:
-        raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
-    return raw[0]
+    else:
+        raw = [n for n in names if n.rstrip("/").endswith(RAW_TOPIC)]
+        if len(raw) != 1:
+            raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
+        topic = raw[0]
+    types = sorted({c.msgtype for c in connections if c.topic == topic})
+    if types != [TOPIC_TYPES[RAW_TOPIC]]:
+        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]}")
+    return topic
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
@@ -124,8 +130,14 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                 for _conn, t_ns, raw in reader.messages(connections=inputs):
                     n_in += 1
                     try:
-                        values = values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray))
-                        result = proc.process(values)
+                        msg = deserialize_message(bytes(raw), Float32MultiArray)
+                    except RMWError as err:  # not CDR of the type: a corrupt frame, as the node drops one
+                        corrupt += 1
+                        log.warning("frame %d at %d ns dropped: not a %s (%s)", n_in - 1, t_ns,
+                                    TOPIC_TYPES[RAW_TOPIC], str(err).split(",")[0])
+                        continue
+                    try:
+                        result = proc.process(values_from_raw_msg(msg))
                     except FrameError as err:
                         corrupt += 1
                         log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
@@ -135,6 +147,9 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                     n_out += 1
                     for name, msg in out.build(result, t_ns).items():
                         writer.write(conns[name], t_ns, serialize_message(msg))
+            if n_in and corrupt == n_in:
+                raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
+                                  "no output written")
             os.replace(partial, out_bag)
         finally:
             shutil.rmtree(partial, ignore_errors=True)

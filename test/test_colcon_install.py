@@ -1,0 +1,119 @@
+"""Proven on a colcon install (issue 12 item 7): the package is built with colcon into a temporary
+workspace, the workspace's ``install/setup.sh`` is sourced, and everything below runs from that
+install, not from this checkout: the installed ``board-sim`` and node until a wrench arrives, the
+launch file's simulated board command, and ``cstomo demo``. colcon-core, colcon-ros and ament_package
+come from the package index (the ``test`` extra); launch/launch_ros do not, so the launch file itself
+is not run here (test_launch.py tests the plan it hands to launch)."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("colcon_core", reason="colcon-core is in the test extra: pip install '.[test]'")
+pytest.importorskip("ament_package", reason="ros-kilted-ament-package is in the test extra")
+pytest.importorskip("colcon_ros", reason="colcon-ros is in the test extra")
+rclpy = pytest.importorskip("rclpy")
+
+ROOT = Path(__file__).resolve().parent.parent
+SKIP = shutil.ignore_patterns(".git", ".venv", ".cache", "build", "install", "log", "out", "__pycache__",
+                              "*.egg-info", ".pytest_cache", ".ruff_cache")
+
+
+@pytest.fixture(scope="module")
+def install(tmp_path_factory):
+    """(install prefix of the workspace, environment after sourcing its setup.sh)."""
+    ws = tmp_path_factory.mktemp("colcon_ws")
+    shutil.copytree(ROOT, ws / "src" / "cstomo_sensor", ignore=SKIP, symlinks=True)
+    colcon = [sys.executable, "-c", "import sys; from colcon_core.command import main; sys.exit(main())"]
+    r = subprocess.run([*colcon, "build", "--base-paths", "src"], cwd=ws, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    prefix = ws / "install" / "cstomo_sensor"
+    for f in ("share/ament_index/resource_index/packages/cstomo_sensor", "share/cstomo_sensor/package.xml",
+              "share/cstomo_sensor/launch/cstomo_sensor.launch.py", "share/cstomo_sensor/config/cstomo_sensor.yaml",
+              "share/cstomo_sensor/config/sensors/cuboid_joint.yaml", "lib/cstomo_sensor/cstomo",
+              "lib/cstomo_sensor/cstomo_sensor_node"):
+        assert (prefix / f).is_file(), f
+    # source it as a robot engineer does, and take the environment it leaves
+    r = subprocess.run(["sh", "-c", f". '{ws / 'install' / 'setup.sh'}' && env -0"], capture_output=True, timeout=60,
+                       env=dict(os.environ))
+    assert r.returncode == 0, r.stderr
+    env = dict(kv.split("=", 1) for kv in r.stdout.decode().split("\0") if "=" in kv)
+    assert str(prefix) in env.get("AMENT_PREFIX_PATH", ""), env.get("AMENT_PREFIX_PATH")
+    env["OPENBLAS_NUM_THREADS"] = "1"
+    # the installed package is the one imported, not this checkout
+    r = subprocess.run([sys.executable, "-c", "import cstomo_sensor; print(cstomo_sensor.__file__)"],
+                       env=env, capture_output=True, text=True, timeout=60, cwd=ws)
+    assert r.stdout.strip().startswith(str(prefix)), r.stdout + r.stderr
+    return prefix, env
+
+
+def test_installed_board_sim_and_node_deliver_a_wrench(install, tmp_path):
+    from geometry_msgs.msg import WrenchStamped
+
+    prefix, env = install
+    lib = prefix / "lib" / "cstomo_sensor"
+    script = tmp_path / "load.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n2,0,0,-20\n")
+    link = tmp_path / "board"
+    node = subprocess.Popen([str(lib / "cstomo_sensor_node"), "--ros-args", "-r", "__ns:=/installed",
+                             "-p", f"port:={link}", "-p", f"tare_file:={tmp_path / 'tare.csv'}"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    board = subprocess.Popen([str(lib / "cstomo"), "board-sim", "--sensor", "cuboid_joint", "--rate", "100",
+                              "--load-script", str(script), "--link", str(link)],
+                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    probe = rclpy.create_node("colcon_probe", context=ctx)
+    got = []
+    probe.create_subscription(WrenchStamped, "/installed/cstomo_sensor/wrench", got.append, 10)
+    try:
+        from rclpy.executors import SingleThreadedExecutor
+
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(probe)
+        deadline = time.monotonic() + 240  # a cold cache builds the model first
+        while not got and time.monotonic() < deadline and node.poll() is None:
+            ex.spin_once(timeout_sec=0.2)
+        assert got, "no wrench from the installed node"
+        assert got[0].header.frame_id == "cstomo_socket"
+    finally:
+        probe.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        for p in (node, board):
+            p.send_signal(2)
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+    out = node.stdout.read()
+    assert node.returncode == 0 and "Traceback" not in out, out
+
+
+def test_launch_plan_of_the_install_starts_the_installed_board(install):
+    prefix, env = install
+    code = ("from cstomo_sensor.tools.common import launch_plan; import shutil; "
+            "o, cmd, work = launch_plan({'sim': 'true', 'config': sys.argv[1]}); print(cmd[0]); shutil.rmtree(work)")
+    r = subprocess.run([sys.executable, "-c", "import sys; " + code,
+                        str(prefix / "share" / "cstomo_sensor" / "config" / "cstomo_sensor.yaml")],
+                       env=env, capture_output=True, text=True, timeout=60, cwd="/")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == str(prefix / "lib" / "cstomo_sensor" / "cstomo"), r.stdout
+
+
+def test_demo_runs_from_the_install(install, tmp_path):
+    prefix, env = install
+    script = tmp_path / "load.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n")
+    r = subprocess.run([str(prefix / "lib" / "cstomo_sensor" / "cstomo"), "demo", "--load-script", str(script),
+                        "--hold", "2.5", "--rate", "100"], env=dict(env, TMPDIR=str(tmp_path)),
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "median angle error" in r.stdout and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
+    assert not list(tmp_path.glob("cstomo_demo_*"))

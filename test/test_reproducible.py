@@ -1,0 +1,92 @@
+"""Reproducible models: the default sensor's shipped meshes, and two cold builds bit for bit.
+
+pytetwild gives a slightly different mesh on every run, so the default model's meshes ship with the
+package (model/mesh.py). Expected values here are the shipped files' own bytes and a second,
+independent build in another process (other BLAS thread count), never numbers of the build under test.
+"""
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cstomo_sensor.force.estimate import CalibrationSpec, calibration_set
+from cstomo_sensor.inverse.reconstruction import MODEL_ARRAYS, ReconSpec, build_model
+from cstomo_sensor.model import mesh as meshmod
+from cstomo_sensor.model.mesh import MeshSpec, build_mesh
+
+#: The meshes the default model, its calibration and the default simulated device need.
+DEFAULT_SPECS = [MeshSpec(h=ReconSpec.mesh_size), MeshSpec(h=CalibrationSpec.mechanics_mesh_size,
+                                                              h_electrode=CalibrationSpec.mechanics_mesh_size),
+                 MeshSpec(h=3e-3), MeshSpec(h=4e-3, h_electrode=4e-3)]
+
+BUILD = """
+import json, sys, numpy as np
+from cstomo_sensor.model.geometry import load_sensor
+from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model, MODEL_ARRAYS
+from cstomo_sensor.force.estimate import CalibrationSpec, calibration_set
+g = load_sensor("cuboid_joint")
+m = build_model(g, ReconSpec(), sys.argv[1])
+f, y = calibration_set(g, m, CalibrationSpec(), sys.argv[1])
+np.savez(sys.argv[2], forces=f, y=y, k=m.iterations, **{k: getattr(m, k) for k in MODEL_ARRAYS})
+"""
+
+
+@pytest.mark.parametrize("spec", DEFAULT_SPECS, ids=lambda s: f"h{s.h * 1e3:g}he{s.he * 1e3:g}")
+def test_the_default_meshes_ship_and_are_used(cuboid, tmp_path, spec):
+    mesh = build_mesh(cuboid, spec, tmp_path)
+    assert mesh.info.get("shipped") is True
+    path = meshmod.SHIPPED_DIR / f"cuboid-{mesh.info['key']}.npz"
+    with np.load(path) as z:
+        assert str(z["cache_key"]) == mesh.info["key"]
+        assert np.array_equal(z["points"], mesh.points) and np.array_equal(z["tets"], mesh.tets)
+    assert not (tmp_path / "meshes").exists()  # nothing meshed, nothing cached
+    assert sum(p.stat().st_size for p in meshmod.SHIPPED_DIR.glob("*.npz")) < 3e6
+
+
+def test_a_shipped_mesh_for_other_inputs_is_not_used(cuboid, tmp_path, monkeypatch):
+    """A file under a shipped name whose key belongs to other inputs is ignored: the cache's entry
+    for these inputs is used instead (no meshing here: the cache holds one)."""
+    four, _ = meshmod._shipped(cuboid, meshmod._mesh_inputs_base(cuboid, DEFAULT_SPECS[0]))
+    six, _ = meshmod._shipped(cuboid, meshmod._mesh_inputs_base(cuboid, DEFAULT_SPECS[1]))
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    monkeypatch.setattr(meshmod, "SHIPPED_DIR", shipped)
+    spec = MeshSpec(h=5e-3)
+    name, _ = meshmod._shipped(cuboid, meshmod._mesh_inputs_base(cuboid, spec))
+    shutil.copy(four, name)  # the 4 mm mesh under the 5 mm mesh's shipped name
+    key = meshmod.input_hash(meshmod._mesh_inputs(cuboid, spec))
+    with np.load(six) as z:  # a cache entry for the 5 mm inputs: the 6 mm mesh's arrays
+        points, tets = z["points"], z["tets"].astype(np.int64)
+    meshmod.cache_save(tmp_path / "meshes" / f"cuboid-{key}.npz", key, points=points, tets=tets)
+    got = build_mesh(cuboid, spec, tmp_path)
+    assert not got.info.get("shipped") and got.info["key"] == key
+    assert np.array_equal(got.points, points)
+
+
+def test_the_default_meshes_need_no_pytetwild(tmp_path):
+    code = ("import sys; sys.modules['pytetwild'] = None\n"
+            "from cstomo_sensor.model.geometry import load_sensor\n"
+            "from cstomo_sensor.model.mesh import MeshSpec, build_mesh\n"
+            f"m = build_mesh(load_sensor('cuboid_joint'), MeshSpec(h=4e-3), {str(tmp_path)!r})\n"
+            "assert m.info['shipped']\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_two_cold_builds_of_the_default_model_are_bit_identical(cuboid, tmp_path):
+    """Model (R, S, reference, k) and calibration set, from two empty caches, one of them in another
+    process with another BLAS thread count: equal bit for bit."""
+    a_dir, b_dir = tmp_path / "a", tmp_path / "b"
+    model = build_model(cuboid, ReconSpec(), a_dir)
+    forces, y = calibration_set(cuboid, model, CalibrationSpec(), a_dir)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2", OMP_NUM_THREADS="2")
+    subprocess.run([sys.executable, "-c", BUILD, str(b_dir), str(tmp_path / "b.npz")], check=True, env=env)
+    with np.load(tmp_path / "b.npz") as b:
+        assert int(b["k"]) == model.iterations
+        for name in MODEL_ARRAYS:
+            assert np.array_equal(b[name], getattr(model, name)), name
+        assert np.array_equal(b["forces"], forces) and np.array_equal(b["y"], y)
+    assert json.dumps(model.meta["mesh"]) == json.dumps(build_model(cuboid, ReconSpec(), b_dir).meta["mesh"])
