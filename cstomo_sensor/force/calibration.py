@@ -52,9 +52,12 @@ MAX_FOLDS = 10
 
 
 def model_hash(model) -> str:
-    """What a calibration depends on: the model's normalisation and its unloaded prediction."""
-    return input_hash({"mesh_h": model.meta.get("mesh_h"), "v_scale": model.v_scale,
-                       "reference": model.model_reference})
+    """What a calibration depends on: the model's normalisation and its unloaded prediction, to 6
+    significant digits (another mesh moves them by 1e-3 and more; a rebuild that differs only in
+    rounding, e.g. after an upgrade, keeps the user's calibration)."""
+    sig = lambda a: [f"{v:.6g}" for v in np.asarray(a, float)]  # noqa: E731
+    return input_hash({"mesh_h": model.meta.get("mesh_h"), "v_scale": sig(model.v_scale),
+                       "reference": sig(model.model_reference)})
 
 
 def _surrogate(forces: np.ndarray, y: np.ndarray) -> RBFInterpolator:
@@ -159,7 +162,7 @@ class DeviceCalibration:
         if h != self.model_hash:
             raise ModelMismatchError(
                 f"calibration {self.path or ''} was fitted against model {self.model_hash}, but the model in use is "
-                f"{h} (another sensor file, mesh size or model build): calibrate again with this model")
+                f"{h} (another sensor file, mesh size or mesh): calibrate again with this model")
 
     def save(self, path: str | Path) -> None:
         doc = {"format": FORMAT, "sensor": self.sensor, "model_hash": self.model_hash, "estimator": self.estimator,
