@@ -46,10 +46,15 @@ from .messages import (
     STRESS_TOPIC,
     TOPIC_TYPES,
     OutputMessages,
-    raw_voltages_msg,
+    RawVoltagesCdr,
     values_from_raw_msg,
 )
 from .params import PARAMETERS, NodeConfig
+
+#: Frames the driver keeps for the frame thread; when it falls behind the oldest is dropped (counted
+#: as ``dropped_overflow``): a controller wants the newest frame, not a backlog, so at most this many
+#: frame periods of staleness (4 ms at 1000 frames/s, 40 ms at 100).
+FRAME_QUEUE = 4
 
 
 class _Stats:
@@ -148,6 +153,7 @@ class CstomoSensorNode(LifecycleNode):
         self._last_corrupt = self._last_rejected = 0
         self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._tare_ended)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
+        self._raw_cdr = RawVoltagesCdr()
         self._init_reference()
         qos = cfg.qos()
         topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else [])
@@ -162,7 +168,7 @@ class CstomoSensorNode(LifecycleNode):
                 log.warning("protocol 'text' has no checksum: a corrupted line that still parses is taken as "
                             "a frame (only the plausibility gate guards it); use 'binary' (CRC-32) if the board can")
             self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
-                                       rate_hz=cfg.rate_hz or None,
+                                       rate_hz=cfg.rate_hz or None, queue_size=FRAME_QUEUE,
                                        stall_timeout=max(cfg.stale_timeout, 0.2))
             self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
             self._thread.start()
@@ -379,7 +385,7 @@ class CstomoSensorNode(LifecycleNode):
             return
         active = self._active
         if raw and active:
-            self._pubs[RAW_TOPIC].publish(raw_voltages_msg(values))
+            self._pubs[RAW_TOPIC].publish(self._raw_cdr(values))  # CDR bytes (messages.py)
         if not (active or proc.taring):
             return
         with self._proc_lock:
@@ -389,8 +395,8 @@ class CstomoSensorNode(LifecycleNode):
                 st.reject_reason = ""  # frames go through again
         if result is None or not result.valid or not self._active:
             return  # an implausible frame is no force: counted by the processor, shown in diagnostics
-        for topic, msg in self.out.build(result, stamp_ns).items():
-            self._pubs[topic].publish(msg)
+        for topic, data in self.out.build(result, stamp_ns).items():
+            self._pubs[topic].publish(data)  # CDR bytes, serialised by OutputMessages
         dt = time.perf_counter() - t0
         with st.lock:
             st.proc_sum += dt

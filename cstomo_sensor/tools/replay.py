@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, CstomoError, FrameError
@@ -131,8 +131,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                     if result is None or not result.valid:
                         continue
                     n_out += 1
-                    for name, msg in out.build(result, t_ns).items():
-                        writer.write(conns[name], t_ns, serialize_message(msg))
+                    for name, data in out.build(result, t_ns).items():  # CDR bytes
+                        writer.write(conns[name], t_ns, data)
             os.replace(partial, out_bag)
         finally:
             shutil.rmtree(partial, ignore_errors=True)
