@@ -26,6 +26,7 @@ from ..frames_io import check_frame
 FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 STRESS_TOPIC = "stress_field"
 RAW_TOPIC = "raw_voltages"
+FILTERED_TOPIC = "wrench_filtered"  # the node's low-passed wrench (force/filter.py); replay does not write it
 #: Message type of every output topic, as rosbag2 names it.
 TOPIC_TYPES = {
     "wrench": "geometry_msgs/msg/WrenchStamped",
@@ -34,6 +35,7 @@ TOPIC_TYPES = {
     "force_azimuth": "std_msgs/msg/Float64",
     "stress_field": "sensor_msgs/msg/PointCloud2",
     "raw_voltages": "std_msgs/msg/Float32MultiArray",
+    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
 }
 #: PointCloud2 fields of ``~/stress_field`` (float32 each, in this order).
 CLOUD_FIELDS = ("x", "y", "z", "conductivity_change", "volumetric_compression", "pressure")

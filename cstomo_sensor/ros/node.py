@@ -36,11 +36,13 @@ from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
 from ..cache import check_writable
 from ..errors import CstomoError, FrameError, NoUsableChannelsError
+from ..force.filter import LowPass
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..frames_io import read_frames, write_frames
 from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
+    FILTERED_TOPIC,
     FORCE_TOPICS,
     RAW_TOPIC,
     STRESS_TOPIC,
@@ -154,9 +156,12 @@ class CstomoSensorNode(LifecycleNode):
         self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._tare_ended)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
         self._raw_cdr = RawVoltagesCdr()
+        self._filter = LowPass(cfg.wrench_filter_hz, max_gap=cfg.stale_timeout)  # restarts after a gap
+        self._reconnects = 0
         self._init_reference()
         qos = cfg.qos()
-        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else [])
+        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else []) \
+            + ([FILTERED_TOPIC] if cfg.wrench_filter_hz > 0 else [])
         for topic in topics:
             self._pubs[topic] = self.create_lifecycle_publisher(_msg_class(TOPIC_TYPES[topic]), f"~/{topic}", qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -273,6 +278,8 @@ class CstomoSensorNode(LifecycleNode):
         """The processor ended a tare (frame thread, under ``_proc_lock``): save it if accepted and
         hand the outcome to a waiting ``~/tare`` call."""
         note = self._save_tare(outcome.reference) if outcome.ok else ""
+        if outcome.ok:
+            self._filter.reset()  # a new reference: the filtered wrench starts again from the next frame
         self._tare_outcome = (outcome, note)
         self._tare_done.set()
 
@@ -324,6 +331,10 @@ class CstomoSensorNode(LifecycleNode):
                 if frame is None:
                     continue
                 host_ns = self.get_clock().now().nanoseconds
+                reconnects = drv.stats().reconnects
+                if reconnects != self._reconnects:  # the board came back: the filtered wrench starts again
+                    self._reconnects = reconnects
+                    self._filter.reset()
                 if frame.board_time_us is not None:
                     stamp_ns = self._board_clock.stamp_ns(frame.board_time_us, host_ns)
                 else:
@@ -395,8 +406,11 @@ class CstomoSensorNode(LifecycleNode):
                 st.reject_reason = ""  # frames go through again
         if result is None or not result.valid or not self._active:
             return  # an implausible frame is no force: counted by the processor, shown in diagnostics
+        pubs = self._pubs
         for topic, data in self.out.build(result, stamp_ns).items():
-            self._pubs[topic].publish(data)  # CDR bytes, serialised by OutputMessages
+            pubs[topic].publish(data)  # CDR bytes, serialised by OutputMessages
+        if cfg.wrench_filter_hz > 0:
+            pubs[FILTERED_TOPIC].publish(self.out.wrench(self._filter(result.force, stamp_ns * 1e-9), stamp_ns))
         dt = time.perf_counter() - t0
         with st.lock:
             st.proc_sum += dt
