@@ -34,6 +34,7 @@ from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
+from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
 from ..errors import CstomoError, FrameError, NoUsableChannelsError
 from ..force.filter import LowPass
@@ -172,6 +173,12 @@ class CstomoSensorNode(LifecycleNode):
             if cfg.protocol == "text":
                 log.warning("protocol 'text' has no checksum: a corrupted line that still parses is taken as "
                             "a frame (only the plausibility gate guards it); use 'binary' (CRC-32) if the board can")
+            carried = link_frame_rate(cfg.baudrate)
+            if cfg.protocol == "binary" and cfg.rate_hz > carried:
+                log.warning(f"rate_hz {cfg.rate_hz:g} exceeds what baudrate {cfg.baudrate} carries: at most "
+                            f"{carried:.0f} DATA frames/s of {DATA_WIRE_BYTES} bytes (8N1), so a UART link lags and "
+                            f"loses frames; use baudrate >= {cfg.rate_hz * 10 * DATA_WIRE_BYTES:.0f} or a USB CDC "
+                            "board (which ignores the baud rate: then this warning does not apply); docs/protocol.md")
             self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
                                        rate_hz=cfg.rate_hz or None, queue_size=FRAME_QUEUE,
                                        stall_timeout=max(cfg.stale_timeout, 0.2))
