@@ -417,6 +417,9 @@ class FrameProcessor:
         Raises :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every
         measurement: such a frame carries no data and must be dropped.
         """
+        if not self.excluded.channels and (saturated is None or not np.count_nonzero(saturated)) and (
+                contact_ok is None or np.count_nonzero(contact_ok) == len(contact_ok)):
+            return False  # the common case, per frame: nothing flagged and nothing excluded
         mask, n_sat, dead = self._mask_of(saturated, contact_ok)
         if np.array_equal(mask, self._mask):
             return False
