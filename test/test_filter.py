@@ -4,6 +4,7 @@ states (step response, -3 dB at the cutoff, noise), its restarts, and the real n
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -109,6 +110,7 @@ def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_lo
         assert wait_for(lambda: h.node._driver is not None and h.node._driver.stats().reconnects >= 1, 10.0)
         n = len(raw)
         assert wait_for(lambda: len(raw) > n + 100, 10.0)
+        t_call = time.monotonic()
         r = h.call_tare()
         assert r.success, r.message
         n = len(raw)
@@ -134,8 +136,11 @@ def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_lo
     gaps = np.diff(t)
     reconnect = int(np.argmax(gaps)) + 1  # the longest silence: the unplugged board
     assert 0.25 < gaps.max() < 2.0
-    tare = int(np.argsort(gaps)[-2]) + 1  # the next longest: the tare's 10 frames gave no output
-    assert t[tare] > t[reconnect]
+    # the tare's 10 frames gave no output: the longest silence among the wrenches received after the call
+    received = {m.header.stamp.sec * 10**9 + m.header.stamp.nanosec: tr for tr, m in raw}
+    after = np.array([received[s] > t_call for s in stamps[1:]])
+    tare = int(np.argmax(np.where(after, gaps, -1.0))) + 1
+    assert t[tare] > t[reconnect] and 0.09 < gaps[tare - 1] < 1.0
     assert same.tolist() == [0, reconnect, tare], (same, reconnect, tare)
 
     # the step to 20 N (first raw frame above 10 N), then the held load before the unplug
