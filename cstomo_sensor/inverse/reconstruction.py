@@ -31,7 +31,7 @@ from ..frames_io import check_frame
 from ..model.cem import ForwardModel
 from ..model.geometry import SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
-from .landweber import LandweberSVD, choose_by_discrepancy
+from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +45,10 @@ class ReconSpec:
 
     ``iterations`` None chooses k by the discrepancy principle (tau = 1.1) at the noise of
     ``snr_db`` on the response of a reference inclusion (:func:`reference_inclusion`);
-    ``damping`` is relative to s_max^2.
+    ``damping`` is relative to s_max^2. ``weight_power`` p weights the Landweber iteration with
+    ``W = diag(S^T S)^(-p)`` (0 = plain); its default is the p that maximises the median image
+    correlation on the benchmark's training-side scenes (``cstomo bench --choose-weight``; never
+    the held-out ones), with k by the discrepancy rule for each p.
     """
 
     mesh_size: float = 4.0e-3
@@ -53,6 +56,7 @@ class ReconSpec:
     iterations: int | None = None
     damping: float = 0.0
     snr_db: float = 60.0
+    weight_power: float = 0.6
 
     def __post_init__(self) -> None:
         if not MESH_SIZE_RANGE[0] <= self.mesh_size <= MESH_SIZE_RANGE[1]:
@@ -70,6 +74,8 @@ class ReconSpec:
             raise ConfigError.bad_value("damping", self.damping, ">= 0 (relative to s_max^2)")
         if not (0.0 < self.snr_db <= 200.0):
             raise ConfigError.bad_value("snr_db", self.snr_db, "0 < snr_db <= 200")
+        if not (0.0 <= self.weight_power <= 4.0):
+            raise ConfigError.bad_value("weight_power", self.weight_power, "a number in 0..4 (0 = plain Landweber)")
 
 
 def voxel_basis(geometry: SensorGeometry, mesh: TetMesh, grid: tuple[int, int, int]):
@@ -102,7 +108,8 @@ class ReconstructionModel:
     S : (n_meas, n_voxels) float64 normalised sensitivity (residuals and masking).
     v_scale : (n_meas,) V.   model_reference : (n_meas,) V.   sigma0 : S/m.
     centers : (n_voxels, 3) m, body frame.   volumes : (n_voxels,) m^3.
-    iterations, damping, step : the Landweber settings R equals.   key : hash of every input.
+    iterations, damping, step, weight_power : the (weighted) Landweber settings R equals.
+    key : hash of every input.
     """
 
     R: np.ndarray
@@ -117,6 +124,7 @@ class ReconstructionModel:
     step: float
     key: str
     meta: dict
+    weight_power: float = 0.0
 
     @property
     def n_meas(self) -> int:
@@ -136,20 +144,28 @@ class ReconstructionModel:
         y = self.normalise(frames, reference)
         return (y @ self.R.T.astype(np.float64)) * self.sigma0
 
-    def with_settings(self, iterations: int, damping: float = 0.0) -> ReconstructionModel:
-        """A copy whose R equals other Landweber settings (one SVD of S, no forward model)."""
-        svd = LandweberSVD.from_jacobian(self.S)
+    def svd(self, weight_power: float | None = None) -> LandweberSVD:
+        """The (weighted) SVD that R is made from: of ``S W^(1/2)``, ``W = diag(S^T S)^(-p)``."""
+        p = self.weight_power if weight_power is None else float(weight_power)
+        return LandweberSVD.from_jacobian(self.S, weight=column_weight(self.S, p) if p else None)
+
+    def with_settings(self, iterations: int, damping: float = 0.0,
+                      weight_power: float | None = None) -> ReconstructionModel:
+        """A copy whose R equals other Landweber settings (one SVD of S, no forward model);
+        ``weight_power`` None keeps this model's."""
+        p = self.weight_power if weight_power is None else float(weight_power)
+        svd = self.svd(p)
         lam = damping * svd.s_max**2
         step = 1.0 / (svd.s_max**2 + lam)
         R = svd.matrix(iterations, step, lam, dtype=np.float32)
         return ReconstructionModel(R, self.S, self.v_scale, self.model_reference, self.sigma0, self.centers,
-                                   self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta))
+                                   self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta), p)
 
     # -- one file, no pickle ----------------------------------------------------------------
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in MODEL_ARRAYS}
         scalars = {"sigma0": self.sigma0, "iterations": self.iterations, "damping": self.damping,
-                   "step": self.step, "meta": self.meta}
+                   "step": self.step, "weight_power": self.weight_power, "meta": self.meta}
         cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)
 
     @classmethod
@@ -170,7 +186,8 @@ class ReconstructionModel:
         """The model of the arrays :meth:`save` writes (a cache entry as :func:`cache_load` gives it)."""
         s = json.loads(str(z["scalars"]))
         return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
-                   z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"])
+                   z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"],
+                   s.get("weight_power", 0.0))  # files without it were built plain
 
 
 #: The arrays of a saved model (besides its key and its JSON ``scalars``).
@@ -221,7 +238,8 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     for i in range(J.shape[0]):
         S[i] = np.bincount(cell_voxel, weights=J[i], minlength=len(volumes))
     S *= geometry.material.sigma0 / v_scale[:, None]
-    svd = LandweberSVD.from_jacobian(S)
+    p = spec.weight_power
+    svd = LandweberSVD.from_jacobian(S, weight=column_weight(S, p) if p else None)
     lam = spec.damping * svd.s_max**2
     step = 1.0 / (svd.s_max**2 + lam)
     if spec.iterations is None:
@@ -235,8 +253,9 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     seconds["landweber"] = time.perf_counter() - t
     meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,
             "n_voxels": len(volumes), "cache_hit": False}
-    say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}")
+    say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}, "
+        f"weight p = {p:g}")
     model = ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
-                                spec.damping, step, key, meta)
+                                spec.damping, step, key, meta, p)
     model.save(path)
     return model
