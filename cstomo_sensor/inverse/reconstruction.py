@@ -207,6 +207,17 @@ def reference_inclusion(geometry: SensorGeometry, centers: np.ndarray) -> np.nda
     return 0.2 * (d <= max(8e-3, d.min()))
 
 
+def discrepancy_iterations(geometry: SensorGeometry, svd: LandweberSVD, S: np.ndarray, v_scale: np.ndarray,
+                           model_reference: np.ndarray, centers: np.ndarray, step: float, lam: float,
+                           snr_db: float = ReconSpec.snr_db) -> int:
+    """k by the discrepancy principle (tau = 1.1) at the noise of ``snr_db`` on the response of
+    :func:`reference_inclusion` (the rule of ``ReconSpec(iterations=None)``)."""
+    noise = np.sqrt(np.mean(model_reference**2)) * 10 ** (-snr_db / 20)
+    noise_norm = float(np.linalg.norm(noise / v_scale))
+    y = S @ reference_inclusion(geometry, centers)
+    return int(choose_by_discrepancy(svd, y, noise_norm, tau=1.1, step=step, damping=lam))
+
+
 def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_dir=None,
                 progress=None) -> ReconstructionModel:
     """Build (or load from the cache) the reconstruction model of a sensor."""
@@ -243,10 +254,7 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     lam = spec.damping * svd.s_max**2
     step = 1.0 / (svd.s_max**2 + lam)
     if spec.iterations is None:
-        noise = np.sqrt(np.mean(Vref**2)) * 10 ** (-spec.snr_db / 20)
-        noise_norm = float(np.linalg.norm(noise / v_scale))
-        y = S @ reference_inclusion(geometry, centers)
-        k = int(choose_by_discrepancy(svd, y, noise_norm, tau=1.1, step=step, damping=lam))
+        k = discrepancy_iterations(geometry, svd, S, v_scale, Vref, centers, step, lam, spec.snr_db)
     else:
         k = int(spec.iterations)
     R = svd.matrix(k, step, lam, dtype=np.float32)
