@@ -229,11 +229,22 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
         model = ReconstructionModel.from_arrays(hit)
         model.meta["cache_hit"] = True
         return model
-    seconds = {}
     t = time.perf_counter()
     say(f"meshing {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm; cached after the first time)")
     mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
-    seconds["mesh"] = time.perf_counter() - t
+    seconds = {"mesh": time.perf_counter() - t}
+    model = model_of_mesh(geometry, spec, mesh, key, say)
+    model.meta["seconds"] = seconds | model.meta["seconds"]
+    model.save(path)
+    return model
+
+
+def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key: str = "",
+                  say=None) -> ReconstructionModel:
+    """The model of a given forward mesh, not cached: forward solve, Jacobian, voxel sums, (weighted)
+    SVD, k and R (what :func:`build_model` does after meshing; the benchmark times it)."""
+    say = say or (lambda msg: log.info("%s", msg))
+    seconds = {}
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_cells} cells; assembling and solving 16 drives")
     fm = ForwardModel(geometry, mesh)
     sol = fm.solve()
@@ -263,7 +274,5 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
             "n_voxels": len(volumes), "cache_hit": False}
     say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}, "
         f"weight p = {p:g}")
-    model = ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
-                                spec.damping, step, key, meta, p)
-    model.save(path)
-    return model
+    return ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
+                               spec.damping, step, key, meta, p)
