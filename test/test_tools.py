@@ -52,8 +52,10 @@ def test_bench_heldout_on_three_forces(tmp_path):
 def test_bench_greit_figures(tmp_path):
     assert cstomo(["bench", "--greit", "--out", str(tmp_path)]) == 0
     rows = _rows(tmp_path / "greit.csv")
-    assert len(rows) == 6
-    for r in rows:
+    ours = [r for r in rows if r["imager"].startswith("ours")]
+    assert {r["imager"].split()[1] for r in ours} == {"p=0", "p=0.6"}  # before and after, 6 places each
+    assert len(ours) == 12
+    for r in ours:
         amp, pos = float(r["amplitude_response"]), float(r["position_error_mm"])
         assert math.isfinite(amp) and amp > 0 and pos < 20.0, r
 
