@@ -128,7 +128,8 @@ def render_case(panels: list[tuple], out: Path, i: int) -> list[Path]:
         p = _plotter((1, len(panels)))
         for j, (grid, title) in enumerate(panels):
             p.subplot(0, j)
-            fn(p, grid, "pressure_kPa", title, "coolwarm" if kind == "slices" else "viridis", lim)
+            vmax = float(np.max(grid.cell_data["pressure_kPa"]))
+            fn(p, grid, "pressure_kPa", f"{title}; max {vmax:.0f} kPa", "coolwarm" if kind == "slices" else "viridis", lim)
         p.link_views()
         path = out / f"load{i}_{kind}.png"
         p.screenshot(str(path))
