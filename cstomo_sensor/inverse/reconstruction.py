@@ -43,12 +43,12 @@ V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation i
 class ReconSpec:
     """Every knob of the reconstruction model (all enter the cache key).
 
-    ``iterations`` None chooses k by the discrepancy principle (tau = 1.1) at the noise of
-    ``snr_db`` on the response of a reference inclusion (:func:`reference_inclusion`);
-    ``damping`` is relative to s_max^2. ``weight_power`` p weights the Landweber iteration with
-    ``W = diag(S^T S)^(-p)`` (0 = plain); its default is the p that maximises the median image
-    correlation on the benchmark's training-side scenes (``cstomo bench --choose-weight``; never
-    the held-out ones), with k by the discrepancy rule for each p.
+    ``iterations`` None chooses k by the discrepancy principle: the smallest k whose residual on
+    the noise-free response of a reference inclusion (:func:`reference_inclusion`) is at most
+    ``tau`` times the norm of the noise of ``snr_db``; ``damping`` is relative to s_max^2.
+    ``weight_power`` p weights the Landweber iteration with ``W = diag(S^T S)^(-p)`` (0 = plain).
+    The defaults of p and tau are the pair that maximises the median image correlation on the
+    benchmark's training-side scenes (``cstomo bench --choose-weight``; never the held-out ones).
     """
 
     mesh_size: float = 4.0e-3
@@ -56,7 +56,8 @@ class ReconSpec:
     iterations: int | None = None
     damping: float = 0.0
     snr_db: float = 60.0
-    weight_power: float = 0.6
+    weight_power: float = 0.7
+    tau: float = 0.5
 
     def __post_init__(self) -> None:
         if not MESH_SIZE_RANGE[0] <= self.mesh_size <= MESH_SIZE_RANGE[1]:
@@ -74,6 +75,8 @@ class ReconSpec:
             raise ConfigError.bad_value("damping", self.damping, ">= 0 (relative to s_max^2)")
         if not (0.0 < self.snr_db <= 200.0):
             raise ConfigError.bad_value("snr_db", self.snr_db, "0 < snr_db <= 200")
+        if not (0.0 < self.tau <= 10.0):
+            raise ConfigError.bad_value("tau", self.tau, "0 < tau <= 10 (discrepancy level, times the noise norm)")
         if not (0.0 <= self.weight_power <= 4.0):
             raise ConfigError.bad_value("weight_power", self.weight_power, "a number in 0..4 (0 = plain Landweber)")
 
@@ -209,13 +212,13 @@ def reference_inclusion(geometry: SensorGeometry, centers: np.ndarray) -> np.nda
 
 def discrepancy_iterations(geometry: SensorGeometry, svd: LandweberSVD, S: np.ndarray, v_scale: np.ndarray,
                            model_reference: np.ndarray, centers: np.ndarray, step: float, lam: float,
-                           snr_db: float = ReconSpec.snr_db) -> int:
-    """k by the discrepancy principle (tau = 1.1) at the noise of ``snr_db`` on the response of
-    :func:`reference_inclusion` (the rule of ``ReconSpec(iterations=None)``)."""
+                           snr_db: float = ReconSpec.snr_db, tau: float = ReconSpec.tau) -> int:
+    """k by the discrepancy principle at ``tau`` times the noise of ``snr_db`` on the noise-free
+    response of :func:`reference_inclusion` (the rule of ``ReconSpec(iterations=None)``)."""
     noise = np.sqrt(np.mean(model_reference**2)) * 10 ** (-snr_db / 20)
     noise_norm = float(np.linalg.norm(noise / v_scale))
     y = S @ reference_inclusion(geometry, centers)
-    return int(choose_by_discrepancy(svd, y, noise_norm, tau=1.1, step=step, damping=lam))
+    return int(choose_by_discrepancy(svd, y, noise_norm, tau=tau, step=step, damping=lam))
 
 
 def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_dir=None,
@@ -265,7 +268,7 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     lam = spec.damping * svd.s_max**2
     step = 1.0 / (svd.s_max**2 + lam)
     if spec.iterations is None:
-        k = discrepancy_iterations(geometry, svd, S, v_scale, Vref, centers, step, lam, spec.snr_db)
+        k = discrepancy_iterations(geometry, svd, S, v_scale, Vref, centers, step, lam, spec.snr_db, spec.tau)
     else:
         k = int(spec.iterations)
     R = svd.matrix(k, step, lam, dtype=np.float32)

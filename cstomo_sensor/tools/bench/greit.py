@@ -1,5 +1,5 @@
 """``cstomo bench --greit``: GREIT-style image figures for inclusions at several places, for our
-image before (plain Landweber, p = 0) and after (the default weighted one) and, when pyEIT is
+image before (plain Landweber, p = 0, tau = 1.1) and after (the default weighted one) and, when pyEIT is
 installed, for pyEIT's one-step JAC, all on the same honest frames in one run."""
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from ...inverse.reconstruction import ReconSpec, build_model
 from ...model.mesh import MeshSpec, build_mesh
 from ...model.pattern import pattern_for
 from ...model.simulate import Load, add_noise
+from .models import PLAIN
 from .report import write_csv
 from .scenes import NOISE_SEED, SceneSet
 
@@ -55,7 +56,7 @@ def greit(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     truth = SceneSet(0, cache_dir, say).truth
     geometry = truth.geometry
     after = build_model(geometry, ReconSpec(), cache_dir)
-    before = build_model(geometry, replace(ReconSpec(), weight_power=0.0), cache_dir)
+    before = build_model(geometry, replace(ReconSpec(), **PLAIN), cache_dir)
     jac = _pyeit_imager(geometry, cache_dir, say)
     rng = np.random.default_rng(NOISE_SEED)
     ref = add_noise(truth.reference, truth.reference, 60.0, rng)

@@ -40,6 +40,7 @@ from ...inverse.reconstruction import ReconSpec, model_of_mesh, voxel_basis
 from ...model.cem import ForwardModel
 from ...model.geometry import load_sensor
 from ...model.mesh import MeshSpec, build_mesh
+from .models import PLAIN
 from .scenes import NOISE_SEED, SceneSet, image_errors
 
 MESH_SIZE = 6.0e-3  # m
@@ -174,7 +175,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
     # product, what the node runs, beside it).
     spec = ReconSpec(mesh_size=MESH_SIZE)
     model, t_model = _timed(lambda: model_of_mesh(g, spec, mesh))
-    plain = model_of_mesh(g, replace(spec, weight_power=0.0), mesh)
+    plain = model_of_mesh(g, replace(spec, **PLAIN), mesh)
     jac = PyeitJac(g, mesh, fm.pattern, spec.grid)
     R64, R32, vs = model.R.astype(np.float64), model.R, model.v_scale
     x_ours, tf_ours = _timed(lambda: [R64 @ ((f - ref) / vs) for f in frames], 3)
