@@ -57,7 +57,7 @@ class ReconSpec:
     damping: float = 0.0
     snr_db: float = 60.0
     weight_power: float = 0.7
-    tau: float = 0.5
+    tau: float = 0.7
 
     def __post_init__(self) -> None:
         if not MESH_SIZE_RANGE[0] <= self.mesh_size <= MESH_SIZE_RANGE[1]:
