@@ -56,7 +56,7 @@ class ReconSpec:
     iterations: int | None = None
     damping: float = 0.0
     snr_db: float = 60.0
-    weight_power: float = 0.7
+    weight_power: float = 0.55
     tau: float = 0.7
 
     def __post_init__(self) -> None:
