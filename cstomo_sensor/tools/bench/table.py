@@ -58,7 +58,7 @@ MODES = {
 }
 
 
-TABLE_COLS = ["setting", "varied", "mesh_mm", "grid", "iterations", "damping", "weight_power", "dtype", "estimator",
+TABLE_COLS = ["setting", "varied", "mesh_mm", "grid", "iterations", "damping", "dtype", "estimator", "weight_power",
               "n_voxels", "build_s", "build_mem_mb", "peak_rss_mb", "frame_med_ms", "frame_p99_ms",
               "estimator_med_ms", "estimator_p99_ms", "fps", "angle_med_deg", "angle_p90_deg",
               "mag_err_med_n", "mag_err_p90_n", "img_corr_med", "peak_dist_med_mm", "n_frames"]
