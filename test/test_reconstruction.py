@@ -163,6 +163,13 @@ def test_masked_channels_ignored(cuboid_model, cuboid_truth):
     np.testing.assert_array_equal(clean.field.conductivity_change, dirty.field.conductivity_change)
     np.testing.assert_array_equal(clean.force, dirty.force)
     assert np.all(np.isfinite(clean.field.pressure))
+    # the masked image is the model's weighted iteration on the kept rows (the weight of the whole S)
+    keep = ~bad
+    y = cuboid_model.normalise(v, cuboid_truth.reference)
+    g = landweber(cuboid_model.S[keep], y[keep], cuboid_model.iterations, step=cuboid_model.step,
+                  weight=column_weight(cuboid_model.S, cuboid_model.weight_power))
+    np.testing.assert_allclose(clean.field.conductivity_change, g * cuboid_model.sigma0, rtol=1e-4,
+                               atol=1e-5 * np.abs(g).max() * cuboid_model.sigma0)
 
 
 @pytest.mark.parametrize("contrast", [1e-3 - 1.0, 1e3])
