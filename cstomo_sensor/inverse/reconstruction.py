@@ -48,7 +48,8 @@ class ReconSpec:
     ``tau`` times the norm of the noise of ``snr_db``; ``damping`` is relative to s_max^2.
     ``weight_power`` p weights the Landweber iteration with ``W = diag(S^T S)^(-p)`` (0 = plain).
     The defaults of p and tau are the pair that maximises the median image correlation on the
-    benchmark's training-side scenes (``cstomo bench --choose-weight``; never the held-out ones).
+    benchmark's training-side socket loads among the pairs that image its training inclusions
+    within 8 mm (``cstomo bench --choose-weight``; never the held-out scenes).
     """
 
     mesh_size: float = 4.0e-3
