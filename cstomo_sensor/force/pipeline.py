@@ -196,7 +196,7 @@ class Pipeline:
             R = self.model.R.astype(self._dtype, copy=False)
         else:
             if self._svd is None:
-                self._svd = LandweberSVD.from_jacobian(self.model.S)
+                self._svd = self.model.svd()
             svd = self._svd.masked(keep)
             lam = self.model.damping * self._svd.s_max**2
             R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)

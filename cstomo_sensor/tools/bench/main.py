@@ -1,5 +1,6 @@
 """``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`) and the pyEIT comparison (:mod:`.pyeit`)."""
+GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`)
+and the weight rule (:mod:`.weight`)."""
 from __future__ import annotations
 
 import argparse
@@ -12,6 +13,7 @@ from .greit import greit
 from .heldout import heldout
 from .pyeit import run as run_pyeit
 from .table import run
+from .weight import choose_weight
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,6 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--heldout", type=int, metavar="N", help="both estimators on N held-out forces at 60 and 40 dB")
     g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
     g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
+    g.add_argument("--choose-weight", action="store_true",
+                   help="the rule for the Landweber weight power p on the training-side scenes")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
@@ -37,6 +41,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
 
         run_pyeit(a.out, a.cache_dir or None)
+        return 0
+    if a.choose_weight:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        choose_weight(a.out, a.cache_dir or None)
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
