@@ -133,9 +133,9 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             raise CstomoError(f"{err}; see {logs[1].name}") from None
         node, board = run.node, run.board
         deadline = time.monotonic() + 60.0
-        while rec.wrenches == 0:
+        while rec.wrenches == 0 or not rec.diags:  # the window's counters start from a diagnostics message
             if time.monotonic() > deadline or node.poll() is not None or board.poll() is not None:
-                raise CstomoError(f"no wrench from the node within 60 s; see {logs[0].name}")
+                raise CstomoError(f"no wrench and diagnostics from the node within 60 s; see {logs[0].name}")
             time.sleep(0.05)
         time.sleep(a.warmup)  # past the tare and the step to 20 N; queues and caches settled
 
