@@ -1,6 +1,8 @@
 """Force angles of REFERENCE_SENSOR.md section 4 (radians)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -16,6 +18,16 @@ def force_angles(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     el = np.arctan2(-f[..., 2], h)
     az = np.where(h > 1e-9 * np.maximum(mag, 1e-300), np.arctan2(f[..., 1], f[..., 0]), 0.0)
     return mag, el, az
+
+
+def force_angles3(f) -> tuple[float, float, float]:
+    """:func:`force_angles` of one force (3,) as Python floats, without numpy's per-call overhead
+    (the per-frame path: about 1 us instead of 9)."""
+    fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
+    h = math.hypot(fx, fy)
+    mag = math.hypot(h, fz)
+    az = math.atan2(fy, fx) if h > 1e-9 * max(mag, 1e-300) else 0.0
+    return mag, math.atan2(-fz, h), az
 
 
 def planar_angle(f: np.ndarray) -> np.ndarray:

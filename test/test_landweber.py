@@ -17,6 +17,7 @@ from cstomo_sensor.inverse.landweber import (
     LandweberSVD,
     choose_by_discrepancy,
     choose_by_gcv,
+    column_weight,
     filter_factors,
     landweber,
 )
@@ -276,6 +277,75 @@ def test_masked_matrix_has_zero_columns_and_equals_direct_svd(rank_deficient, sv
     y_bad[6] = np.nan
     with pytest.raises(FrameError, match="1 non-finite"):
         msvd.apply(y_bad, 50)
+
+
+# ---- weighted (preconditioned) Landweber --------------------------------------------------------
+@pytest.mark.parametrize("power, damping_rel", [(0.5, 0.0), (1.0, 0.0), (0.75, 0.05)])
+def test_weighted_closed_form_equals_weighted_iterations(rank_deficient, power, damping_rel):
+    """The slow version iterates g += step (W J^T (y - J g) - lam g) on the identity (R_k column by
+    column); the closed form goes through the SVD of J W^(1/2)."""
+    J, _ = rank_deficient
+    J = J * np.geomspace(1.0, 1e-3, N_CELLS)  # columns of very different norms, as deep voxels have
+    w = column_weight(J, power)
+    assert w.max() == 1.0 and w.min() < 1e-2  # the weight does something
+    svd = LandweberSVD.from_jacobian(J, weight=w)
+    a_max = np.linalg.norm(J * np.sqrt(w), 2)
+    lam = damping_rel * a_max**2
+    step = 1.0 / (a_max**2 + lam)
+    ks = (1, 9, 60)
+    snapshots = {}
+    landweber(J, np.eye(N_MEAS), max(ks), step=step, damping=lam, weight=w,
+              callback=lambda k, g: snapshots.__setitem__(k, g.copy()) if k in ks else None)
+    for k in ks:
+        R = svd.matrix(k, step=step, damping=lam, dtype=np.float64)
+        assert rel(R, snapshots[k]) < 1e-6, f"k={k}, p={power}, rel={rel(R, snapshots[k])}"
+    R1 = svd.matrix(1, step=step, dtype=np.float64)  # one step: step W J^T exactly
+    np.testing.assert_allclose(R1, step * w[:, None] * J.T, rtol=0, atol=1e-12 * np.abs(R1).max())
+
+
+def test_weight_power_zero_gives_the_plain_matrix_exactly(rank_deficient, svd):
+    J, _ = rank_deficient
+    w = column_weight(J, 0.0)
+    assert np.array_equal(w, np.ones(N_CELLS))
+    weighted = LandweberSVD.from_jacobian(J, weight=w)
+    for k in (1, 37, 10**6):
+        assert np.array_equal(weighted.matrix(k, dtype=np.float64), svd.matrix(k, dtype=np.float64))
+    assert np.array_equal(landweber(J, np.eye(N_MEAS)[:, :3], 5, weight=w), landweber(J, np.eye(N_MEAS)[:, :3], 5))
+
+
+def test_weighted_huge_k_reaches_the_weighted_pseudo_inverse():
+    """k = 10^6 only through the closed form: the limit is W^(1/2) pinv(J W^(1/2)) (numpy's pinv)."""
+    rng = np.random.default_rng(5)
+    J = known_matrix(np.geomspace(1.0, 1e-2, 30), 40, 30, seed=5)[0] * rng.uniform(0.1, 1.0, 30)
+    w = column_weight(J, 0.5)
+    svd = LandweberSVD.from_jacobian(J, weight=w)
+    R = svd.matrix(10**6, dtype=np.float64)
+    limit = np.sqrt(w)[:, None] * np.linalg.pinv(J * np.sqrt(w))
+    assert np.all(np.isfinite(R)) and rel(R, limit) < 1e-9
+    assert not np.any(svd.apply(np.zeros(40), 10**6))  # zero input gives exactly zero
+    assert not np.any(landweber(J, np.zeros(40), 30, weight=w))
+
+
+def test_weighted_masked_equals_direct_and_bad_weights_are_refused(rank_deficient):
+    J, _ = rank_deficient
+    w = column_weight(J, 0.5)
+    keep = np.ones(N_MEAS, dtype=bool)
+    keep[[3, 77, 150]] = False
+    y = np.random.default_rng(8).standard_normal(N_MEAS)
+    msvd = LandweberSVD.from_jacobian(J, weight=w).masked(keep)
+    step = 1.0 / msvd.s_max**2
+    np.testing.assert_allclose(msvd.apply(y, 40, step=step), landweber(J[keep], y[keep], 40, step=step, weight=w),
+                               rtol=1e-8, atol=1e-12)
+    for bad in (-w, np.where(np.arange(N_CELLS) == 4, np.nan, w), w[:-1]):
+        with pytest.raises(ConfigError, match="weight"):
+            LandweberSVD.from_jacobian(J, weight=bad)
+        with pytest.raises(ConfigError, match="weight"):
+            landweber(J, y, 3, weight=bad)
+    with pytest.raises(ConfigError, match="adaptive"):
+        landweber(J, y, 3, adaptive=True, weight=w)
+    for power in (-0.5, np.nan, 5.0):
+        with pytest.raises(ConfigError, match="weight_power"):
+            column_weight(J, power)
 
 
 # ---- adaptive step ---------------------------------------------------------------------------

@@ -4,8 +4,8 @@ import pytest
 import scipy.sparse as sp
 
 from cstomo_sensor.cache import input_hash
-from cstomo_sensor.errors import FrameError, ModelMismatchError
-from cstomo_sensor.inverse.landweber import LandweberSVD, landweber
+from cstomo_sensor.errors import ConfigError, FrameError, ModelMismatchError
+from cstomo_sensor.inverse.landweber import LandweberSVD, column_weight, landweber
 from cstomo_sensor.inverse.reconstruction import ReconSpec, ReconstructionModel, model_inputs
 from cstomo_sensor.model.pattern import MeasurementPattern
 from cstomo_sensor.model.simulate import Load, add_noise
@@ -41,14 +41,29 @@ def test_adjoint_identity_tangent_against_geselowitz(cuboid_forward, cuboid_solu
     assert w @ Jv == pytest.approx(v @ (jac.T @ w), rel=1e-9)
 
 
-def test_closed_form_equals_iterations_on_the_real_sensitivity(cuboid_model):
+@pytest.mark.parametrize("p", [0.0, 0.7, 1.0])
+def test_closed_form_equals_iterations_on_the_real_sensitivity(cuboid_model, p):
+    """The model's R (float32) against the weighted iteration g += step (W S^T (y - S g) - lam g)."""
     S = cuboid_model.S
     y = S @ np.random.default_rng(3).standard_normal(S.shape[1]) * 0.01
+    w = column_weight(S, p)
     for k, damping in [(1, 0.0), (5, 0.0), (40, 0.01)]:
-        m = cuboid_model.with_settings(k, damping)
-        lam = damping * np.linalg.norm(S, 2) ** 2
-        g = landweber(S, y, k, step=m.step, damping=lam)
+        m = cuboid_model.with_settings(k, damping, weight_power=p)
+        assert m.weight_power == p
+        lam = damping * np.linalg.norm(S * np.sqrt(w), 2) ** 2
+        g = landweber(S, y, k, step=m.step, damping=lam, weight=w if p else None)
         np.testing.assert_allclose(m.R.astype(float) @ y, g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+
+
+def test_weight_power_zero_is_the_plain_matrix_exactly(cuboid_model):
+    plain = LandweberSVD.from_jacobian(cuboid_model.S)
+    m = cuboid_model.with_settings(7, 0.0, weight_power=0.0)
+    assert np.array_equal(m.R, plain.matrix(7, 1.0 / plain.s_max**2, dtype=np.float32))
+    assert cuboid_model.weight_power == ReconSpec.weight_power > 0  # the default model is weighted
+    with pytest.raises(ConfigError, match="weight_power"):
+        ReconSpec(weight_power=-0.1)
+    with pytest.raises(ConfigError, match="tau"):
+        ReconSpec(tau=0.0)
 
 
 def test_sensitivity_rank_is_at_most_104(cuboid_model):
@@ -110,7 +125,7 @@ def test_ill_conditioned_sensitivity_reported_and_finite(cuboid_model):
 
 
 def test_float32_matches_float64(cuboid_model, cuboid_truth):
-    svd = LandweberSVD.from_jacobian(cuboid_model.S)
+    svd = cuboid_model.svd()
     R64 = svd.matrix(cuboid_model.iterations, cuboid_model.step, dtype=np.float64)
     y = cuboid_model.normalise(cuboid_truth.voltages(Load("inclusion", inclusion=(0, 0, 0.01, 0.004, 1.0))),
                                cuboid_truth.reference)
@@ -148,6 +163,13 @@ def test_masked_channels_ignored(cuboid_model, cuboid_truth):
     np.testing.assert_array_equal(clean.field.conductivity_change, dirty.field.conductivity_change)
     np.testing.assert_array_equal(clean.force, dirty.force)
     assert np.all(np.isfinite(clean.field.pressure))
+    # the masked image is the model's weighted iteration on the kept rows (the weight of the whole S)
+    keep = ~bad
+    y = cuboid_model.normalise(v, cuboid_truth.reference)
+    g = landweber(cuboid_model.S[keep], y[keep], cuboid_model.iterations, step=cuboid_model.step,
+                  weight=column_weight(cuboid_model.S, cuboid_model.weight_power))
+    np.testing.assert_allclose(clean.field.conductivity_change, g * cuboid_model.sigma0, rtol=1e-4,
+                               atol=1e-5 * np.abs(g).max() * cuboid_model.sigma0)
 
 
 @pytest.mark.parametrize("contrast", [1e-3 - 1.0, 1e3])

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from cstomo_sensor.inverse.reconstruction import ReconSpec
 from cstomo_sensor.tools.cli import main as cstomo
 
 
@@ -89,8 +90,11 @@ def test_bench_heldout_on_three_forces(tmp_path):
 def test_bench_greit_figures(tmp_path):
     assert cstomo(["bench", "--greit", "--out", str(tmp_path)]) == 0
     rows = _rows(tmp_path / "greit.csv")
-    assert len(rows) == 6
-    for r in rows:
+    ours = [r for r in rows if r["imager"].startswith("ours")]
+    after = f"p={ReconSpec.weight_power:g}"
+    assert {r["imager"].split()[1] for r in ours} == {"p=0", after}  # before and after, 6 places each
+    assert len(ours) == 12
+    for r in ours:
         amp, pos = float(r["amplitude_response"]), float(r["position_error_mm"])
         assert math.isfinite(amp) and amp > 0 and pos < 20.0, r
 

@@ -29,6 +29,11 @@ _CRC = struct.Struct("<I")
 _DATA_HEAD = struct.Struct("<IQH")  # seq, board time (us), contact mask
 _SAT_BYTES = (N_VALUES + 7) // 8  # 26
 _DATA_LEN = _DATA_HEAD.size + _SAT_BYTES + 4 * N_VALUES  # 872
+#: Bytes of one DATA frame on the wire at most: delimiters, COBS overhead (one code byte per 254 bytes
+#: without a zero) and the 880-byte packet; 883..886 in practice (docs/protocol.md, section 1.9).
+DATA_WIRE_BYTES = 2 + (_HEADER.size + _DATA_LEN + _CRC.size) + -(-(_HEADER.size + _DATA_LEN + _CRC.size) // 254)
+#: Line bits per byte of an 8N1 serial link (start, 8 data, stop).
+BITS_PER_BYTE = 10
 MAX_PACKET = 1024  # decoded packet (header + payload + crc) bound
 MAX_ENCODED = MAX_PACKET + MAX_PACKET // 254 + 2  # COBS worst case
 MAX_TEXT_LINE = 16 * 1024
@@ -234,6 +239,12 @@ def encode(msg: Message) -> bytes:
     body = msg.payload()
     packet = _HEADER.pack(PROTOCOL_VERSION, int(msg.TYPE), len(body)) + body
     return b"\0" + cobs_encode(packet + _CRC.pack(crc32(packet))) + b"\0"
+
+
+def link_frame_rate(baudrate: float) -> float:
+    """Binary DATA frames per second that an 8N1 serial link at ``baudrate`` carries at most
+    (``baudrate / (10 * DATA_WIRE_BYTES)``: 104 at 921600). USB CDC and ptys ignore the baud rate."""
+    return baudrate / (BITS_PER_BYTE * DATA_WIRE_BYTES)
 
 
 def encode_text(values: np.ndarray) -> bytes:

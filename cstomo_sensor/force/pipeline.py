@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..angles import force_angles
+from ..angles import force_angles3
 from ..errors import ConfigError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..inverse.landweber import LandweberSVD
@@ -255,7 +255,7 @@ class Pipeline:
             R = self.model.R.astype(self._dtype, copy=False)
         else:
             if self._svd is None:
-                self._svd = LandweberSVD.from_jacobian(self.model.S)
+                self._svd = self.model.svd()
             svd = self._svd.masked(keep)
             lam = self.model.damping * self._svd.s_max**2
             R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
@@ -291,9 +291,9 @@ class Pipeline:
                 return FrameResult.implausible(
                     f"channel {i} changed by {g[i]:.3g} of its reference, beyond {self.gate_channel_bound[i]:.3g}")
         force = self.estimator.estimate(y)
-        mag, el, az = force_angles(force)
+        mag, el, az = force_angles3(force)
         if gate and not mag <= self.max_force:
-            return FrameResult.implausible(f"force {float(mag):.4g} N beyond max_force {self.max_force:g} N")
+            return FrameResult.implausible(f"force {mag:.4g} N beyond max_force {self.max_force:g} N")
         field = None
         residual = float("nan")
         if with_field:
@@ -303,7 +303,7 @@ class Pipeline:
             field = StressField.from_conductivity_change(dsigma, self.geometry.material)
             r = y - (self.model.S @ self._x) * self._keep
             residual = float(np.linalg.norm(r) / max(np.linalg.norm(y), 1e-300))
-        return FrameResult(force, float(mag), float(el), float(az), residual, field)
+        return FrameResult(force, mag, el, az, residual, field)
 
 
 @dataclass(frozen=True)
@@ -489,6 +489,9 @@ class FrameProcessor:
         Raises :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every
         measurement: such a frame carries no data and must be dropped.
         """
+        if not self.excluded.channels and (saturated is None or not np.count_nonzero(saturated)) and (
+                contact_ok is None or np.count_nonzero(contact_ok) == len(contact_ok)):
+            return False  # the common case, per frame: nothing flagged and nothing excluded
         mask, n_sat, dead = self._mask_of(saturated, contact_ok)
         if np.array_equal(mask, self._mask):
             return False

@@ -16,6 +16,16 @@ which is stable (bounded in k) for ``0 < step <= 2 / (s_max^2 + lam)`` and conve
 ``-expm1(k * log1p(-step (s^2 + lam)))`` so that it is exact for huge ``k`` and tiny steps.
 Singular values below ``rtol * s_max`` (the numerical rank of J; at most 104 of the 208 rows are
 independent because of reciprocity) get factor 0.
+
+Weighted (preconditioned) Landweber: with a positive weight ``w`` per unknown (``W = diag(w)``),
+substitute ``g = W^(1/2) z`` and run the iteration above on ``A = J W^(1/2)`` for ``z``; in ``g`` it is::
+
+    g_{k+1} = g_k + step * (W J^T (y - J g_k) - lam * g_k)
+
+and its closed form is ``R_k = W^(1/2) V_A diag(f_k(s_A)) U_A^T`` through the SVD of ``A`` (step and
+stability bound from ``s_max(A)``). The column-normalising weight ``w = diag(J^T J)^(-p)``
+(:func:`column_weight`; NOSER and pyEIT's ``kotre`` prior) lifts the cells the data hardly sees
+(deep ones) against those next to the electrodes; ``p = 0`` is the plain iteration.
 """
 from __future__ import annotations
 
@@ -32,6 +42,7 @@ from ..errors import ConfigError, FrameError
 
 __all__ = [
     "landweber",
+    "column_weight",
     "filter_factors",
     "LandweberSVD",
     "choose_by_discrepancy",
@@ -79,6 +90,38 @@ def _check_data(y: np.ndarray, n_meas: int, *, allow_2d: bool = True,
     if mask is not None and not mask.all():
         y = np.where(mask.reshape((-1,) + (1,) * (y.ndim - 1)), y, 0.0)
     return y
+
+
+def _check_weight(weight: np.ndarray, n_cells: int) -> np.ndarray:
+    w = np.asarray(weight, dtype=np.float64)
+    if w.shape != (n_cells,) or not np.all(np.isfinite(w)) or not np.all(w > 0):
+        raise ConfigError(f"weight.shape={w.shape}: expected ({n_cells},) positive finite values")
+    return w
+
+
+def column_weight(J: np.ndarray, power: float) -> np.ndarray:
+    """The column-normalising weight ``w = diag(J^T J)^(-power)``, scaled to max 1.
+
+    Columns whose norm is below ``1e-12`` of the largest count as that floor (no division by zero).
+
+    Parameters
+    ----------
+    J : (n_meas, n_cells) ndarray
+    power : float
+        ``p >= 0``; 0 gives ones (the plain iteration), 0.5 NOSER's ``diag(J^T J)^(-1/2)``.
+
+    Returns
+    -------
+    w : (n_cells,) float64 ndarray, in (0, 1].
+    """
+    J = _check_matrix(J)
+    power = float(power)
+    if not (math.isfinite(power) and 0.0 <= power <= 4.0):
+        raise ConfigError.bad_value("weight_power", power, "a number in 0..4")
+    d = np.einsum("ij,ij->j", J, J)
+    d = np.maximum(d, 1e-12 * d.max()) if d.max() > 0 else np.ones_like(d)
+    w = (d / d.max()) ** -power
+    return w / w.max()
 
 
 def _check_damping(damping: float) -> float:
@@ -131,16 +174,18 @@ def landweber(
     damping: float = 0.0,
     adaptive: bool = False,
     callback: Callable[[int, np.ndarray], None] | None = None,
+    weight: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Run the (damped) Landweber iteration from ``g = 0``.
+    """Run the (damped, optionally weighted) Landweber iteration from ``g = 0``.
 
     Fixed step::
 
-        g_{k+1} = g_k + step * (J^T (y - J g_k) - damping * g_k)
+        g_{k+1} = g_k + step * (W J^T (y - J g_k) - damping * g_k)
 
-    stable for ``0 < step <= 2 / (s_max^2 + damping)`` (bounded; convergent for strict ``<``),
-    ``s_max`` being the largest singular value of ``J``. ``step=None`` means
-    ``1 / (s_max^2 + damping)``. ``k`` fixed-step iterations equal ``LandweberSVD.apply`` in closed
+    with ``W = diag(weight)`` (identity without a weight), stable for
+    ``0 < step <= 2 / (s_max^2 + damping)`` (bounded; convergent for strict ``<``), ``s_max`` being
+    the largest singular value of ``J W^(1/2)``. ``step=None`` means ``1 / (s_max^2 + damping)``.
+    ``k`` fixed-step iterations equal ``LandweberSVD.apply`` (built with the same weight) in closed
     form.
 
     Adaptive step (``adaptive=True``, the paper's equation (24)): with ``Q_k = y - J g_k``,
@@ -168,6 +213,8 @@ def landweber(
         Use the paper's adaptive step (see above).
     callback : callable ``(k, g) -> None``, optional
         Called after iteration ``k = 1 .. n_iter`` with a read-only view of ``g``.
+    weight : (n_cells,) ndarray, optional
+        Positive finite weight per unknown (fixed step only), e.g. :func:`column_weight`.
 
     Returns
     -------
@@ -190,6 +237,8 @@ def landweber(
     view.flags.writeable = False
 
     if adaptive:
+        if weight is not None:
+            raise ConfigError("weight with adaptive=True: the weighted iteration has a fixed step")
         if step is not None:
             raise ConfigError(f"step={step!r} with adaptive=True: the adaptive step is computed, pass step=None")
         for k in range(1, n_iter + 1):
@@ -207,10 +256,12 @@ def landweber(
                 callback(k, view)
         return g
 
+    w = np.ones(n_cells) if weight is None else _check_weight(weight, n_cells)
+    w = w.reshape((-1,) + (1,) * (y.ndim - 1))
     if n_iter > 0 or step is not None:
-        step = _resolve_step(step, float(scipy.linalg.norm(J, 2)), damping)
+        step = _resolve_step(step, float(scipy.linalg.norm(J * np.sqrt(w.ravel()), 2)), damping)
     for k in range(1, n_iter + 1):
-        g += step * (J.T @ (y - J @ g) - damping * g)
+        g += step * (w * (J.T @ (y - J @ g)) - damping * g)
         if callback is not None:
             callback(k, view)
     return g
@@ -313,11 +364,14 @@ class LandweberSVD:
     s : (rank,) ndarray
         Kept singular values, descending, all ``> rtol * s_max``.
     Vt : (rank, n_cells) ndarray
-        Right singular vectors.
+        Right singular vectors; with a weight ``w``, those of ``J W^(1/2)`` times ``W^(1/2)``
+        (columns scaled by ``sqrt(w)``), so that ``R_k = Vt^T diag(f_k) U^T`` in every case.
     keep : (n_meas,) bool ndarray
         Measurements in use (all True unless built by :meth:`masked`).
     rtol : float
         Relative rank tolerance used to truncate.
+    weight : (n_cells,) ndarray or None
+        The weight of the weighted iteration (module docstring), None for the plain one.
     """
 
     U: np.ndarray = field(repr=False)
@@ -325,6 +379,7 @@ class LandweberSVD:
     Vt: np.ndarray = field(repr=False)
     keep: np.ndarray = field(repr=False)
     rtol: float = 1e-10
+    weight: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         U = np.array(self.U, dtype=np.float64)
@@ -343,11 +398,16 @@ class LandweberSVD:
         for name, arr in (("U", U), ("s", s), ("Vt", Vt), ("keep", keep)):
             arr.flags.writeable = False
             object.__setattr__(self, name, arr)
+        if self.weight is not None:
+            w = _check_weight(self.weight, Vt.shape[1]).copy()
+            w.flags.writeable = False
+            object.__setattr__(self, "weight", w)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod
-    def from_jacobian(cls, J: np.ndarray, rtol: float = 1e-10) -> LandweberSVD:
-        """Thin SVD of ``J`` truncated to the singular values ``> rtol * s_max``.
+    def from_jacobian(cls, J: np.ndarray, rtol: float = 1e-10, weight: np.ndarray | None = None) -> LandweberSVD:
+        """Thin SVD of ``J`` (of ``J W^(1/2)`` with a weight) truncated to the singular values
+        ``> rtol * s_max``.
 
         Parameters
         ----------
@@ -355,12 +415,19 @@ class LandweberSVD:
             Jacobian, finite, not all zero.
         rtol : float
             Relative rank tolerance, ``0 <= rtol < 1``.
+        weight : (n_cells,) ndarray, optional
+            Positive weight per unknown: the closed form of the weighted iteration (module docstring).
         """
         J = _check_matrix(J)
         rtol = float(rtol)
         if not (math.isfinite(rtol) and 0.0 <= rtol < 1.0):
             raise ConfigError(f"rtol={rtol!r}: expected 0 <= rtol < 1")
-        return cls._from_matrix(J, np.ones(J.shape[0], dtype=bool), rtol)
+        if weight is None:
+            return cls._from_matrix(J, np.ones(J.shape[0], dtype=bool), rtol)
+        w = _check_weight(weight, J.shape[1])
+        d = np.sqrt(w)
+        svd = cls._from_matrix(J * d, np.ones(J.shape[0], dtype=bool), rtol)
+        return cls(U=svd.U, s=svd.s, Vt=svd.Vt * d, keep=svd.keep, rtol=rtol, weight=w)
 
     @classmethod
     def _from_matrix(cls, J: np.ndarray, keep: np.ndarray, rtol: float) -> LandweberSVD:
@@ -402,7 +469,7 @@ class LandweberSVD:
     def __repr__(self) -> str:
         return (f"LandweberSVD(n_meas={self.n_meas}, n_cells={self.n_cells}, rank={self.rank}, "
                 f"n_kept_meas={int(self.keep.sum())}, s_max={self.s_max:.6g}, condition={self.condition:.3g}, "
-                f"rtol={self.rtol:g})")
+                f"rtol={self.rtol:g}, weighted={self.weight is not None})")
 
     # ---- the closed form ----------------------------------------------------------------------
     def factors(self, n_iter: int | float, step: float | None = None, damping: float = 0.0) -> np.ndarray:
@@ -462,7 +529,8 @@ class LandweberSVD:
         zero columns in every ``R_k``. This re-SVDs only the ``n_kept x rank`` matrix
         ``U[keep] diag(s)`` (then rotates ``Vt``), which is the same as re-SVDing the 208 x n_cells
         ``J[keep]`` up to the rank truncation, and takes milliseconds: the forward model and the
-        Jacobian are not rebuilt. Masks compose: measurements dropped here stay dropped.
+        Jacobian are not rebuilt. Masks compose: measurements dropped here stay dropped; a weight
+        stays the same (that of the whole ``J``; ``Vt`` carries it linearly).
 
         Parameters
         ----------
@@ -485,7 +553,7 @@ class LandweberSVD:
         r = int(np.count_nonzero(s2 > self.rtol * s2[0]))
         U = np.zeros((self.n_meas, r))
         U[keep] = W[:, :r]
-        return LandweberSVD(U=U, s=s2[:r], Vt=Zt[:r] @ self.Vt, keep=keep, rtol=self.rtol)
+        return LandweberSVD(U=U, s=s2[:r], Vt=Zt[:r] @ self.Vt, keep=keep, rtol=self.rtol, weight=self.weight)
 
     # ---- residuals (for parameter choice) -----------------------------------------------------
     def _coefficients(self, y: np.ndarray) -> tuple[np.ndarray, float]:

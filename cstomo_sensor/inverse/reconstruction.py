@@ -31,7 +31,7 @@ from ..frames_io import check_frame
 from ..model.cem import ForwardModel
 from ..model.geometry import SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
-from .landweber import LandweberSVD, choose_by_discrepancy
+from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +43,13 @@ V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation i
 class ReconSpec:
     """Every knob of the reconstruction model (all enter the cache key).
 
-    ``iterations`` None chooses k by the discrepancy principle (tau = 1.1) at the noise of
-    ``snr_db`` on the response of a reference inclusion (:func:`reference_inclusion`);
-    ``damping`` is relative to s_max^2.
+    ``iterations`` None chooses k by the discrepancy principle: the smallest k whose residual on
+    the noise-free response of a reference inclusion (:func:`reference_inclusion`) is at most
+    ``tau`` times the norm of the noise of ``snr_db``; ``damping`` is relative to s_max^2.
+    ``weight_power`` p weights the Landweber iteration with ``W = diag(S^T S)^(-p)`` (0 = plain).
+    The defaults of p and tau are the pair that maximises the median image correlation on the
+    benchmark's training-side socket loads among the pairs that image its training inclusions
+    within 8 mm (``cstomo bench --choose-weight``; never the held-out scenes).
     """
 
     mesh_size: float = 4.0e-3
@@ -53,6 +57,8 @@ class ReconSpec:
     iterations: int | None = None
     damping: float = 0.0
     snr_db: float = 60.0
+    weight_power: float = 0.55
+    tau: float = 0.7
 
     def __post_init__(self) -> None:
         if not MESH_SIZE_RANGE[0] <= self.mesh_size <= MESH_SIZE_RANGE[1]:
@@ -70,6 +76,10 @@ class ReconSpec:
             raise ConfigError.bad_value("damping", self.damping, ">= 0 (relative to s_max^2)")
         if not (0.0 < self.snr_db <= 200.0):
             raise ConfigError.bad_value("snr_db", self.snr_db, "0 < snr_db <= 200")
+        if not (0.0 < self.tau <= 10.0):
+            raise ConfigError.bad_value("tau", self.tau, "0 < tau <= 10 (discrepancy level, times the noise norm)")
+        if not (0.0 <= self.weight_power <= 4.0):
+            raise ConfigError.bad_value("weight_power", self.weight_power, "a number in 0..4 (0 = plain Landweber)")
 
 
 def voxel_basis(geometry: SensorGeometry, mesh: TetMesh, grid: tuple[int, int, int]):
@@ -102,7 +112,8 @@ class ReconstructionModel:
     S : (n_meas, n_voxels) float64 normalised sensitivity (residuals and masking).
     v_scale : (n_meas,) V.   model_reference : (n_meas,) V.   sigma0 : S/m.
     centers : (n_voxels, 3) m, body frame.   volumes : (n_voxels,) m^3.
-    iterations, damping, step : the Landweber settings R equals.   key : hash of every input.
+    iterations, damping, step, weight_power : the (weighted) Landweber settings R equals.
+    key : hash of every input.
     """
 
     R: np.ndarray
@@ -117,6 +128,7 @@ class ReconstructionModel:
     step: float
     key: str
     meta: dict
+    weight_power: float = 0.0
 
     @property
     def n_meas(self) -> int:
@@ -136,20 +148,28 @@ class ReconstructionModel:
         y = self.normalise(frames, reference)
         return (y @ self.R.T.astype(np.float64)) * self.sigma0
 
-    def with_settings(self, iterations: int, damping: float = 0.0) -> ReconstructionModel:
-        """A copy whose R equals other Landweber settings (one SVD of S, no forward model)."""
-        svd = LandweberSVD.from_jacobian(self.S)
+    def svd(self, weight_power: float | None = None) -> LandweberSVD:
+        """The (weighted) SVD that R is made from: of ``S W^(1/2)``, ``W = diag(S^T S)^(-p)``."""
+        p = self.weight_power if weight_power is None else float(weight_power)
+        return LandweberSVD.from_jacobian(self.S, weight=column_weight(self.S, p) if p else None)
+
+    def with_settings(self, iterations: int, damping: float = 0.0,
+                      weight_power: float | None = None) -> ReconstructionModel:
+        """A copy whose R equals other Landweber settings (one SVD of S, no forward model);
+        ``weight_power`` None keeps this model's."""
+        p = self.weight_power if weight_power is None else float(weight_power)
+        svd = self.svd(p)
         lam = damping * svd.s_max**2
         step = 1.0 / (svd.s_max**2 + lam)
         R = svd.matrix(iterations, step, lam, dtype=np.float32)
         return ReconstructionModel(R, self.S, self.v_scale, self.model_reference, self.sigma0, self.centers,
-                                   self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta))
+                                   self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta), p)
 
     # -- one file, no pickle ----------------------------------------------------------------
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in MODEL_ARRAYS}
         scalars = {"sigma0": self.sigma0, "iterations": self.iterations, "damping": self.damping,
-                   "step": self.step, "meta": self.meta}
+                   "step": self.step, "weight_power": self.weight_power, "meta": self.meta}
         cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)
 
     @classmethod
@@ -170,7 +190,8 @@ class ReconstructionModel:
         """The model of the arrays :meth:`save` writes (a cache entry as :func:`cache_load` gives it)."""
         s = json.loads(str(z["scalars"]))
         return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
-                   z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"])
+                   z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"],
+                   s.get("weight_power", 0.0))  # files without it were built plain
 
 
 #: The arrays of a saved model (besides its key and its JSON ``scalars``).
@@ -190,6 +211,17 @@ def reference_inclusion(geometry: SensorGeometry, centers: np.ndarray) -> np.nda
     return 0.2 * (d <= max(8e-3, d.min()))
 
 
+def discrepancy_iterations(geometry: SensorGeometry, svd: LandweberSVD, S: np.ndarray, v_scale: np.ndarray,
+                           model_reference: np.ndarray, centers: np.ndarray, step: float, lam: float,
+                           snr_db: float = ReconSpec.snr_db, tau: float = ReconSpec.tau) -> int:
+    """k by the discrepancy principle at ``tau`` times the noise of ``snr_db`` on the noise-free
+    response of :func:`reference_inclusion` (the rule of ``ReconSpec(iterations=None)``)."""
+    noise = np.sqrt(np.mean(model_reference**2)) * 10 ** (-snr_db / 20)
+    noise_norm = float(np.linalg.norm(noise / v_scale))
+    y = S @ reference_inclusion(geometry, centers)
+    return int(choose_by_discrepancy(svd, y, noise_norm, tau=tau, step=step, damping=lam))
+
+
 def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_dir=None,
                 progress=None) -> ReconstructionModel:
     """Build (or load from the cache) the reconstruction model of a sensor."""
@@ -201,11 +233,22 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
         model = ReconstructionModel.from_arrays(hit)
         model.meta["cache_hit"] = True
         return model
-    seconds = {}
     t = time.perf_counter()
     say(f"meshing {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm; cached after the first time)")
     mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
-    seconds["mesh"] = time.perf_counter() - t
+    seconds = {"mesh": time.perf_counter() - t}
+    model = model_of_mesh(geometry, spec, mesh, key, say)
+    model.meta["seconds"] = seconds | model.meta["seconds"]
+    model.save(path)
+    return model
+
+
+def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key: str = "",
+                  say=None) -> ReconstructionModel:
+    """The model of a given forward mesh, not cached: forward solve, Jacobian, voxel sums, (weighted)
+    SVD, k and R (what :func:`build_model` does after meshing; the benchmark times it)."""
+    say = say or (lambda msg: log.info("%s", msg))
+    seconds = {}
     say(f"mesh: {mesh.n_nodes} nodes, {mesh.n_cells} cells; assembling and solving 16 drives")
     fm = ForwardModel(geometry, mesh)
     sol = fm.solve()
@@ -221,22 +264,19 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     for i in range(J.shape[0]):
         S[i] = np.bincount(cell_voxel, weights=J[i], minlength=len(volumes))
     S *= geometry.material.sigma0 / v_scale[:, None]
-    svd = LandweberSVD.from_jacobian(S)
+    p = spec.weight_power
+    svd = LandweberSVD.from_jacobian(S, weight=column_weight(S, p) if p else None)
     lam = spec.damping * svd.s_max**2
     step = 1.0 / (svd.s_max**2 + lam)
     if spec.iterations is None:
-        noise = np.sqrt(np.mean(Vref**2)) * 10 ** (-spec.snr_db / 20)
-        noise_norm = float(np.linalg.norm(noise / v_scale))
-        y = S @ reference_inclusion(geometry, centers)
-        k = int(choose_by_discrepancy(svd, y, noise_norm, tau=1.1, step=step, damping=lam))
+        k = discrepancy_iterations(geometry, svd, S, v_scale, Vref, centers, step, lam, spec.snr_db, spec.tau)
     else:
         k = int(spec.iterations)
     R = svd.matrix(k, step, lam, dtype=np.float32)
     seconds["landweber"] = time.perf_counter() - t
     meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,
             "n_voxels": len(volumes), "cache_hit": False}
-    say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}")
-    model = ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
-                                spec.damping, step, key, meta)
-    model.save(path)
-    return model
+    say(f"reconstruction: {len(volumes)} voxels, rank {svd.rank}, k = {k}, damping = {spec.damping:g}, "
+        f"weight p = {p:g}")
+    return ReconstructionModel(R, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k,
+                               spec.damping, step, key, meta, p)

@@ -10,9 +10,11 @@ node machinery, so replay works without a running ROS graph.
 """
 from __future__ import annotations
 
+import struct
+
 import numpy as np
-from builtin_interfaces.msg import Time
 from geometry_msgs.msg import WrenchStamped
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension
 
@@ -24,6 +26,7 @@ from ..frames_io import check_frame
 FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 STRESS_TOPIC = "stress_field"
 RAW_TOPIC = "raw_voltages"
+FILTERED_TOPIC = "wrench_filtered"  # the node's low-passed wrench (force/filter.py); replay does not write it
 #: Message type of every output topic, as rosbag2 names it.
 TOPIC_TYPES = {
     "wrench": "geometry_msgs/msg/WrenchStamped",
@@ -32,15 +35,12 @@ TOPIC_TYPES = {
     "force_azimuth": "std_msgs/msg/Float64",
     "stress_field": "sensor_msgs/msg/PointCloud2",
     "raw_voltages": "std_msgs/msg/Float32MultiArray",
+    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
 }
 #: PointCloud2 fields of ``~/stress_field`` (float32 each, in this order).
 CLOUD_FIELDS = ("x", "y", "z", "conductivity_change", "volumetric_compression", "pressure")
-
-
-def stamp(ns: int) -> Time:
-    """A ``builtin_interfaces/Time`` from integer nanoseconds."""
-    sec, nsec = divmod(int(ns), 1_000_000_000)
-    return Time(sec=sec, nanosec=nsec)
+# little-endian CDR pieces: header stamp (int32 sec, uint32 nanosec), a 3-vector, a float64
+_STAMP, _VEC3, _F64 = struct.Struct("<iI"), struct.Struct("<3d"), struct.Struct("<d")
 
 
 def raw_voltages_msg(values: np.ndarray) -> Float32MultiArray:
@@ -57,7 +57,7 @@ def values_from_raw_msg(msg: Float32MultiArray) -> np.ndarray:
 
 
 class OutputMessages:
-    """Builds the output messages of one processed frame (wrench, angles, stress cloud).
+    """Builds the output messages of one processed frame (wrench, angles, stress cloud) as CDR bytes.
 
     Parameters
     ----------
@@ -68,9 +68,15 @@ class OutputMessages:
 
     Notes
     -----
+    Every message is serialised here, not by rclpy: rclpy's own serialisation of each message
+    once at construction gives a template (``serialize_message`` of the constant fields), and per
+    frame only the stamp and the values are written into a copy of it at their CDR offsets (the
+    stamp right after the 4-byte encapsulation header; the force, the float64 and the variable
+    arrays at the fixed end of their message). ``Publisher.publish(bytes)`` and a bag writer take
+    these bytes as they are; ``test_messages.py`` holds every one equal to rclpy's serialisation.
+
     The torque of the wrench is zero by construction: every traction on the socket is normal to
     its sphere, so the moment about the socket centre (the wrench frame's origin) vanishes.
-    The cloud's float32 buffer is allocated once; each cloud copies three columns into it.
     """
 
     def __init__(self, centers: np.ndarray, frame_id: str) -> None:
@@ -80,29 +86,22 @@ class OutputMessages:
         self.frame_id = frame_id
         self._cloud = np.zeros((len(c), len(CLOUD_FIELDS)), np.float32)
         self._cloud[:, :3] = c
-        self._fields = [
-            PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate(CLOUD_FIELDS)
-        ]
+        w = WrenchStamped()
+        w.header.frame_id = frame_id
+        self._wrench = bytearray(serialize_message(w))
+        self._wrench_at = len(self._wrench) - 48  # force (3 float64), then torque (3 float64, zero)
+        cloud = self._cloud_msg()
+        self._cloud_tpl = bytearray(serialize_message(cloud))
+        self._cloud_at = len(self._cloud_tpl) - 1 - self._cloud.nbytes  # data, then is_dense (1 byte)
+        self._float64 = bytearray(serialize_message(Float64()))
 
-    def wrench(self, force: np.ndarray, stamp_ns: int) -> WrenchStamped:
-        msg = WrenchStamped()
-        msg.header.stamp = stamp(stamp_ns)
-        msg.header.frame_id = self.frame_id
-        fx, fy, fz = (float(v) for v in force)
-        msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = fx, fy, fz
-        return msg
-
-    def stress_field(self, field: object, stamp_ns: int) -> PointCloud2:
-        """A PointCloud2 of every cell: x, y, z, conductivity_change, volumetric_compression, pressure."""
+    def _cloud_msg(self) -> PointCloud2:
         buf = self._cloud
-        buf[:, 3] = field.conductivity_change
-        buf[:, 4] = field.volumetric_compression
-        buf[:, 5] = field.pressure
         msg = PointCloud2()
-        msg.header.stamp = stamp(stamp_ns)
         msg.header.frame_id = self.frame_id
         msg.height, msg.width = 1, len(buf)
-        msg.fields = self._fields
+        msg.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+                      for i, n in enumerate(CLOUD_FIELDS)]
         msg.is_bigendian = False
         msg.point_step = 4 * len(CLOUD_FIELDS)
         msg.row_step = msg.point_step * len(buf)
@@ -110,15 +109,53 @@ class OutputMessages:
         msg.is_dense = True
         return msg
 
-    def build(self, result: object, stamp_ns: int) -> dict[str, object]:
-        """Messages of one :class:`~cstomo_sensor.pipeline.FrameResult`, keyed by topic name
+    def wrench(self, force, stamp_ns: int) -> bytes:
+        """``WrenchStamped`` (CDR) of ``force`` (3,) N at ``stamp_ns``; zero torque."""
+        buf = self._wrench
+        _STAMP.pack_into(buf, 4, *divmod(int(stamp_ns), 1_000_000_000))
+        _VEC3.pack_into(buf, self._wrench_at, float(force[0]), float(force[1]), float(force[2]))
+        return bytes(buf)
+
+    def float64(self, value: float) -> bytes:
+        """``std_msgs/Float64`` (CDR)."""
+        buf = self._float64
+        _F64.pack_into(buf, 4, float(value))
+        return bytes(buf)
+
+    def stress_field(self, field: object, stamp_ns: int) -> bytes:
+        """A PointCloud2 (CDR) of every cell: x, y, z, conductivity_change, volumetric_compression, pressure."""
+        buf = self._cloud
+        buf[:, 3] = field.conductivity_change
+        buf[:, 4] = field.volumetric_compression
+        buf[:, 5] = field.pressure
+        tpl = self._cloud_tpl
+        _STAMP.pack_into(tpl, 4, *divmod(int(stamp_ns), 1_000_000_000))
+        tpl[self._cloud_at:self._cloud_at + buf.nbytes] = buf.tobytes()
+        return bytes(tpl)
+
+    def build(self, result: object, stamp_ns: int) -> dict[str, bytes]:
+        """CDR messages of one :class:`~cstomo_sensor.pipeline.FrameResult`, keyed by topic name
         (relative to the node); ``stress_field`` only when the result carries a field."""
         out = {
             "wrench": self.wrench(result.force, stamp_ns),
-            "force_magnitude": Float64(data=float(result.magnitude)),
-            "force_elevation": Float64(data=float(result.elevation)),
-            "force_azimuth": Float64(data=float(result.azimuth)),
+            "force_magnitude": self.float64(result.magnitude),
+            "force_elevation": self.float64(result.elevation),
+            "force_azimuth": self.float64(result.azimuth),
         }
         if getattr(result, "field", None) is not None:
             out[STRESS_TOPIC] = self.stress_field(result.field, stamp_ns)
         return out
+
+
+class RawVoltagesCdr:
+    """``~/raw_voltages`` as CDR bytes (the same message as :func:`raw_voltages_msg`), from a
+    template of rclpy's serialisation; the 208 float32 values are the message's last bytes."""
+
+    def __init__(self) -> None:
+        self._tpl = bytearray(serialize_message(raw_voltages_msg(np.zeros(N_MEAS))))
+        self._at = len(self._tpl) - 4 * N_MEAS
+        self._view = np.frombuffer(self._tpl, dtype="<f4", count=N_MEAS, offset=self._at)
+
+    def __call__(self, values: np.ndarray) -> bytes:
+        self._view[:] = values
+        return bytes(self._tpl)

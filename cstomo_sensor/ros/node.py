@@ -39,22 +39,30 @@ from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver
+from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..force.device import read_reference, write_reference
+from ..force.filter import LowPass
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
+    FILTERED_TOPIC,
     FORCE_TOPICS,
     RAW_TOPIC,
     STRESS_TOPIC,
     TOPIC_TYPES,
     OutputMessages,
-    raw_voltages_msg,
+    RawVoltagesCdr,
     values_from_raw_msg,
 )
 from .params import PARAMETERS, NodeConfig
+
+#: Frames the driver keeps for the frame thread; when it falls behind the oldest is dropped (counted
+#: as ``dropped_overflow``): a controller wants the newest frame, not a backlog, so at most this many
+#: frame periods of staleness (4 ms at 1000 frames/s, 40 ms at 100).
+FRAME_QUEUE = 4
 
 
 class _Stats:
@@ -175,9 +183,13 @@ class CstomoSensorNode(LifecycleNode):
         self._last_rejected = 0
         self.processor = FrameProcessor(pipe, stress_field_every=cfg.stress_field_every, on_tare=self._tare_ended)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
+        self._raw_cdr = RawVoltagesCdr()
+        self._filter = LowPass(cfg.wrench_filter_hz, max_gap=cfg.stale_timeout)  # restarts after a gap
+        self._reconnects = 0
         self._init_reference()
         qos = cfg.qos()
-        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else [])
+        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else []) \
+            + ([FILTERED_TOPIC] if cfg.wrench_filter_hz > 0 else [])
         for topic in topics:
             self._pubs[topic] = self.create_lifecycle_publisher(_msg_class(TOPIC_TYPES[topic]), f"~/{topic}", qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -188,8 +200,14 @@ class CstomoSensorNode(LifecycleNode):
             if cfg.protocol == "text":
                 log.warning("protocol 'text' has no checksum: a corrupted line that still parses is taken as "
                             "a frame (only the plausibility gate guards it); use 'binary' (CRC-32) if the board can")
+            carried = link_frame_rate(cfg.baudrate)
+            if cfg.protocol == "binary" and cfg.rate_hz > carried:
+                log.warning(f"rate_hz {cfg.rate_hz:g} exceeds what baudrate {cfg.baudrate} carries: at most "
+                            f"{carried:.0f} DATA frames/s of {DATA_WIRE_BYTES} bytes (8N1), so a UART link lags and "
+                            f"loses frames; use baudrate >= {cfg.rate_hz * 10 * DATA_WIRE_BYTES:.0f} or a USB CDC "
+                            "board (which ignores the baud rate: then this warning does not apply); docs/protocol.md")
             self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
-                                       rate_hz=cfg.rate_hz or None,
+                                       rate_hz=cfg.rate_hz or None, queue_size=FRAME_QUEUE,
                                        stall_timeout=max(cfg.stale_timeout, 0.2))
             self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
             self._thread.start()
@@ -302,6 +320,7 @@ class CstomoSensorNode(LifecycleNode):
                               f"{outcome.frames} frames, spread {outcome.spread:.2%}"
             log.info(f"tare taken at {self.tare_taken}")
             note = self._save_tare(outcome)
+            self._filter.reset()  # a new reference: the filtered wrench starts again from the next frame
         else:
             self.tare_refused = f"{when}: {outcome.reason}"
             log.warning(f"{outcome.reason}" + (" (no reference yet: taring again on the next frames)"
@@ -360,6 +379,10 @@ class CstomoSensorNode(LifecycleNode):
                 # gives the frame's age; the stamp is the ROS time now minus that age
                 now_ns = self.get_clock().now().nanoseconds
                 age_ns = 0  # text mode: no board clock
+                reconnects = drv.stats().reconnects
+                if reconnects != self._reconnects:  # the board came back: the filtered wrench starts again
+                    self._reconnects = reconnects
+                    self._filter.reset()
                 if frame.board_time_us is not None:
                     mono_ns = time.monotonic_ns()
                     age_ns = mono_ns - self._board_clock.stamp_ns(frame.board_time_us, mono_ns)
@@ -421,7 +444,7 @@ class CstomoSensorNode(LifecycleNode):
             return
         active = self._active
         if raw and active:
-            self._pubs[RAW_TOPIC].publish(raw_voltages_msg(values))
+            self._pubs[RAW_TOPIC].publish(self._raw_cdr(values))  # CDR bytes (messages.py)
         if not (active or proc.taring):
             return
         with self._proc_lock:
@@ -431,8 +454,11 @@ class CstomoSensorNode(LifecycleNode):
                 st.reject_reason = ""  # frames go through again
         if result is None or not result.valid or not self._active:
             return  # an implausible frame is no force: counted by the processor, shown in diagnostics
-        for topic, msg in self.out.build(result, stamp_ns).items():
-            self._pubs[topic].publish(msg)
+        pubs = self._pubs
+        for topic, data in self.out.build(result, stamp_ns).items():
+            pubs[topic].publish(data)  # CDR bytes, serialised by OutputMessages
+        if cfg.wrench_filter_hz > 0:
+            pubs[FILTERED_TOPIC].publish(self.out.wrench(self._filter(result.force, stamp_ns * 1e-9), stamp_ns))
         dt = time.perf_counter() - t0
         with st.lock:
             st.proc_sum += dt

@@ -62,6 +62,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "autostart": _d("Walk to active by itself (no lifecycle manager needed)", read_only=True),
     "stress_field_every": _d("Publish ~/stress_field every N frames; 0 = off", read_only=True,
                                   lo=0, hi=1_000_000),
+    "wrench_filter_hz": _d("Cutoff (-3 dB) in Hz of the first-order low-pass of ~/wrench_filtered; 0 = off "
+                           "(no ~/wrench_filtered)", read_only=True, lo=0.0, hi=10000.0),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -95,6 +97,7 @@ class NodeConfig:
     frame_id: str = "cstomo_socket"
     autostart: bool = True
     stress_field_every: int = 10
+    wrench_filter_hz: float = 20.0
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
     stale_timeout: float = 0.5
@@ -111,6 +114,8 @@ class NodeConfig:
         for name in ("tare_frames", "qos_depth"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected >= 1")
+        if not self.wrench_filter_hz >= 0:
+            raise ConfigError(f"parameter 'wrench_filter_hz'={self.wrench_filter_hz!r}: expected >= 0 Hz (0 = off)")
         for name in ("stale_timeout", "clock_window"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"parameter '{name}'={getattr(self, name)!r}: expected > 0")

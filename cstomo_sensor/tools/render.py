@@ -1,14 +1,14 @@
 """``cstomo render``: off-screen pictures (pyvista, matplotlib) of a sensor and a scene.
 
-One PNG per view, every one ``WINDOW`` pixels:
+One PNG per view, ``WINDOW`` pixels (600 wider per panel beyond two):
 
 - ``mesh.png``: the reconstruction model's forward mesh with its electrode patches coloured;
 - per socket load i of the scene (default ``scenes/cuboid_planar_60db.yaml``: 20 N at the paper's
-  30, 90 and 120 degrees in the x-z plane), side by side the simulated stress field (truth mean
-  stress K theta on the independent truth mesh, from the truth's mechanics) and the reconstructed
-  conductivity change (the default pipeline's image of the honest noisy frame, voxel values shown
-  on the forward cells they hold):
-  ``load{i}_iso.png`` (iso-surfaces at 25/50/75 % of each field's maximum) and
+  30, 90 and 120 degrees in the x-z plane), side by side, in kPa on one colour scale: the truth's
+  mean stress K theta (independent truth mesh, the truth's mechanics) and the EIT image's mean
+  stress (the default pipeline's field of the honest noisy frame, voxel values shown on the
+  forward cells they hold); a panel for the scene's own field goes beside them (see ``panels``):
+  ``load{i}_iso.png`` (iso-surfaces at 25/50/75 % of each field's own maximum) and
   ``load{i}_slices.png`` (horizontal slices at z = 5, 10, 15 mm and the vertical section y = 0);
 - ``voltages.png``: the 208 voltages of the unloaded and loaded frames, and their differences.
 """
@@ -47,7 +47,8 @@ def _plotter(shape=(1, 2)):
     import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
     pv.OFF_SCREEN = True
-    p = pv.Plotter(off_screen=True, window_size=list(WINDOW), shape=shape, border=False)
+    size = [WINDOW[0] + 600 * max(0, shape[1] - 2), WINDOW[1]]
+    p = pv.Plotter(off_screen=True, window_size=size, shape=shape, border=False)
     p.set_background("white")
     return p
 
@@ -92,22 +93,20 @@ def _bar(title: str) -> dict:
             "height": 0.7, "width": 0.08, "title_font_size": 14, "label_font_size": 12, "fmt": "%.0f"}
 
 
-def _iso(p, g, name, title, cmap):
+def _iso(p, g, name, title, cmap, lim):
     vmax = float(np.max(g.cell_data[name]))
     pg = g.cell_data_to_point_data()
     p.add_mesh(g.extract_surface(algorithm="dataset_surface").extract_feature_edges(30.0), color="grey")
     if vmax > 0:
         iso = pg.contour([0.25 * vmax, 0.5 * vmax, 0.75 * vmax], scalars=name)
         if iso.n_points:
-            p.add_mesh(iso, scalars=name, cmap=cmap, clim=[0, vmax], opacity=0.6,
+            p.add_mesh(iso, scalars=name, cmap=cmap, clim=[0, lim], opacity=0.6,
                        scalar_bar_args=_bar(title))
     p.add_text(title + "  (iso 25/50/75 % of max)", font_size=9, color="black")
     _view(p)
 
 
-def _slices(p, g, name, title, cmap):
-    vals = g.cell_data[name]
-    lim = float(np.quantile(np.abs(vals), 0.995)) or 1.0  # the contact's peak would wash out the rest
+def _slices(p, g, name, title, cmap, lim):
     pg = g.cell_data_to_point_data()
     for z in (5.0, 10.0, 15.0):
         p.add_mesh(pg.slice(normal="z", origin=(0, 0, z)), scalars=name, cmap=cmap, clim=[-lim, lim],
@@ -119,14 +118,18 @@ def _slices(p, g, name, title, cmap):
     _view(p)
 
 
-def render_case(truth_grid, recon_grid, label: str, out: Path, i: int) -> list[Path]:
+def render_case(panels: list[tuple], out: Path, i: int) -> list[Path]:
+    """One picture per kind with a panel per ``(grid, title)``, every grid holding ``pressure_kPa``, on
+    one colour scale: +-(the largest panel's 99.5 % quantile of |value|; the contact's peak would
+    wash out the rest)."""
+    lim = max(float(np.quantile(np.abs(g.cell_data["pressure_kPa"]), 0.995)) for g, _ in panels) or 1.0
     paths = []
     for kind, fn in (("iso", _iso), ("slices", _slices)):
-        p = _plotter()
-        p.subplot(0, 0)
-        fn(p, truth_grid, "pressure_kPa", f"truth mean stress K theta, kPa; {label}", "coolwarm" if kind == "slices" else "viridis")
-        p.subplot(0, 1)
-        fn(p, recon_grid, "dsigma_mS", "reconstructed conductivity change, mS/m", "coolwarm" if kind == "slices" else "viridis")
+        p = _plotter((1, len(panels)))
+        for j, (grid, title) in enumerate(panels):
+            p.subplot(0, j)
+            vmax = float(np.max(grid.cell_data["pressure_kPa"]))
+            fn(p, grid, "pressure_kPa", f"{title}; max {vmax:.0f} kPa", "coolwarm" if kind == "slices" else "viridis", lim)
         p.link_views()
         path = out / f"load{i}_{kind}.png"
         p.screenshot(str(path))
@@ -198,10 +201,12 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
             say(f"load {i}: implausible frame ({res.reason}): skipped")
             continue
         pressure = pressure_of_theta(truth.theta(load), geometry.material)
-        tg = _grid(tm.points, tm.tets, pressure_kPa=pressure * 1e-3)
-        rg = _grid(mesh.points, mesh.tets, dsigma_mS=res.field.conductivity_change[cell_voxel] * 1e3)
         est = f"{res.magnitude:.1f} N, estimated at {np.degrees(planar_angle(res.force)):.0f} deg"
-        paths += render_case(tg, rg, f"{label} ({est})", out, i)
+        panels = [(_grid(tm.points, tm.tets, pressure_kPa=pressure * 1e-3), f"truth mean stress, kPa; {label}"),
+                  (_grid(mesh.points, mesh.tets, pressure_kPa=res.field.pressure[cell_voxel] * 1e-3),
+                   f"EIT image mean stress, kPa; {est}")]
+        # the scene's own field (issue 13 item 2) goes here as a third panel: (grid, title)
+        paths += render_case(panels, out, i)
         say(f"wrote {paths[-2]}, {paths[-1]} ({label}; estimate {est})")
         frames.append(v)
         labels.append(label)

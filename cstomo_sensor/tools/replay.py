@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 from rclpy._rclpy_pybind11 import RMWError
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, CstomoError, FrameError
@@ -145,8 +145,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                     if result is None or not result.valid:
                         continue
                     n_out += 1
-                    for name, msg in out.build(result, t_ns).items():
-                        writer.write(conns[name], t_ns, serialize_message(msg))
+                    for name, data in out.build(result, t_ns).items():  # CDR bytes
+                        writer.write(conns[name], t_ns, data)
             if n_in and corrupt == n_in:
                 raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
                                   "no output written")

@@ -1,5 +1,6 @@
 """``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-calibration effort (:mod:`.effort`), GREIT figures (:mod:`.greit`) and the pyEIT comparison (:mod:`.pyeit`)."""
+GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
+the weight rule (:mod:`.weight`) and the calibration effort (:mod:`.effort`)."""
 from __future__ import annotations
 
 import argparse
@@ -8,10 +9,12 @@ import sys
 from pathlib import Path
 
 from .effort import calibration_effort
+from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout
 from .pyeit import run as run_pyeit
 from .table import run
+from .weight import choose_weight
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -24,6 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
     g.add_argument("--calibration-effort", action="store_true",
                    help="held-out accuracy of a simulated non-nominal device against the number of calibration loads")
+    g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
+    g.add_argument("--choose-weight", action="store_true",
+                   help="the rule for the Landweber weight power p on the training-side scenes")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
                    help="with --heldout: a device calibration (cstomo calibrate) applied to both estimators")
@@ -41,14 +47,19 @@ def main(argv: list[str] | None = None) -> int:
 
         run_pyeit(a.out, a.cache_dir or None)
         return 0
+    if a.choose_weight:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        choose_weight(a.out, a.cache_dir or None)
+        return 0
     if a.calibration_effort:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         calibration_effort(a.out, cache_dir=a.cache_dir or None)
         return 0
-    if a.heldout or a.greit:
+    if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
-        (heldout(a.heldout, a.out, a.cache_dir or None, calibration=a.calibration) if a.heldout
-         else greit(a.out, a.cache_dir or None))
+        job = ((lambda o, c: heldout(a.heldout, o, c, calibration=a.calibration)) if a.heldout
+               else filter_bench if a.filter else greit)
+        job(a.out, a.cache_dir or None)
         return 0
     run("smoke" if a.smoke else "quick" if a.quick else "full", a.out, a.cache_dir or None)
     return 0

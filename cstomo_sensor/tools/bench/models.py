@@ -10,8 +10,11 @@ import numpy as np
 
 from ...force.estimate import build_estimator
 from ...force.pipeline import Pipeline
-from ...inverse.reconstruction import ReconSpec, build_model
+from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
 from ...model.geometry import load_sensor
+
+#: The image before issue 13: plain Landweber, k by the discrepancy rule at tau = 1.1.
+PLAIN = {"weight_power": 0.0, "tau": 1.1}
 
 
 @dataclass
@@ -22,6 +25,8 @@ class Setting:
     grid: tuple = (8, 8, 4)
     iterations: str | int = "auto"  # "auto", "few", "many" or a count
     damping: float = 0.0
+    weight_power: float | None = None  # None = the model's (ReconSpec default); k by the rule for it
+    tau: float | None = None  # discrepancy level of that rule; None = ReconSpec's
     dtype: str = "float32"
     estimator: str = "linear"
     row: dict = field(default_factory=dict)
@@ -36,6 +41,8 @@ def settings_for(mode: str) -> list[Setting]:
           Setting("iterations few", "iterations", iterations="few"),
           Setting("iterations many", "iterations", iterations="many"),
           Setting("damping 0.1", "damping", damping=0.1),
+          Setting("plain (p=0, tau=1.1: before)", "weight", **PLAIN),
+          Setting("weight p=1", "weight", weight_power=1.0),
           Setting("float64", "dtype", dtype="float64"),
           Setting("estimator model", "estimator", estimator="model"),
           Setting("mesh 6 mm", "mesh", mesh_size=6.0e-3)]
@@ -88,10 +95,14 @@ class Builder:
         build_s = float(sum(model.meta.get("seconds", {}).values()))
         est, t_est, mb_est = self.estimator(s.mesh_size, s.estimator)
         extra = 0.0
-        if s.iterations != "auto" or s.damping:
+        if s.iterations != "auto" or s.damping or s.weight_power is not None or s.tau is not None:
             k0 = model.iterations
+            if s.weight_power is not None or s.tau is not None:  # k by the discrepancy rule for this p, tau
+                svd = model.svd(s.weight_power)
+                k0 = discrepancy_iterations(self.geometry, svd, model.S, model.v_scale, model.model_reference,
+                                            model.centers, 1.0 / svd.s_max**2, 0.0, tau=s.tau or ReconSpec.tau)
             k = {"auto": k0, "few": max(1, k0 // 4), "many": 4 * k0}.get(s.iterations, s.iterations)
-            model, extra, mb2 = self._traced(lambda: model.with_settings(int(k), s.damping))
+            model, extra, mb2 = self._traced(lambda: model.with_settings(int(k), s.damping, s.weight_power))
             mb = max(mb, mb2)
         pipe = Pipeline(self.geometry, model, est, image_dtype=np.dtype(s.dtype))
         return pipe, build_s + extra + t_est, max(mb, mb_est)

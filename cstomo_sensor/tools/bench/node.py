@@ -14,7 +14,8 @@ a window of ``--seconds`` after a warm-up, measures:
   not included in the latency; what is measured is everything above it (processing, DDS,
   the subscriber's executor, scheduling);
 * CPU of the node process (all threads): utime+stime from /proc/<pid>/stat over the window, in %
-  of one core (and of the board simulator, which shares the 2 cores);
+  of one core and in microseconds per wrench received (and of the board simulator, which shares the
+  2 cores);
 * wrenches received per second, the node's frames per second and its dropped frames (queue
   overflow, late, sequence gaps: differences of the /diagnostics counters over the window);
 * VmRSS and VmHWM of the node from /proc/<pid>/status at the end of the window.
@@ -46,7 +47,8 @@ from ..common import DEFAULTS, NodeWithBoard, local_ros_env
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
            "latency_median_ms", "latency_p99_ms", "latency_max_ms",
-           "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
+           "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb",
+           "processing_mean_ms", "host_loadavg_1m"]
 
 METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the node's ROS clock) - "
           "wrench header.stamp (board write time mapped to host time by the lower envelope of "
@@ -131,9 +133,9 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             raise CstomoError(f"{err}; see {logs[1].name}") from None
         node, board = run.node, run.board
         deadline = time.monotonic() + 60.0
-        while rec.wrenches == 0:
+        while rec.wrenches == 0 or not rec.diags:  # the window's counters start from a diagnostics message
             if time.monotonic() > deadline or node.poll() is not None or board.poll() is not None:
-                raise CstomoError(f"no wrench from the node within 60 s; see {logs[0].name}")
+                raise CstomoError(f"no wrench and diagnostics from the node within 60 s; see {logs[0].name}")
             time.sleep(0.05)
         time.sleep(a.warmup)  # past the tare and the step to 20 N; queues and caches settled
 
@@ -181,17 +183,18 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> 
             "frames_dropped": int(dropped), **{k: int(v) for k, v in parts.items()}, "keeps_up": keeps_up,
             "latency_median_ms": round(pct(50), 3),
             "latency_p99_ms": round(pct(99), 3), "latency_max_ms": round(float(lat.max()) if lat.size else math.nan, 3),
-            "node_cpu_pct": round(100 * (c1 - c0) / window, 1), "board_cpu_pct": round(100 * (b1 - b0) / window, 1),
+            "node_cpu_pct": round(100 * (c1 - c0) / window, 1),
+            "node_cpu_us_per_wrench": round(1e6 * (c1 - c0) / max(n1 - n0, 1), 1), "board_cpu_pct": round(100 * (b1 - b0) / window, 1),
             "node_vmrss_mb": round(rss, 1), "node_vmhwm_mb": round(hwm, 1), "processing_mean_ms": round(proc_ms, 3),
             "host_loadavg_1m": round(load, 2)}
 
 
 def markdown(rows: list[dict]) -> str:
     head = ["fps", "stress", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
-            "lat med ms", "lat p99 ms", "node CPU %", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms", "load 1m"]
+            "lat med ms", "lat p99 ms", "node CPU %", "CPU us/wrench", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms", "load 1m"]
     keys = ["rate_hz", "stress_field_every", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
             "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
-            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "board_cpu_pct", "node_vmrss_mb",
+            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb",
             "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
     assert len(head) == len(keys)
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

@@ -26,7 +26,7 @@ def write_csv(path: Path, rows: list[dict], cols: list[str]) -> None:
             w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()})
 
 
-MD_COLS = [("setting", "setting", "{}"), ("grid", "grid", "{}"), ("k", "iterations", "{}"),
+MD_COLS = [("setting", "setting", "{}"), ("grid", "grid", "{}"), ("k", "iterations", "{}"), ("p", "weight_power", "{:g}"),
            ("n_vox", "n_voxels", "{}"), ("build s", "build_s", "{:.1f}"), ("build MB", "build_mem_mb", "{:.0f}"),
            ("frame ms (med/p99)", None, None), ("estimator ms (med/p99)", None, None), ("fps", "fps", "{:.0f}"),
            ("angle deg (med/p90)", None, None), ("|F| err N (med/p90)", None, None),

@@ -15,6 +15,7 @@ from ...model.simulate import Load, Truth
 
 TRUTH_SEED = 9001  # the simulated device of the held-out scenes; no calibration or test uses it
 FORCE_SEED = 20261121
+TRAIN_TRUTH_SEED, TRAIN_FORCE_SEED = 77, 555  # the training side: parameter choice only (weight.py)
 NOISE_SEED = 4242
 BOUND_N = 400.0  # an estimate above this (10x the range) counts as unbounded
 
@@ -40,13 +41,14 @@ def random_forces(n: int, seed: int = FORCE_SEED) -> np.ndarray:
 class SceneSet:
     """The held-out device and its clean loaded frames, truth conductivity changes and noise."""
 
-    def __init__(self, n_scenes: int, cache_dir=None, say=print) -> None:
+    def __init__(self, n_scenes: int, cache_dir=None, say=print, truth_seed: int = TRUTH_SEED,
+                 force_seed: int = FORCE_SEED) -> None:
 
         self.geometry = load_sensor("cuboid_joint")
-        self.truth = Truth(self.geometry, truth_h=3e-3, mechanics_h=4e-3, seed=TRUTH_SEED, cache_dir=cache_dir)
+        self.truth = Truth(self.geometry, truth_h=3e-3, mechanics_h=4e-3, seed=truth_seed, cache_dir=cache_dir)
         t = time.perf_counter()
         self.ref_clean = self.truth.reference
-        self.forces = random_forces(n_scenes)
+        self.forces = random_forces(n_scenes, force_seed)
         self._theta: dict[tuple, tuple[np.ndarray, float]] = {}
         self.clean, self.dsigma = [], []
         for f in self.forces:

@@ -1,0 +1,90 @@
+"""A thin-plate-spline interpolant with its analytic Jacobian, evaluated in one small product.
+
+The same interpolant as ``scipy.interpolate.RBFInterpolator(points, values,
+kernel="thin_plate_spline", degree=1)`` (no smoothing): ``s(x) = sum_i c_i phi(|x - p_i|) + d_0 +
+d^T x`` with ``phi(r) = r^2 log r`` (0 at r = 0) and the coefficients solving
+
+    [K  P] [c]   [values]
+    [P' 0] [d] = [0     ],   K_ij = phi(|p_i - p_j|),  P = [1, p].
+
+Its gradient is ``sum_i c_i (2 log r_i + 1) (x - p_i) + d`` (0 at r = 0, where phi is C^1). One
+evaluation of the value and the 3 derivatives at one point is a single ``(m, n + 4) @ (n + 4, 4)``
+product, where scipy's general evaluator takes about 25 us per call (and the finite-difference
+Jacobian four calls): the ``model`` force estimator's Gauss-Newton steps use this.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ConfigError
+
+
+class ThinPlateSpline:
+    """Interpolant of ``values`` (n, m) at ``points`` (n, d) through a thin-plate spline of degree 1.
+
+    Parameters
+    ----------
+    points : (n, d) ndarray
+        Distinct nodes (n >= d + 1, not all on one hyperplane).
+    values : (n, m) ndarray
+        Values at the nodes.
+    """
+
+    def __init__(self, points: np.ndarray, values: np.ndarray) -> None:
+        p = np.asarray(points, dtype=float)
+        v = np.asarray(values, dtype=float)
+        if p.ndim != 2 or v.ndim != 2 or len(p) != len(v) or len(p) < p.shape[1] + 1:
+            raise ConfigError(f"points.shape={p.shape}, values.shape={v.shape}: expected (n, d) and (n, m) "
+                              "with n >= d + 1")
+        n, d = p.shape
+        K = _phi(np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1))
+        P = np.hstack([np.ones((n, 1)), p])
+        A = np.block([[K, P], [P.T, np.zeros((d + 1, d + 1))]])
+        rhs = np.vstack([v, np.zeros((d + 1, v.shape[1]))])
+        try:
+            coef = np.linalg.solve(A, rhs)  # (n + d + 1, m)
+        except np.linalg.LinAlgError as err:
+            raise ConfigError("thin-plate spline: singular system (repeated or coplanar points)") from err
+        self.points = p
+        self.M = np.ascontiguousarray(coef.T)  # (m, n + 1 + d): [c | d_0 | d]
+        # value_and_jacobian's work arrays: basis values (row 0) and gradients (rows 1..d), (1 + d, n + 1 + d)
+        self._pt = np.ascontiguousarray(p.T)  # (d, n)
+        self._Bt = np.zeros((1 + d, n + 1 + d))
+        self._Bt[0, n] = 1.0
+        self._Bt[1:, n + 1:] = np.eye(d)
+        self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
+        self._diff = np.empty((d, n))
+        self._r2 = np.empty(n)
+        self._g = np.empty(n)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Values (k, m) at points ``x`` (k, d) (or (m,) at one point (d,))."""
+        x = np.asarray(x, dtype=float)
+        one = x.ndim == 1
+        x2 = np.atleast_2d(x)
+        r = np.linalg.norm(x2[:, None, :] - self.points[None], axis=-1)
+        basis = np.hstack([_phi(r), np.ones((len(x2), 1)), x2])
+        out = basis @ self.M.T
+        return out[0] if one else out
+
+    def value_and_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(value (m,), Jacobian (m, d)) at one point ``x`` (d,); the arrays are new."""
+        n, Bt = len(self.points), self._Bt
+        diff, r2, g = self._diff, self._r2, self._g
+        np.subtract(x[:, None], self._pt, out=diff)  # (d, n)
+        np.einsum("ij,ij->j", diff, diff, out=r2)
+        np.log(r2 + 1e-300, out=g)  # 2 log r; at a node r^2 log r = 0 and diff = 0, as phi is C^1 there
+        np.multiply(r2, g, out=Bt[0, :n])
+        Bt[0, :n] *= 0.5
+        g += 1.0
+        np.multiply(diff, g, out=Bt[1:, :n])
+        Bt[1:, n] = 0.0
+        Bt[0, n + 1:] = x
+        out = Bt @ self._Mt  # (1 + d, m)
+        return out[0], out[1:].T
+
+
+def _phi(r: np.ndarray) -> np.ndarray:
+    """r^2 log r, 0 at r = 0."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(r > 0, r**2 * np.log(np.where(r > 0, r, 1.0)), 0.0)

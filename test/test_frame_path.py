@@ -1,0 +1,67 @@
+"""The fast pieces of the per-frame path against their plain versions: the scalar force angles
+against the numpy ones, the thin-plate spline (value and analytic Jacobian) against scipy's
+RBFInterpolator and its finite differences, and the ``model`` estimator's Gauss-Newton fit against
+a plain least-squares fit through scipy's interpolant."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.interpolate import RBFInterpolator
+from scipy.optimize import least_squares
+
+from cstomo_sensor.angles import force_angles, force_angles3
+from cstomo_sensor.force.tps import ThinPlateSpline
+
+
+def test_scalar_angles_equal_the_numpy_ones():
+    rng = np.random.default_rng(0)
+    fs = np.vstack([rng.normal(size=(200, 3)) * 20, [[0, 0, -5], [0, 0, 5], [0, 0, 0], [1e-12, 0, -3], [3, -4, 0]]])
+    for f in fs:
+        np.testing.assert_allclose(force_angles3(f), [float(v) for v in force_angles(f)], rtol=1e-13, atol=1e-15)
+    assert force_angles3([0.0, 0.0, -5.0]) == (5.0, np.pi / 2, 0.0)
+    assert all(np.isnan(force_angles3([np.nan, 0.0, 1.0])[:2]))
+
+
+@pytest.fixture(scope="module")
+def nodes():
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-2, 2, size=(80, 3))
+    v = np.column_stack([np.sin(p @ rng.normal(size=3)) for _ in range(6)]) + p[:, :1] ** 2
+    return p, v
+
+
+def test_thin_plate_spline_equals_scipy_and_its_jacobian_the_finite_differences(nodes):
+    p, v = nodes
+    ours = ThinPlateSpline(p, v)
+    ref = RBFInterpolator(p, v, kernel="thin_plate_spline", degree=1)
+    x = np.random.default_rng(2).uniform(-2.5, 2.5, size=(30, 3))
+    np.testing.assert_allclose(ours(x), ref(x), atol=1e-9)
+    np.testing.assert_allclose(ours(p), v, atol=1e-9)  # interpolates
+    for xi in list(x[:10]) + [p[5]]:  # and at a node, where phi is only C^1
+        val, jac = ours.value_and_jacobian(xi)
+        np.testing.assert_allclose(val, ref(xi[None])[0], atol=1e-9)
+        h = 1e-6
+        fd = np.column_stack([(ref((xi + h * e)[None])[0] - ref((xi - h * e)[None])[0]) / (2 * h) for e in np.eye(3)])
+        np.testing.assert_allclose(jac, fd, atol=1e-5)
+
+
+def test_model_estimator_finds_the_least_squares_force_of_the_surrogate(warm_model_estimator):
+    """The Gauss-Newton fit (reduced subspace, analytic Jacobian) lands where a plain trust-region
+    least-squares fit of the noise-weighted residual through scipy's interpolant does."""
+    est = warm_model_estimator
+    keep = est.keep
+    ref = RBFInterpolator(est.forces / est.scale, est.y[:, keep], kernel="thin_plate_spline", degree=1)
+    rng = np.random.default_rng(3)
+    for i in rng.choice(np.arange(1, len(est.y)), 8, replace=False):
+        y = est.y[i] + rng.normal(size=est.y.shape[1]) * est.noise
+        F = est.estimate(y)
+        fit = least_squares(lambda f, y=y: (y[keep] - ref(f[None] / est.scale)[0]) * est.w,
+                            est.linear.estimate(y), xtol=1e-12, ftol=1e-12)
+        np.testing.assert_allclose(F, fit.x, atol=0.02)  # N, against forces of 5..40 N
+
+
+@pytest.fixture(scope="module")
+def warm_model_estimator(cuboid, cuboid_model):
+    from cstomo_sensor.force.estimate import build_estimator
+
+    return build_estimator("model", cuboid, cuboid_model)
