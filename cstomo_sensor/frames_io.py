@@ -172,6 +172,24 @@ def read_forces(path: str | os.PathLike, with_valid: bool = False):
     return (out, valid) if with_valid else out
 
 
+def read_force_rows(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(frame numbers (n,) int, forces (n, 3)) of a forces file's rows with a force (``valid`` 0 rows
+    are skipped); the ``frame`` column is required, unknown columns are ignored."""
+    names, rows = _table(path, FrameError, f"forces file ({FORCES_HEADER})", ("frame", "fx", "fy", "fz"))
+    cols = [names.index(c) for c in ("frame", "fx", "fy", "fz")]
+    iv = names.index("valid") if "valid" in names else None
+    frame, forces = [], []
+    for lineno, cells in rows:
+        if iv is not None and cells[iv].strip() in ("0", "0.0"):
+            continue
+        v = [_cell(path, lineno, names[i], cells[i], FrameError) for i in cols]
+        if v[0] != int(v[0]) or v[0] < 0:
+            raise FrameError(f"{path}:{lineno}: frame={cells[cols[0]]!r}: expected a frame number >= 0")
+        frame.append(int(v[0]))
+        forces.append(v[1:])
+    return np.array(frame, dtype=int), np.array(forces, dtype=float).reshape(-1, 3)
+
+
 def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a load script ``time,fx,fy,fz`` (header line first): (times (n,), forces (n, 3)); times
     finite and not decreasing. A malformed file raises :class:`ConfigError` naming the file and line."""

@@ -230,15 +230,24 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         assert saved.shape == (1, 208)
         np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-8)
         assert not np.allclose(saved[0], h.node.pipe.model_reference, rtol=1e-3)
+        # the tare's noise is measured, used and saved beside it (issue 11): 60 dB is 0.1 % of the rms
+        noise = read_frames(tmp_path / "tare.noise.csv")
+        assert noise.shape == (1, 208) and h.node.pipe.noise_measured
+        assert 0.3e-3 < np.median(noise) / np.sqrt(np.mean(saved**2)) < 3e-3
+        kv = {v.key: v.value for v in h.node.diagnostics().values}
+        assert kv["noise"] == "measured by the tare" and 0.8 < float(kv["reference_scale"]) < 1.25, kv
     finally:
         board.close()
         h.close()
-    # next start: the saved tare is the reference
+    # next start: the saved tare is the reference, with its noise
     h = Harness(ros, dict(PIPE, input="topic", tare_file=str(tmp_path / "tare.csv")))
     try:
         assert wait_for(lambda: h.state() == "active", 20.0)
         assert h.node.reference_source.startswith("saved tare")
         np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-12)
+        assert h.node.pipe.noise_measured
+        np.testing.assert_allclose(h.node.pipe.estimator.noise * h.node.pipe._y_scale,
+                                   np.maximum(noise[0], 0.1 * np.median(noise)), rtol=1e-8)
     finally:
         h.close()
 

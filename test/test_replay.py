@@ -94,7 +94,7 @@ def test_replay_with_a_reference_file_equals_the_tare_on_the_first_frames(tmp_pa
     with Reader(BAG) as r:
         first = [np.asarray(deserialize_message(bytes(raw), Float32MultiArray).data, float)
                  for _, _, raw in r.messages()][:TARE]
-    write_frames(tmp_path / "ref.csv", np.mean(first, axis=0))
+    write_frames(tmp_path / "ref.csv", np.array(first))  # the tare's frames: their mean and noise
     s = replay(BAG, tmp_path / "out", config, reference=tmp_path / "ref.csv", pipeline=pipe)
     rows = force_rows(read_bag(tmp_path / "out"))
     assert s.results == s.frames_in  # no tare: every frame gives a result

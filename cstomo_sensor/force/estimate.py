@@ -8,7 +8,8 @@ reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md,
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
 - ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
-  60 dB noise augmentation. One 3 x 208 product per frame (about a microsecond of arithmetic).
+  noise augmentation (the device's noise measured by a tare of several frames, else 60 dB).
+  One 3 x 208 product per frame (about a microsecond of arithmetic).
 - ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/tps.py), started from the linear estimate;
@@ -99,13 +100,16 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
 
 
 def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
-    """Per-channel std of the normalised noise at ``db``."""
+    """Per-channel std of the normalised noise at ``db`` (the assumption without a measured noise:
+    :data:`~cstomo_sensor.force.device.DEFAULT_NOISE_DB`; a tare of several frames replaces it)."""
     ref = model.model_reference
     return np.sqrt(np.mean(ref**2)) * 10 ** (-db / 20) / model.v_scale
 
 
 class LinearEstimator:
     """F = W y (ridge regression through the origin on the calibration set, kept channels only)."""
+
+    name = "linear"
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None) -> None:
@@ -126,6 +130,14 @@ class LinearEstimator:
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
 
+    def with_set(self, forces: np.ndarray, y: np.ndarray) -> LinearEstimator:
+        """The same estimator on another training set (a device calibration's corrected one)."""
+        return LinearEstimator(forces, y, self.noise, self.ridge, self.keep)
+
+    def with_noise(self, noise: np.ndarray) -> LinearEstimator:
+        """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
+        return LinearEstimator(self.forces, self.y, noise, self.ridge, self.keep)
+
 
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """x with A x = b for a 3 x 3 ``A`` by Cramer's rule on Python floats (a few us, where
@@ -145,6 +157,8 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
 
 class ModelEstimator:
     """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics."""
+
+    name = "model"
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
                  keep: np.ndarray | None = None, iterations: int = 6) -> None:
@@ -180,6 +194,14 @@ class ModelEstimator:
 
     def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+
+    def with_set(self, forces: np.ndarray, y: np.ndarray) -> ModelEstimator:
+        """The same estimator on another training set (a device calibration's corrected one)."""
+        return ModelEstimator(forces, y, self.noise, self.ridge, self.keep, self.iterations)
+
+    def with_noise(self, noise: np.ndarray) -> ModelEstimator:
+        """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
+        return ModelEstimator(self.forces, self.y, noise, self.ridge, self.keep, self.iterations)
 
 
 #: The force estimators by name; the first is the default.

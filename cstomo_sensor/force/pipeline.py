@@ -48,6 +48,8 @@ from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
 from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
+from .calibration import DeviceCalibration
+from .device import ScaleReport
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
 
 log = logging.getLogger(__name__)
@@ -74,6 +76,7 @@ class PipelineConfig:
     iterations: int = 0  # 0 = chosen by the discrepancy rule
     damping: float = ReconSpec.damping
     max_force: float = 1.5 * RATED_FORCE  # N; larger estimates (and frames no such load explains) are implausible
+    calibration_file: str = ""  # a device calibration (cstomo calibrate); '' = the nominal model
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -149,7 +152,13 @@ class Pipeline:
         noise = np.sqrt(np.mean(ref**2)) * 10 ** (-GATE_SNR_DB / 20) / model.v_scale
         self.gate_norm_bound = DEVICE_MARGIN * self.gate_k * self.max_force + NOISE_NORM_FACTOR * float(np.linalg.norm(noise))
         self.gate_channel_bound = DEVICE_MARGIN * per_n.max(axis=0) * self.max_force + CHANNEL_NOISE_SIGMAS * noise
-        self._gate_w = np.ones(self.n_meas)  # y -> g: keep * v_scale / (device's reference scale)
+        self._gate_w = np.ones(self.n_meas)  # y -> g: keep * y_scale / (device's reference scale)
+        self._y_scale = model.v_scale  # c * v_scale, c the device's global factor (set_reference)
+        self._default_noise = np.asarray(estimator.noise)  # y units, DEFAULT_NOISE_DB
+        self.scale_report: ScaleReport | None = None
+        self.calibration: DeviceCalibration | None = None
+        self._base_set = (np.asarray(estimator.forces), np.asarray(estimator.y))  # the model's own
+        self.noise_measured = False  # True: the estimators use the tare's noise
         self._g = np.empty(self.n_meas)
         self._over = np.empty(self.n_meas, dtype=bool)
 
@@ -157,8 +166,38 @@ class Pipeline:
     def build(cls, config: PipelineConfig, progress=None) -> Pipeline:
         geometry = load_sensor(config.sensor)
         model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
+        calibration = DeviceCalibration.load(config.calibration_file, model.n_meas) if config.calibration_file else None
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
-        return cls(geometry, model, estimator, max_force=config.max_force)
+        pipe = cls(geometry, model, estimator, max_force=config.max_force)
+        if calibration is not None:
+            pipe.set_calibration(calibration)
+        return pipe
+
+    def set_calibration(self, calibration: DeviceCalibration | None) -> None:
+        """Use a device calibration (None: the nominal model): the estimator is rebuilt on the model's
+        training set corrected to the device. Refuses one fitted against another model."""
+        forces, y = self._base_set
+        if calibration is None:
+            self.estimator = self.estimator.with_set(forces, y)
+        else:
+            calibration.check_model(self.model)
+            self.estimator = self.estimator.with_set(*calibration.corrected_set(forces, y))
+        self.calibration = calibration
+
+    @property
+    def base_estimator(self):
+        """The estimator without the device calibration (same noise and mask)."""
+        return self.estimator if self.calibration is None else self.estimator.with_set(*self._base_set)
+
+    @property
+    def estimator_name(self) -> str:
+        return self.estimator.name
+
+    def normalise(self, frames: np.ndarray) -> np.ndarray:
+        """``(V - V_ref) / (c v_scale)`` of (n_meas,) or (n, n_meas) frames, as :meth:`process` forms it."""
+        if self.reference is None:
+            raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
+        return (check_frame(frames, self.n_meas, "frame", batch=True) - self.reference) / self._y_scale
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -168,17 +207,37 @@ class Pipeline:
     def bad_channels(self) -> np.ndarray:
         return ~self._keep
 
-    def set_reference(self, frame: np.ndarray) -> None:
-        """Use the device's own unloaded frame (tare) as the difference reference."""
-        self.reference = check_frame(frame, self.n_meas, "reference").copy()
+    def set_reference(self, frame: np.ndarray, noise: np.ndarray | None = None) -> ScaleReport:
+        """Use the device's own unloaded frame (tare) as the difference reference; returns how it
+        compares with the model (:class:`~.device.ScaleReport`).
+
+        The change is normalised by ``c * v_scale``, ``c`` the reference's global factor against the
+        model's, so a device whose voltages are all scaled alike gives the same forces. ``noise``
+        (n_meas,) volts, the per-channel std of the tare frames, sets the estimators' noise; None
+        assumes :data:`~.device.DEFAULT_NOISE_DB` relative to the reference.
+        """
+        ref = check_frame(frame, self.n_meas, "reference").copy()
+        report = ScaleReport.of(ref, self.model_reference)
+        c = report.factor if np.isfinite(report.factor) and report.factor > 0 else 1.0
+        y_scale = c * self.model.v_scale
+        if noise is None:
+            noise_y = self._default_noise
+        else:
+            noise_v = check_frame(noise, self.n_meas, "noise")
+            floor = 0.1 * float(np.median(noise_v))  # a channel that happened to read steady
+            noise_y = np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
+        estimator = self.estimator.with_noise(noise_y)
+        self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
+        self.scale_report, self.noise_measured = report, noise is not None
         self._update_gate()
+        return report
 
     def _update_gate(self) -> None:
         """The gate's per-channel weight: the change relative to the device's own reference."""
         ref = self.reference if self.reference is not None else self.model_reference
         scale = np.maximum(np.abs(ref), 0.05 * np.sqrt(np.mean(ref**2)))
         with np.errstate(divide="ignore"):
-            w = np.where(scale > 0, self.model.v_scale / scale, np.inf)  # an all-zero reference: nothing passes
+            w = np.where(scale > 0, self._y_scale / scale, np.inf)  # an all-zero reference: nothing passes
         self._gate_w = np.where(self._keep, w, 0.0)
 
     def set_bad_channels(self, bad: np.ndarray) -> None:
@@ -218,7 +277,7 @@ class Pipeline:
         y = self._y
         with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
             np.subtract(v, self.reference, out=y)
-            y /= self.model.v_scale
+            y /= self._y_scale
             y[~self._keep] = 0.0
             g = np.multiply(y, self._gate_w, out=self._g)
             g2 = float(np.dot(g, g)) if gate else 0.0
@@ -261,19 +320,25 @@ class Excluded:
 #: 20 N socket load moves a channel by up to 5.7 % of rms, so one arriving in the middle 80 % of
 #: a tare gives 1.7 % or more.
 TARE_MAX_SPREAD = 0.01
+#: On a noisy board the limit is this many times the median channel's spread instead, when larger: a
+#: 40 dB board (REFERENCE_SENSOR.md s.8) has a std of 1 % of rms on every channel, and a load arriving
+#: during the tare still shows as channels far noisier than the typical one (use >= 10 tare frames there).
+TARE_NOISE_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
 class TareOutcome:
     """How a tare ended: ``reference`` (208,) if accepted, else None and ``reason`` says why.
 
-    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare).
+    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare);
+    ``noise`` (208,) volts the per-channel std of the frames (None for a one-frame tare).
     """
 
     reference: np.ndarray | None
     frames: int
     spread: float
     reason: str = ""
+    noise: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -288,7 +353,8 @@ class FrameProcessor:
     averaged into the reference and give no output; every later frame is processed against that
     reference. A tare is refused (the old reference stays) when its frames are not steady: the
     largest per-channel standard deviation over the channels not excluded during the tare, relative
-    to the rms of the averaged reference, is above ``tare_max_spread``; or when the average is not
+    to the rms of the averaged reference, is above ``tare_max_spread`` (or :data:`TARE_NOISE_FACTOR` x
+    the median channel's, when larger: a noisy board); or when the average is not
     finite. Without any reference a tare is always pending: a refused or cancelled one starts over.
 
     Parameters
@@ -375,21 +441,27 @@ class FrameProcessor:
         n = self._tare_n
         ref = self._tare_x0 + self._tare_s1 / n
         spread = 0.0
+        noise = None
         used = ~self._tare_mask
         rms = float(np.sqrt(np.mean(ref[used] ** 2))) if used.any() else 0.0
         if n > 1 and rms > 0:
             var = np.maximum(self._tare_s2 - self._tare_s1**2 / n, 0.0) / (n - 1)
             spread = float(np.sqrt(var[used].max()) / rms)
+            noise = np.sqrt(var)
+            noise[~used | ~np.isfinite(noise)] = float(np.median(noise[used]))  # excluded: no data
         if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
             return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
                                                 "channel; check the board's contacts and cable")
-        if spread > self.tare_max_spread:
+        limit = self.tare_max_spread
+        if noise is not None:
+            limit = max(limit, TARE_NOISE_FACTOR * float(np.median(noise[used])) / rms)
+        if spread > limit:
             worst = int(np.argmax(np.where(used, var, -1.0))) + 1
             return TareOutcome(None, n, spread, f"tare refused: frames not steady (spread {spread:.2%} of the "
                                                 f"reference rms at measurement {worst}, limit "
-                                                f"{self.tare_max_spread:.2%}); keep the sensor still and unloaded "
+                                                f"{limit:.2%}); keep the sensor still and unloaded "
                                                 "during the tare")
-        return TareOutcome(ref, n, spread)
+        return TareOutcome(ref.copy(), n, spread, noise=noise)
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -469,9 +541,10 @@ class FrameProcessor:
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         if outcome.ok:
-            self.pipe.set_reference(outcome.reference)
-            log.info("tare: new reference from %d frames (spread %.2f%% of its rms)", outcome.frames,
-                     100 * outcome.spread)
+            report = self.pipe.set_reference(outcome.reference, outcome.noise)
+            log.info("tare: new reference from %d frames (spread %.2f%% of its rms; noise %s)", outcome.frames,
+                     100 * outcome.spread, "measured" if outcome.noise is not None else "assumed 60 dB")
+            (log.warning if report.warn else log.info)("tare: %s", report.message)
         elif self.pipe.reference is None:
             log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, outcome.frames)
             self.start_tare(outcome.frames)

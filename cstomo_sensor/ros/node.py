@@ -42,9 +42,9 @@ from ..board.driver import BoardDriver
 from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
+from ..force.device import read_reference, write_reference
 from ..force.filter import LowPass
 from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
-from ..frames_io import read_frames, write_frames
 from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
@@ -172,6 +172,8 @@ class CstomoSensorNode(LifecycleNode):
         pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
+        log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration
+                 else "calibration: none (the nominal model; `cstomo calibrate` fits one on known loads)")
         self.config, self.pipe = cfg, pipe
         self.tare_path = cfg.tare_path_for(pipe.geometry)
         self._board_clock = ClockMapper(cfg.clock_window)
@@ -272,11 +274,13 @@ class CstomoSensorNode(LifecycleNode):
             why = f"no saved tare of this device at {path}"
             if path.is_file():
                 try:
-                    ref = read_frames(path, self.pipe.n_meas).mean(axis=0)
+                    ref, noise, _ = read_reference(path, self.pipe.n_meas)
                     why = tare_problem(ref, self.pipe.model_reference)
                     if not why:
-                        self.pipe.set_reference(ref)
+                        report = self.pipe.set_reference(ref, noise)
                         self.reference_source = f"saved tare {path}"
+                        log.info(f"saved tare {path}: noise {'measured' if noise is not None else 'assumed 60 dB'}")
+                        (log.warning if report.warn else log.info)(f"tare: {report.message}")
                         return
                     why = f"saved tare {path} not used: {why}"
                 except (CstomoError, OSError) as err:
@@ -288,15 +292,17 @@ class CstomoSensorNode(LifecycleNode):
             f"{why}: taring on the first {cfg.tare_frames} frames from now, {elapsed:.0f} s after start (the joint "
             "must be unloaded); no force is published before the tare is taken")
 
-    def _save_tare(self, ref: np.ndarray) -> str:
-        """Write an accepted tare to ``tare_path`` (atomically); returns '' or why it was not saved."""
+    def _save_tare(self, outcome: TareOutcome) -> str:
+        """Write an accepted tare to ``tare_path`` and its noise beside it (``.noise.csv``, atomically);
+        returns '' or why it was not saved."""
         cfg, path = self.config, self.tare_path
         self.reference_source = "tare"
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_frames(path, ref, comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
-                                            f"(geometry {self.pipe.geometry.digest()}): mean of "
-                                            f"{cfg.tare_frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+            write_reference(path, outcome.reference, outcome.noise,
+                            comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
+                                    f"(geometry {self.pipe.geometry.digest()}): mean of "
+                                    f"{outcome.frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
         except OSError as err:
             note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
             self.get_logger().error(note)
@@ -313,7 +319,7 @@ class CstomoSensorNode(LifecycleNode):
             self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
                               f"{outcome.frames} frames, spread {outcome.spread:.2%}"
             log.info(f"tare taken at {self.tare_taken}")
-            note = self._save_tare(outcome.reference)
+            note = self._save_tare(outcome)
             self._filter.reset()  # a new reference: the filtered wrench starts again from the next frame
         else:
             self.tare_refused = f"{when}: {outcome.reason}"
@@ -551,6 +557,18 @@ class CstomoSensorNode(LifecycleNode):
             level = max(level, DiagnosticStatus.WARN)
             msgs.append("no reference yet: taring on the first frames (the joint must be unloaded); no force "
                         "published until then" + (f"; last tare refused at {self.tare_refused}" if self.tare_refused else ""))
+        pipe = self.pipe
+        report = pipe.scale_report if pipe is not None else None
+        if report is not None:
+            kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
+                      noise="measured by the tare" if pipe.noise_measured else "assumed 60 dB")
+            if report.warn:
+                level = max(level, DiagnosticStatus.WARN)
+                msgs.append(report.message)
+        if pipe is not None:
+            cal = pipe.calibration
+            kv.update(calibration=cal.path if cal else "none (nominal model)",
+                      calibration_accuracy=cal.accuracy if cal else "")
         status.level = level
         status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]

@@ -49,6 +49,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "damping": _d("Landweber damping relative to s_max^2", read_only=True, lo=0.0, hi=1.0e6),
     "max_force": _d("Newtons; a frame implying a larger force, or a change no such load explains, is "
                     "implausible: not published, counted in diagnostics", read_only=True, lo=1.0, hi=100000.0),
+    "calibration_file": _d("Device calibration file written by `cstomo calibrate`; '' = the nominal model. A "
+                           "missing, damaged or other-model file makes configure fail with the reason", read_only=True),
     "tare_frames": _d("Frames averaged by a tare", read_only=True, lo=1, hi=100_000),
     "tare_file": _d("Where the tare is saved and read back at start; '' = "
                     "<cache_dir>/tare_<sensor>-<geometry digest>-<port>.csv",

@@ -1,7 +1,7 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
+``calibrate``, ``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import CstomoError
+from ..force.device import DEFAULT_NOISE_DB, read_reference
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
@@ -25,8 +26,8 @@ from ..model.simulate import simulate_scene_files
 from .common import add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
-OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "demo": ".demo", "bench-node": ".bench.node",
-               "bench": ".bench.main", "render": ".render"}
+OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
+               "bench-node": ".bench.node", "bench": ".bench.main", "render": ".render"}
 
 
 def _peak_mb() -> float:
@@ -89,10 +90,14 @@ def cmd_estimate(a) -> int:
 
     cfg = pipeline_config(a)
     load_sensor(cfg.sensor)
-    ref = read_frames(a.reference)  # the inputs are checked before any model is built
+    ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    pipe.set_reference(ref.mean(axis=0))
+    report = pipe.set_reference(ref, noise)
+    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
+          f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
+    cal = pipe.calibration
+    print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
     results = [pipe.process(f, with_field=False) for f in frames]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
@@ -127,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", required=True)
     r.add_argument("--out", required=True)
     e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
-    e.add_argument("--reference", required=True)
+    e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
     for q in (b, v, r):
@@ -139,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cache-dir", default="")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
+    sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")
     sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
     sub.add_parser("bench-node", help="latency, CPU and memory of the real node on the simulated board "
                    "(see cstomo bench-node -h)")

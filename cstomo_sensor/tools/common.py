@@ -38,6 +38,8 @@ def add_pipeline_args(p: argparse.ArgumentParser, estimator: bool = True) -> Non
     if estimator:
         p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS,
                        help="force estimator (default %(default)s)")
+        p.add_argument("--calibration", default=DEFAULTS.calibration_file, metavar="FILE",
+                       help="device calibration from `cstomo calibrate` (default: the nominal model)")
         p.add_argument("--max-force", type=float, default=DEFAULTS.max_force, metavar="N",
                        help="frames implying a larger force are implausible: no output (default %(default)g)")
 
@@ -48,7 +50,8 @@ def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
         raise ConfigError.bad_value("--mesh-size", a.mesh_size, f"metres (e.g. {a.mesh_size * 1e-3:g})")
     return PipelineConfig(sensor=a.sensor, cache_dir=a.cache_dir, estimator=getattr(a, "estimator", DEFAULTS.estimator),
                           mesh_size=a.mesh_size, grid=tuple(a.grid), iterations=a.iterations, damping=a.damping,
-                          max_force=getattr(a, "max_force", DEFAULTS.max_force))
+                          max_force=getattr(a, "max_force", DEFAULTS.max_force),
+                          calibration_file=getattr(a, "calibration", DEFAULTS.calibration_file) or "")
 
 
 def local_ros_env(domain_base: int) -> None:

@@ -8,7 +8,8 @@ the same numbers the live node publishes: both go through
 :class:`~cstomo_sensor.force.pipeline.FrameProcessor` and :class:`~cstomo_sensor.ros.messages.OutputMessages`.
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
-(the mean of its rows) is the reference; without it, the first ``tare_frames`` frames of the bag
+(the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise) is the
+reference; without it, the first ``tare_frames`` frames of the bag
 are averaged into the reference and give no output, exactly as the node in topic mode with
 ``tare_on_start: true``. Stamps: each output carries the bag's receive time of its input frame,
 as the topic-mode node stamps with the host time on reception.
@@ -29,8 +30,8 @@ from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, CstomoError, FrameError
+from ..force.device import read_reference
 from ..force.pipeline import FrameProcessor, Pipeline, PipelineConfig
-from ..frames_io import read_frames
 from ..ros.messages import FORCE_TOPICS, RAW_TOPIC, STRESS_TOPIC, TOPIC_TYPES, OutputMessages, values_from_raw_msg
 from .common import add_pipeline_args, pipeline_config
 
@@ -87,7 +88,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     config : PipelineConfig
         The reconstruction settings (as the node's parameters give them).
     reference : path or None
-        Frames file whose mean is the reference; None tares on the first ``tare_frames`` frames.
+        Frames file whose mean is the reference (several rows: their spread is the noise); None tares on the first ``tare_frames`` frames.
     stress_field_every : int
         Write ``stress_field`` for every N-th result (the first included); 0 = never.
     pipeline : Pipeline or None
@@ -104,12 +105,13 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         raise ConfigError(f"output bag {out_bag}: exists; expected a new directory")
     with Reader(in_bag) as reader:  # the inputs are checked before any model is loaded
         raw_topic = find_raw_topic(reader.connections, topic)
-    ref = read_frames(reference).mean(axis=0) if reference is not None else None
+    ref = read_reference(reference) if reference is not None else None
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
     proc = FrameProcessor(pipe, stress_field_every=stress_field_every)
     if ref is not None:
-        pipe.set_reference(ref)
+        report = pipe.set_reference(ref[0], ref[1])
+        (log.warning if report.warn else log.info)("reference %s (%d frames): %s", reference, ref[2], report.message)
     else:
         proc.start_tare(tare_frames)
     out = OutputMessages(pipe.centers, frame_id)

@@ -1,4 +1,5 @@
-"""``cstomo bench --heldout N``: both estimators on N held-out forces at 60 and 40 dB."""
+"""``cstomo bench --heldout N``: both estimators on N held-out forces at 60 and 40 dB, after a tare of
+``TARE_FRAMES`` frames (its mean the reference, its spread the noise the estimators use)."""
 from __future__ import annotations
 
 import os
@@ -7,15 +8,20 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import force_angles
+from ...force.calibration import DeviceCalibration
+from ...force.device import reference_of
 from .models import Builder, Setting
 from .report import write_csv
 from .scenes import NOISE_SEED, SceneSet, errors, quantile
 from .timing import run_frames, time_frames
 
+TARE_FRAMES = 50
 
-def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+
+def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibration: str = "") -> list[dict]:
     """Both estimators on ``n`` held-out random socket forces at 60 and 40 dB (one noise draw each),
-    elevations under 32 deg reported separately (REFERENCE_SENSOR.md s.4); writes heldout.csv."""
+    elevations under 32 deg reported separately (REFERENCE_SENSOR.md s.4); writes heldout.csv.
+    ``calibration``: a device calibration file applied to both (fitted on this held-out device)."""
 
     scenes = SceneSet(n, cache_dir, say)
     builder = Builder(cache_dir, say)
@@ -23,10 +29,13 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[d
     low = np.degrees(el) < 32.0
     rows = []
     for snr in (60.0, 40.0):
-        ref, frames = scenes.noisy(scenes.clean, 1, snr, NOISE_SEED + int(snr))
+        _, frames = scenes.noisy(scenes.clean, 1, snr, NOISE_SEED + int(snr))
+        _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, snr, NOISE_SEED + 1000 + int(snr))
+        ref, noise = reference_of(tare)
         for name in ("linear", "model"):
             pipe, *_ = builder.pipeline(Setting(name, "estimator", estimator=name))
-            est, *_ = run_frames(pipe, ref, frames, with_field=False)
+            pipe.set_calibration(DeviceCalibration.load(calibration) if calibration else None)
+            est, *_ = run_frames(pipe, ref, frames, with_field=False, noise=noise)
             ang, mag = errors(est, scenes.forces)
             rel = 100 * mag / np.linalg.norm(scenes.forces, axis=1)
             t = time_frames(pipe, frames, 2000)[1]

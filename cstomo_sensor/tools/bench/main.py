@@ -1,6 +1,6 @@
 """``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`)
-and the weight rule (:mod:`.weight`)."""
+GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
+the weight rule (:mod:`.weight`) and the calibration effort (:mod:`.effort`)."""
 from __future__ import annotations
 
 import argparse
@@ -8,6 +8,7 @@ import os
 import sys
 from pathlib import Path
 
+from .effort import calibration_effort
 from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout
@@ -24,10 +25,14 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--pyeit", action="store_true", help="comparison with pyEIT (needs `pip install pyeit`)")
     g.add_argument("--heldout", type=int, metavar="N", help="both estimators on N held-out forces at 60 and 40 dB")
     g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
+    g.add_argument("--calibration-effort", action="store_true",
+                   help="held-out accuracy of a simulated non-nominal device against the number of calibration loads")
     g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
     g.add_argument("--choose-weight", action="store_true",
                    help="the rule for the Landweber weight power p on the training-side scenes")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--calibration", default="", metavar="FILE",
+                   help="with --heldout: a device calibration (cstomo calibrate) applied to both estimators")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
     if os.environ.get("OPENBLAS_NUM_THREADS") != "1":
@@ -46,9 +51,14 @@ def main(argv: list[str] | None = None) -> int:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         choose_weight(a.out, a.cache_dir or None)
         return 0
+    if a.calibration_effort:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        calibration_effort(a.out, cache_dir=a.cache_dir or None)
+        return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
-        job = (lambda o, c: heldout(a.heldout, o, c)) if a.heldout else filter_bench if a.filter else greit
+        job = ((lambda o, c: heldout(a.heldout, o, c, calibration=a.calibration)) if a.heldout
+               else filter_bench if a.filter else greit)
         job(a.out, a.cache_dir or None)
         return 0
     run("smoke" if a.smoke else "quick" if a.quick else "full", a.out, a.cache_dir or None)

@@ -1,0 +1,177 @@
+"""``cstomo calibrate``: fit a device calibration on known loads (see cstomo_sensor.force.calibration).
+
+From files (REFERENCE_SENSOR.md section 6)::
+
+    cstomo calibrate --sensor S --reference REF.csv --frames FRAMES.csv --forces FORCES.csv --out DEVICE.yaml
+
+rows of the forces file matched to frames by ``frame`` (frames without a force row are not used;
+extra columns are ignored). From a rosbag2 recording::
+
+    cstomo calibrate --bag DIR --voltages-topic /cstomo_sensor/raw_voltages --wrench-topic /ft/wrench --out DEVICE.yaml
+
+``raw_voltages`` (std_msgs/Float32MultiArray, as the node publishes them; stamped by the bag's
+receive time) paired with the reference sensor's geometry_msgs/WrenchStamped (its header stamp; the
+force already in the sensor's wrench frame) nearest in time, within ``--stamp-tolerance`` (default
+0.02 s; frames without one are not used). The reference: ``--reference``, else the paired frames under
+less than ``--unloaded-below`` N. Writes DEVICE.yaml and, beside it, DEVICE.cv.csv, the cross-validated
+accuracy before and after calibration, which it also prints.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, CstomoError
+from ..force.calibration import calibrate
+from ..force.device import read_reference, reference_of
+from ..force.pipeline import Pipeline
+from ..frames_io import atomic_write, read_force_rows, read_frames
+from .common import add_pipeline_args, pipeline_config
+
+STAMP_TOLERANCE = 0.02  # s
+UNLOADED_BELOW = 0.5  # N
+
+
+def pair_by_stamp(t_frames: np.ndarray, t_wrench: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(frame indices, wrench indices) of the frames with a wrench stamp within ``tolerance`` s (nearest)."""
+    order = np.argsort(t_wrench)
+    tw = t_wrench[order]
+    j = np.clip(np.searchsorted(tw, t_frames), 1, max(len(tw) - 1, 1))
+    left = np.maximum(j - 1, 0)
+    pick = np.where(np.abs(tw[left] - t_frames) <= np.abs(tw[np.minimum(j, len(tw) - 1)] - t_frames), left,
+                    np.minimum(j, len(tw) - 1))
+    ok = np.abs(tw[pick] - t_frames) <= tolerance
+    return np.flatnonzero(ok), order[pick[ok]]
+
+
+def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance: float = STAMP_TOLERANCE):
+    """(frames (n, 208), forces (n, 3), frames read, wrenches read) of a rosbag2 recording."""
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import Reader
+    from std_msgs.msg import Float32MultiArray
+
+    from ..ros.messages import values_from_raw_msg
+
+    frames, tf, forces, tw = [], [], [], []
+    with Reader(path) as reader:
+        topics = {c.topic for c in reader.connections}
+        for t in (voltages_topic, wrench_topic):
+            if t not in topics:
+                raise ConfigError(f"topic {t!r}: not in the bag {path}; it holds {sorted(topics)}")
+        conns = [c for c in reader.connections if c.topic in (voltages_topic, wrench_topic)]
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            if conn.topic == voltages_topic:
+                frames.append(values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray)))
+                tf.append(t_ns * 1e-9)
+            else:
+                m = deserialize_message(bytes(raw), WrenchStamped)
+                forces.append((m.wrench.force.x, m.wrench.force.y, m.wrench.force.z))
+                tw.append(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+    if not frames or not forces:
+        raise ConfigError(f"bag {path}: {len(frames)} messages on {voltages_topic}, {len(forces)} on {wrench_topic}; "
+                          "expected both")
+    i, j = pair_by_stamp(np.array(tf), np.array(tw), tolerance)
+    return np.array(frames)[i], np.array(forces)[j], len(frames), len(forces)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cstomo calibrate", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n", 1)[1])
+    add_pipeline_args(p)
+    p.add_argument("--reference", help="frames file of unloaded frames (required with --frames)")
+    p.add_argument("--frames", help="frames file of the loaded frames")
+    p.add_argument("--forces", help="forces file: the known force of each used frame (by 'frame')")
+    p.add_argument("--bag", help="rosbag2 directory instead of --frames/--forces")
+    p.add_argument("--voltages-topic", default="/cstomo_sensor/raw_voltages")
+    p.add_argument("--wrench-topic", help="the reference sensor's WrenchStamped topic (with --bag)")
+    p.add_argument("--stamp-tolerance", type=float, default=STAMP_TOLERANCE, metavar="S",
+                   help="largest stamp difference of a frame and its wrench (default %(default)g s)")
+    p.add_argument("--unloaded-below", type=float, default=UNLOADED_BELOW, metavar="N",
+                   help="with --bag and no --reference: frames under this force are the reference (default %(default)g)")
+    p.add_argument("--out", required=True, help="calibration file to write (YAML); the table goes beside it")
+    return p
+
+
+def run(a) -> int:
+    cfg = pipeline_config(a)
+    if cfg.calibration_file:
+        raise ConfigError("--calibration: calibrate against the nominal model (give no --calibration)")
+    t0 = time.perf_counter()
+    if a.bag:
+        if a.frames or a.forces or not a.wrench_topic:
+            raise ConfigError("--bag takes --voltages-topic and --wrench-topic, not --frames/--forces")
+        frames, forces, n_v, n_w = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance)
+        source = {"bag": str(a.bag), "voltages_topic": a.voltages_topic, "wrench_topic": a.wrench_topic,
+                  "stamp_tolerance_s": a.stamp_tolerance}
+        print(f"bag: {len(frames)} of {n_v} frames paired with one of {n_w} wrenches within {a.stamp_tolerance:g} s")
+        unloaded = np.linalg.norm(forces, axis=1) < a.unloaded_below
+        if a.reference:
+            ref, noise, _ = read_reference(a.reference)
+        elif unloaded.sum() >= 1:
+            ref, noise = reference_of(frames[unloaded])
+            source["reference"] = f"{int(unloaded.sum())} paired frames under {a.unloaded_below:g} N"
+        else:
+            raise ConfigError(f"no --reference and no paired frame under {a.unloaded_below:g} N to tare on")
+        frames, forces = frames[~unloaded], forces[~unloaded]
+    else:
+        if not (a.reference and a.frames and a.forces):
+            raise ConfigError("give --reference, --frames and --forces (or --bag with its topics)")
+        ref, noise, _ = read_reference(a.reference)
+        all_frames = read_frames(a.frames)
+        idx, forces = read_force_rows(a.forces)
+        if len(idx) and idx.max() >= len(all_frames):
+            raise ConfigError.bad_value("frame", int(idx.max()), f"a frame of {a.frames} (0..{len(all_frames) - 1})")
+        frames = all_frames[idx]
+        source = {"frames": str(a.frames), "forces": str(a.forces)}
+    if a.reference:
+        source["reference"] = str(a.reference)
+    pipe = Pipeline.build(cfg, progress=lambda m: print(f"model: {m}", file=sys.stderr))
+    report = pipe.set_reference(ref, noise)
+    print(f"reference: {report.message}")
+    cal = calibrate(pipe, frames, forces, fitted_on=source)
+    out = Path(a.out)
+    cal.save(out)
+    table = cv_table(cal)
+    with atomic_write(out.with_suffix(".cv.csv")) as f:
+        f.write(table.encode())
+    b, c = cal.cv["before"], cal.cv["after"]
+    print(f"{cal.cv['loads']} loads, {cal.cv['frames']} frames; cross-validated ({cal.cv['method']}, "
+          f"{cal.estimator} estimator):")
+    print("               angle deg med/p90   magnitude % med/p90")
+    for name, s in (("uncalibrated", b), ("calibrated", c)):
+        if s is None:
+            print(f"  {name:12s}  not cross-validated: every fold leaves fewer than 3 loads in 3 directions")
+            continue
+        print(f"  {name:12s}  {s['angle_deg_median']:7.2f} / {s['angle_deg_p90']:6.2f}    "
+              f"{s['magnitude_pct_median']:7.2f} / {s['magnitude_pct_p90']:6.2f}")
+    print(f"wrote {out} and {out.with_suffix('.cv.csv')} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cv_table(cal) -> str:
+    """The cross-validated accuracy as CSV (one row before, one after)."""
+    keys = ["angle_deg_median", "angle_deg_p90", "magnitude_pct_median", "magnitude_pct_p90"]
+    lines = ["calibration,estimator,method,loads,frames," + ",".join(keys)]
+    for name in ("before", "after"):
+        s = cal.cv[name] or dict.fromkeys(keys, float("nan"))
+        lines.append(f"{name},{cal.estimator},{cal.cv['method']},{cal.cv['loads']},{cal.cv['frames']}," +
+                     ",".join(f"{s[k]:g}" for k in keys))
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = _parser().parse_args(argv)
+    try:
+        return run(a)
+    except (CstomoError, OSError) as err:
+        print(f"cstomo calibrate: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,207 @@
+"""Device calibration on known loads (cstomo_sensor.force.calibration, ``cstomo calibrate``).
+
+The device is scenes/devices/cuboid_joint_device_a.yaml (material and electrode placement inside
+REFERENCE_SENSOR.md section 8), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
+(independent 3 mm mesh, +-30 % contact impedance, 60 dB); the models are the nominal cuboid_joint's.
+Calibration loads and held-out loads are different random forces with different noise.
+
+Stated tolerances on 12 held-out loads, both estimators (nominal sensor today: `model` 0.5 deg and
+0.8 %, `linear` 0.8 deg and 2.0 %):
+- uncalibrated: the magnitude error is large (median > 20 %) and the cross-validated table says so;
+- 20 loads: angle median < 1.0 deg and p90 < 2.5 deg, magnitude median < 2.5 % and p90 < 5 %;
+- 5 loads: angle median < 1.5 deg and p90 < 4 deg, magnitude median < 4 % and p90 < 8 %.
+"""
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import MODEL_H
+
+from cstomo_sensor.errors import ConfigError, ModelMismatchError
+from cstomo_sensor.force.calibration import DeviceCalibration, calibrate, summary
+from cstomo_sensor.force.device import reference_of
+from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.model.simulate import Load, Scene, add_noise
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def random_forces(n, rng):
+    mag = rng.uniform(5, 40, n)
+    el, az = np.radians(rng.uniform(20, 90, n)), rng.uniform(-np.pi, np.pi, n)
+    return np.column_stack([mag * np.cos(el) * np.cos(az), mag * np.cos(el) * np.sin(az), -mag * np.sin(el)])
+
+
+@pytest.fixture(scope="module")
+def device():
+    """(tare frames, calibration frames, their forces, held-out frames, their forces) at 60 dB."""
+    scene = Scene.load(SCENES / "cuboid_device_a_60db.yaml")
+    truth = scene.truth()
+    assert truth.geometry.material.E == 0.8e6 and truth.geometry.name == "cuboid_joint_device_a"
+    rng = np.random.default_rng(1101)
+    F_cal, F_held = random_forces(20, rng), random_forces(12, rng)
+    ref = truth.reference
+    noisy = lambda v: add_noise(v, ref, scene.snr_db, rng)  # noqa: E731
+    tare = noisy(np.repeat(ref[None], 50, 0))
+    cal = noisy(np.array([truth.voltages(Load("socket", force=tuple(f))) for f in F_cal]))
+    held = noisy(np.array([truth.voltages(Load("socket", force=tuple(f))) for f in F_held]))
+    return tare, cal, F_cal, held, F_held
+
+
+@pytest.fixture(scope="module", params=["linear", "model"])
+def pipe(request):
+    return Pipeline.build(PipelineConfig(estimator=request.param, mesh_size=MODEL_H))
+
+
+def held_out(pipe, frames, forces):
+    return summary(np.array([pipe.process(v, with_field=False).force for v in frames]), forces)
+
+
+@pytest.mark.parametrize("n, tol", [(20, (1.0, 2.5, 2.5, 5.0)), (5, (1.5, 4.0, 4.0, 8.0))])
+def test_calibration_meets_the_stated_tolerances_on_held_out_loads(pipe, device, n, tol):
+    tare, frames, forces, held, F_held = device
+    pipe.set_calibration(None)
+    report = pipe.set_reference(*reference_of(tare))
+    assert report.factor > 1.5  # the batch is 1.7 x as resistive: named, and normalised out
+    before = held_out(pipe, held, F_held)
+    cal = calibrate(pipe, frames[:n], forces[:n])
+    assert cal.cv["before"]["magnitude_pct_median"] > 20 and before["magnitude_pct_median"] > 20, (cal.cv, before)
+    assert cal.cv["after"]["magnitude_pct_median"] < tol[2]  # the table says what the held-out loads find
+    pipe.set_calibration(cal)
+    try:
+        after = held_out(pipe, held, F_held)
+    finally:
+        pipe.set_calibration(None)
+    a_med, a_p90, m_med, m_p90 = tol
+    assert after["angle_deg_median"] < a_med and after["angle_deg_p90"] < a_p90, (n, before, after)
+    assert after["magnitude_pct_median"] < m_med and after["magnitude_pct_p90"] < m_p90, (n, before, after)
+
+
+def test_file_round_trip_other_model_refused_and_damage_named(tmp_path, device):
+    import dataclasses
+
+    tare, frames, forces, *_ = device
+    pipe = Pipeline.build(PipelineConfig(estimator="linear", mesh_size=MODEL_H))
+    pipe.set_reference(*reference_of(tare))
+    cal = calibrate(pipe, frames[:8], forces[:8], fitted_on={"frames": "test"})
+    path = tmp_path / "device.yaml"
+    cal.save(path)
+    back = DeviceCalibration.load(path)
+    np.testing.assert_allclose(back.correction, cal.correction, rtol=1e-8, atol=1e-15)
+    np.testing.assert_allclose(back.force_map, cal.force_map, rtol=1e-11)
+    assert back.fitted_on["loads"] == 8 and back.sensor == "cuboid_joint" and back.estimator == "linear"
+    assert "pickle" not in path.read_text() and "!!python" not in path.read_text()
+    # another model (another mesh: its unloaded prediction differs): refused, naming both hashes
+    other = dataclasses.replace(pipe.model, model_reference=pipe.model.model_reference * (1 + 1e-4))
+    other_pipe = Pipeline(pipe.geometry, other, pipe.base_estimator)
+    with pytest.raises(ModelMismatchError) as err:
+        other_pipe.set_calibration(back)
+    from cstomo_sensor.force.calibration import model_hash
+
+    assert cal.model_hash in str(err.value) and model_hash(other) in str(err.value)
+    same = dataclasses.replace(pipe.model, model_reference=pipe.model.model_reference * (1 + 1e-13))
+    Pipeline(pipe.geometry, same, pipe.base_estimator).set_calibration(back)  # rounding only: accepted
+    # damaged files: a clear error naming the file
+    text = path.read_text()
+    cases = {"truncated": text[: len(text) // 2], "empty": "", "not yaml": "format: [unclosed\n",
+             "other format": text.replace("device calibration 1", "device calibration 9"),
+             "nan": text.replace("correction_per_newton:\n- [", "correction_per_newton:\n- [.nan, 0, 0]\n- [", 1),
+             "wrong shape": text.replace("force_map:\n- [", "force_map:\n- [1, ", 1)}
+    for name, body in cases.items():
+        bad = tmp_path / f"{name.replace(' ', '_')}.yaml"
+        bad.write_text(body)
+        with pytest.raises(ConfigError) as err:
+            DeviceCalibration.load(bad)
+        assert str(bad) in str(err.value), (name, err.value)
+        assert name != "nan" or "finite" in str(err.value)
+    with pytest.raises(ConfigError, match="cannot be read"):
+        DeviceCalibration.load(tmp_path / "missing.yaml")
+
+
+def test_the_node_refuses_to_start_with_a_damaged_calibration(ros, capfd, tmp_path):
+    from conftest import PIPE, Harness
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    bad = tmp_path / "device.yaml"
+    bad.write_text("format: cstomo_sensor device calibration 1\nsensor: cuboid_joint\nmodel_hash: x\n")
+    capfd.readouterr()
+    h = Harness(ros, dict(PIPE, input="topic", autostart=False, calibration_file=str(bad)), name="bad_cal")
+    try:
+        assert h.node.trigger_configure() == TransitionCallbackReturn.FAILURE
+    finally:
+        h.close()
+    err = capfd.readouterr().err
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert str(bad) in line and "truncated" in line, err
+
+
+def test_a_rosbag_with_jittered_stamps_calibrates_as_the_csv_files(tmp_path, device):
+    pytest.importorskip("rosbags")
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from cstomo_sensor.frames_io import write_forces, write_frames
+    from cstomo_sensor.ros.messages import TOPIC_TYPES, raw_voltages_msg
+    from cstomo_sensor.tools.calibrate import main
+
+    tare, frames, forces, *_ = device
+    frames, forces = frames[:10], forces[:10]
+    # the CSV files: the reference, and the loaded frames with their forces (rows by frame number, shuffled,
+    # an extra column, one frame without a force row)
+    write_frames(tmp_path / "ref.csv", tare)
+    allf = np.vstack([frames, frames[:1] * 1.01])
+    write_frames(tmp_path / "frames.csv", np.float32(allf))  # as the bag carries them
+    write_forces(tmp_path / "f.csv", forces)
+    lines = (tmp_path / "f.csv").read_text().splitlines()
+    rows = [ln + ",0.5" for ln in lines[1:]][::-1]
+    (tmp_path / "forces.csv").write_text(lines[0] + ",consistency\n" + "\n".join(rows) + "\n")
+    common = ["--mesh-size", str(MODEL_H), "--estimator", "linear"]
+    assert main([*common, "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
+                 "--forces", str(tmp_path / "forces.csv"), "--out", str(tmp_path / "csv.yaml")]) == 0
+    # the bag: voltages at 50 Hz (bag time), wrenches with header stamps jittered by up to 4 ms, plus
+    # wrenches at other times that no frame is near
+    rng = np.random.default_rng(4)
+    store = get_typestore(getattr(Stores, "ROS2_KILTED", Stores.LATEST))
+    t0 = 1_700_000_000 * 10**9
+    with Writer(tmp_path / "bag", version=9) as w:
+        cv = w.add_connection("/cstomo_sensor/raw_voltages", TOPIC_TYPES["raw_voltages"], typestore=store)
+        cw = w.add_connection("/ft/wrench", "geometry_msgs/msg/WrenchStamped", typestore=store)
+        k = 0
+        for v, f in [(v, np.zeros(3)) for v in tare] + list(zip(frames, forces)):
+            t = t0 + k * 20_000_000
+            w.write(cv, t, serialize_message(raw_voltages_msg(v)))
+            for dt, force in ((int(rng.uniform(-4e6, 4e6)), f), (10_000_000, f * 3)):  # the second: 10 ms off
+                m = WrenchStamped()
+                m.header.stamp.sec, m.header.stamp.nanosec = divmod(t + dt, 10**9)
+                m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = (float(x) for x in force)
+                w.write(cw, t + dt + 1000, serialize_message(m))
+            k += 1
+    assert main([*common, "--bag", str(tmp_path / "bag"), "--wrench-topic", "/ft/wrench", "--stamp-tolerance",
+                 "0.005", "--out", str(tmp_path / "bag.yaml")]) == 0
+    a, b = DeviceCalibration.load(tmp_path / "csv.yaml"), DeviceCalibration.load(tmp_path / "bag.yaml")
+    assert a.fitted_on["loads"] == b.fitted_on["loads"] == 10
+    np.testing.assert_allclose(b.force_map, a.force_map, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(b.correction, a.correction, rtol=0, atol=1e-6 * np.abs(a.correction).max())
+    assert (tmp_path / "csv.cv.csv").read_text().splitlines()[0].startswith("calibration,estimator,method")
+
+
+def test_the_node_runs_with_a_calibration_and_its_diagnostics_name_it(ros, tmp_path, device):
+    from conftest import PIPE, Harness, wait_for
+
+    tare, frames, forces, *_ = device
+    cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
+    pipe = Pipeline.build(cfg)  # the node's own model settings (another grid: the same calibration hash)
+    pipe.set_reference(*reference_of(tare))
+    path = tmp_path / "device.yaml"
+    calibrate(pipe, frames[:6], forces[:6]).save(path)
+    h = Harness(ros, dict(PIPE, input="topic", calibration_file=str(path), tare_file=str(tmp_path / "t.csv")),
+                name="calibrated")
+    try:
+        assert wait_for(lambda: h.state() == "active", 20.0)
+        kv = {v.key: v.value for v in h.node.diagnostics().values}
+        assert kv["calibration"] == str(path) and "leave one load out: angle" in kv["calibration_accuracy"], kv
+        assert h.node.pipe.calibration is not None
+    finally:
+        h.close()
