@@ -1,0 +1,154 @@
+"""The scene's own stress field and the frame's consistency with the scene's load model.
+
+Scene field
+-----------
+For a socket scene (the joint) the mechanics predicts the whole stress field from the force.
+The frictionless contact problem is positively homogeneous in the force, so the field of a force
+F is ``|F| * theta1(F / |F|)`` with ``theta1`` the volumetric compression per newton of a
+direction. ``theta1`` is solved once per calibration direction (the estimators' 40 directions,
+:func:`~cstomo_sensor.force.estimate.calibration_directions`, on the calibration's mechanics mesh)
+and sampled at the reconstruction's cell centres, the points the node publishes (cached on disk,
+keyed by every input). Between directions it is interpolated by a thin-plate spline of degree 1
+on the unit directions (force/tps.py: exact at the 40 directions; measured error against direct
+solves at new directions in docs/node.md). Per frame: one (45 x n_cells) product, the material law
+for the published conductivity change, and K theta for the mean stress.
+
+Consistency
+-----------
+Socket loads change the normalised voltages y only within a low-dimensional set: the span of the
+calibration set's changes, whitened by the noise. The statistic is the part of the whitened change
+outside that span, per remaining degree of freedom::
+
+    c = || (I - Q^T Q) (y / noise) ||^2 / (n_kept - k)
+
+(Q: the k leading right singular vectors of the whitened calibration changes, those whose rms over
+the set is at least ``RANK_NOISE`` of the noise). For a socket load at the stated noise c is about
+1 (a chi-square per degree of freedom); the device's mismatch with the model adds to it in
+proportion to the load. ``noise`` is an input (the estimator's per-channel noise: one place).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..inverse.reconstruction import ReconstructionModel
+from ..model import elasticity
+from ..model.geometry import SensorGeometry
+from ..model.material import StressField, conductivity_of_theta, pressure_of_theta
+from ..model.mesh import MeshSpec, build_mesh
+from .estimate import CalibrationSpec, calibration_directions
+from .tps import ThinPlateSpline
+
+log = logging.getLogger(__name__)
+
+SCENE_FIELD_FORMAT = 1
+#: Singular directions of the whitened calibration set kept as "explained by socket loads": those
+#: whose rms over the set reaches this fraction of the noise (weaker ones are noise anyway).
+RANK_NOISE = 0.3
+#: Default trip level of the consistency statistic (see docs/node.md for the measured rates).
+CONSISTENCY_THRESHOLD = 4.0
+
+
+def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
+                      cache_dir=None) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (n, 3), theta per newton (n, n_cells) at the model's cell centres), cached."""
+    dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
+    centers = np.asarray(model.centers, dtype=float)
+    key = input_hash({"format": SCENE_FIELD_FORMAT, "geometry": geometry.digest(), "centers": centers,
+                      "mechanics_mesh_size": spec.mechanics_mesh_size, "directions": dirs})
+    path = Path(cache_dir or default_cache_dir()) / "scene_fields" / f"{geometry.name}-{key}.npz"
+    hit = cache_load(path, key, names=("directions", "theta"))
+    if hit is not None:
+        return hit["directions"], hit["theta"]
+    t0 = time.perf_counter()
+    h = spec.mechanics_mesh_size
+    mech = build_mesh(geometry, MeshSpec(h=h, h_electrode=h), cache_dir)
+    sample = elasticity.point_sampler(mech.points, mech.tets, centers)
+    theta = np.array([sample(elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices)
+                      for d in dirs])
+    elasticity.release()
+    cache_save(path, key, directions=dirs, theta=theta)
+    log.info("scene field: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
+    return dirs, theta
+
+
+class SceneField:
+    """The mechanics' field of a socket force at the published points (module docstring).
+
+    Parameters
+    ----------
+    directions : (n, 3) ndarray
+        Unit force directions.
+    theta : (n, n_cells) ndarray
+        Volumetric compression per newton of each direction at the points.
+    geometry : SensorGeometry
+        Its material turns theta into pressure and conductivity.
+    """
+
+    def __init__(self, directions: np.ndarray, theta: np.ndarray, geometry: SensorGeometry) -> None:
+        self.material = geometry.material
+        self.spline = ThinPlateSpline(directions, theta)
+        self.sigma0 = float(conductivity_of_theta(np.zeros(1), self.material)[0][0])
+
+    def theta(self, force: np.ndarray) -> np.ndarray:
+        """(n_cells,) volumetric compression under ``force`` (3,) N."""
+        f = np.asarray(force, dtype=float)
+        m = float(np.sqrt(f @ f))
+        if not m > 0:
+            return np.zeros(self.spline.M.shape[0])
+        return m * self.spline.value_and_jacobian(f / m)[0]
+
+    def field(self, force: np.ndarray) -> StressField:
+        """The :class:`StressField` of ``force``: conductivity change by the material law, theta, K theta."""
+        th = self.theta(force)
+        sigma, clipped = conductivity_of_theta(th, self.material)
+        return StressField(sigma - self.sigma0, th, pressure_of_theta(th, self.material), clipped)
+
+    @classmethod
+    def build(cls, geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec = CalibrationSpec(),
+              cache_dir=None) -> SceneField | None:
+        """The scene field of a socket sensor; None for a sensor without a socket (patch scenes)."""
+        if geometry.socket_radius <= 0:
+            return None
+        return cls(*per_newton_fields(geometry, model, spec, cache_dir), geometry)
+
+
+class Consistency:
+    """The consistency statistic of a frame against the socket load model (module docstring).
+
+    Parameters
+    ----------
+    y : (n, n_meas) ndarray
+        The calibration set's normalised changes (socket loads through the model).
+    noise : (n_meas,) ndarray
+        Per-channel noise std of y (the estimator's).
+    keep : (n_meas,) bool ndarray or None
+        Channels in use.
+    threshold : float
+        ``c`` above it trips the foreign-load flag.
+    """
+
+    def __init__(self, y: np.ndarray, noise: np.ndarray, keep: np.ndarray | None = None,
+                 threshold: float = CONSISTENCY_THRESHOLD) -> None:
+        self.y, self.noise, self.threshold = np.asarray(y), np.asarray(noise, dtype=float), float(threshold)
+        self.keep = np.ones(self.y.shape[1], bool) if keep is None else np.asarray(keep, bool)
+        self.w = np.where(self.keep, 1.0 / self.noise, 0.0)
+        yw = self.y * self.w
+        _, s, vt = np.linalg.svd(yw, full_matrices=False)
+        k = int(np.count_nonzero(s / np.sqrt(len(yw)) >= RANK_NOISE))
+        self.Q = np.ascontiguousarray(vt[:k])  # (k, n_meas), zero on excluded channels
+        self.dof = max(int(self.keep.sum()) - k, 1)
+        self._z = np.empty(self.y.shape[1])
+
+    def __call__(self, y: np.ndarray) -> float:
+        """The statistic of one frame's change ``y`` (n_meas,)."""
+        z = np.multiply(y, self.w, out=self._z)
+        p = self.Q @ z
+        return float((z @ z - p @ p) / self.dof)
+
+    def masked(self, keep: np.ndarray) -> Consistency:
+        return Consistency(self.y, self.noise, keep, self.threshold)
