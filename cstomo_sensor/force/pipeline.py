@@ -49,6 +49,7 @@ from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
+from .scene_field import Consistency, SceneField
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,9 @@ class FrameResult:
 
     ``valid`` is False when the plausibility gate rejected the frame (module docstring): then
     ``reason`` says why, and force, angles and residual are NaN and there is no field.
+    ``scene_field`` is the mechanics' field of the estimated force (socket sensors, with the
+    field); ``consistency`` the frame's statistic against the socket load model and
+    ``foreign_load`` whether it trips (force/scene_field.py).
     """
 
     force: np.ndarray
@@ -106,6 +110,9 @@ class FrameResult:
     field: StressField | None
     valid: bool = True
     reason: str = ""
+    scene_field: StressField | None = None
+    consistency: float = float("nan")
+    foreign_load: bool = False
 
     @classmethod
     def implausible(cls, reason: str) -> FrameResult:
@@ -122,10 +129,13 @@ class Pipeline:
     """
 
     def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,
-                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force) -> None:
+                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force,
+                 scene_field: SceneField | None = None) -> None:
         self.geometry = geometry
         self.model = model
         self.estimator = estimator
+        self.scene_field = scene_field
+        self.consistency = Consistency(np.asarray(estimator.y), estimator.noise)
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None
@@ -158,7 +168,8 @@ class Pipeline:
         geometry = load_sensor(config.sensor)
         model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
-        return cls(geometry, model, estimator, max_force=config.max_force)
+        scene_field = SceneField.build(geometry, model, cache_dir=config.cache_dir or None)
+        return cls(geometry, model, estimator, max_force=config.max_force, scene_field=scene_field)
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -201,7 +212,8 @@ class Pipeline:
             lam = self.model.damping * self._svd.s_max**2
             R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
         estimator = self.estimator.masked(keep)
-        self._keep, self._R, self.estimator = keep, R, estimator
+        consistency = self.consistency.masked(keep)
+        self._keep, self._R, self.estimator, self.consistency = keep, R, estimator, consistency
         self._update_gate()
 
     def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
@@ -235,8 +247,11 @@ class Pipeline:
         mag, el, az = force_angles3(force)
         if gate and not mag <= self.max_force:
             return FrameResult.implausible(f"force {mag:.4g} N beyond max_force {self.max_force:g} N")
-        field = None
+        c = self.consistency(y)
+        field = scene = None
         residual = float("nan")
+        if with_field and self.scene_field is not None:
+            scene = self.scene_field.field(force)
         if with_field:
             self._y32[:] = y
             np.matmul(self._R, self._y32, out=self._x)
@@ -244,7 +259,8 @@ class Pipeline:
             field = StressField.from_conductivity_change(dsigma, self.geometry.material)
             r = y - (self.model.S @ self._x) * self._keep
             residual = float(np.linalg.norm(r) / max(np.linalg.norm(y), 1e-300))
-        return FrameResult(force, mag, el, az, residual, field)
+        return FrameResult(force, mag, el, az, residual, field, scene_field=scene, consistency=c,
+                           foreign_load=c > self.consistency.threshold)
 
 
 @dataclass(frozen=True)

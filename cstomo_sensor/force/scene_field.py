@@ -48,9 +48,9 @@ log = logging.getLogger(__name__)
 SCENE_FIELD_FORMAT = 1
 #: Singular directions of the whitened calibration set kept as "explained by socket loads": those
 #: whose rms over the set reaches this fraction of the noise (weaker ones are noise anyway).
-RANK_NOISE = 0.3
+RANK_NOISE = 2.0
 #: Default trip level of the consistency statistic (see docs/node.md for the measured rates).
-CONSISTENCY_THRESHOLD = 4.0
+CONSISTENCY_THRESHOLD = 8.0
 
 
 def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
