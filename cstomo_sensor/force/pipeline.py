@@ -49,7 +49,7 @@ from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
 from ..model.pattern import MeasurementPattern
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
-from .scene_field import Consistency, SceneField
+from .scene_field import Consistency, SceneField, mismatch_allowance
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ class Pipeline:
         self.model = model
         self.estimator = estimator
         self.scene_field = scene_field
-        self.consistency = Consistency(np.asarray(estimator.y), estimator.noise)
+        self.consistency = Consistency(np.asarray(estimator.y), estimator.noise, mismatch_allowance(model))
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None

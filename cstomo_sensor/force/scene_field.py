@@ -23,8 +23,15 @@ outside that span, per remaining degree of freedom::
 
 (Q: the k leading right singular vectors of the whitened calibration changes, those whose rms over
 the set is at least ``RANK_NOISE`` of the noise). For a socket load at the stated noise c is about
-1 (a chi-square per degree of freedom); the device's mismatch with the model adds to it in
-proportion to the load. ``noise`` is an input (the estimator's per-channel noise: one place).
+1 (a chi-square per degree of freedom); the device's mismatch with the model adds to it, growing
+with the load. ``noise`` is an input (the estimator's per-channel noise: one place).
+
+The flag trips when c exceeds ``threshold = q / dof + ||allowance / noise||^2 / dof``: q the
+chi-square quantile of 1 - 1e-4 (noise alone trips it once in 10^4 frames), ``allowance`` the
+per-channel rms of the change a rated socket load leaves outside the span on a device within the
+honest simulation's mismatch (+-20 % contact impedance, 0.2 mm electrode jitter):
+``MISMATCH_REL`` of the reference's rms, the largest measured (cstomo bench --scene) rounded up.
+So the threshold is about 8 at 60 dB and 1.5 at 40 dB.
 """
 from __future__ import annotations
 
@@ -49,8 +56,15 @@ SCENE_FIELD_FORMAT = 1
 #: Singular directions of the whitened calibration set kept as "explained by socket loads": those
 #: whose rms over the set reaches this fraction of the noise (weaker ones are noise anyway).
 RANK_NOISE = 2.0
-#: Default trip level of the consistency statistic (see docs/node.md for the measured rates).
-CONSISTENCY_THRESHOLD = 8.0
+#: The chi-square tail that noise alone may trip (per frame), and the mismatch allowance (module docstring).
+FALSE_ALARM_NOISE = 1e-4
+_Z_TAIL = 3.719  # the standard normal quantile of 1 - FALSE_ALARM_NOISE
+MISMATCH_REL = 2.55e-3
+
+
+def mismatch_allowance(model: ReconstructionModel) -> np.ndarray:
+    """(n_meas,) the mismatch allowance in y units: ``MISMATCH_REL`` rms(reference) / v_scale."""
+    return MISMATCH_REL * np.sqrt(np.mean(model.model_reference**2)) / model.v_scale
 
 
 def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
@@ -90,23 +104,47 @@ class SceneField:
     """
 
     def __init__(self, directions: np.ndarray, theta: np.ndarray, geometry: SensorGeometry) -> None:
-        self.material = geometry.material
+        self.material = mat = geometry.material
         self.spline = ThinPlateSpline(directions, theta)
-        self.sigma0 = float(conductivity_of_theta(np.zeros(1), self.material)[0][0])
+        n = len(directions)
+        # the spline at a unit direction d: nodes p_i on the unit sphere give |d - p_i|^2 = 2 - 2 d.p_i
+        self._p = np.ascontiguousarray(self.spline.points)  # (n, 3)
+        self._coef = np.ascontiguousarray(self.spline.M.T)  # (n + 4, n_cells): [c | d_0 | d]
+        self._basis = np.ones(n + 4)
+        self._r2 = np.empty(n)
+        self._log = np.empty(n)
+        self.sigma0 = float(conductivity_of_theta(np.zeros(1), mat)[0][0])
+        # the material law without its clipping, where no clipping can happen (field())
+        self._theta_ok = (np.log(mat.phi_c / mat.phi0) + 1e-3, np.log(1.0 / mat.phi0) - 1e-3)
 
     def theta(self, force: np.ndarray) -> np.ndarray:
         """(n_cells,) volumetric compression under ``force`` (3,) N."""
         f = np.asarray(force, dtype=float)
         m = float(np.sqrt(f @ f))
         if not m > 0:
-            return np.zeros(self.spline.M.shape[0])
-        return m * self.spline.value_and_jacobian(f / m)[0]
+            return np.zeros(self._coef.shape[1])
+        d = f / m
+        n, r2, lg, b = len(self._p), self._r2, self._log, self._basis
+        np.dot(self._p, d, out=r2)
+        np.subtract(2.0, 2.0 * r2, out=r2)
+        np.maximum(r2, 1e-300, out=r2)
+        np.log(r2, out=lg)
+        np.multiply(r2, lg, out=b[:n])
+        b[:n] *= 0.5  # phi(r) = r^2 log r = r^2 log(r^2) / 2
+        b[n + 1:] = d
+        return m * (b @ self._coef)
 
     def field(self, force: np.ndarray) -> StressField:
         """The :class:`StressField` of ``force``: conductivity change by the material law, theta, K theta."""
         th = self.theta(force)
-        sigma, clipped = conductivity_of_theta(th, self.material)
-        return StressField(sigma - self.sigma0, th, pressure_of_theta(th, self.material), clipped)
+        mat = self.material
+        lo, hi = self._theta_ok
+        if th.size and lo < th.min() and th.max() < hi:  # the law of conductivity_of_theta, unclipped
+            sigma = ((mat.phi0 * np.exp(th) - mat.phi_c) / (1.0 - mat.phi_c)) ** mat.tau / mat.rho_h
+            clipped = np.zeros(th.shape, bool)
+        else:
+            sigma, clipped = conductivity_of_theta(th, mat)
+        return StressField(sigma - self.sigma0, th, pressure_of_theta(th, mat), clipped)
 
     @classmethod
     def build(cls, geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec = CalibrationSpec(),
@@ -126,15 +164,21 @@ class Consistency:
         The calibration set's normalised changes (socket loads through the model).
     noise : (n_meas,) ndarray
         Per-channel noise std of y (the estimator's).
+    allowance : (n_meas,) ndarray or None
+        The model mismatch allowed for (:func:`mismatch_allowance`); None: none.
     keep : (n_meas,) bool ndarray or None
         Channels in use.
+
+    Attributes
+    ----------
     threshold : float
-        ``c`` above it trips the foreign-load flag.
+        ``c`` above it trips the foreign-load flag (module docstring).
     """
 
-    def __init__(self, y: np.ndarray, noise: np.ndarray, keep: np.ndarray | None = None,
-                 threshold: float = CONSISTENCY_THRESHOLD) -> None:
-        self.y, self.noise, self.threshold = np.asarray(y), np.asarray(noise, dtype=float), float(threshold)
+    def __init__(self, y: np.ndarray, noise: np.ndarray, allowance: np.ndarray | None = None,
+                 keep: np.ndarray | None = None) -> None:
+        self.y, self.noise = np.asarray(y), np.asarray(noise, dtype=float)
+        self.allowance = np.zeros_like(self.noise) if allowance is None else np.asarray(allowance, dtype=float)
         self.keep = np.ones(self.y.shape[1], bool) if keep is None else np.asarray(keep, bool)
         self.w = np.where(self.keep, 1.0 / self.noise, 0.0)
         yw = self.y * self.w
@@ -142,6 +186,9 @@ class Consistency:
         k = int(np.count_nonzero(s / np.sqrt(len(yw)) >= RANK_NOISE))
         self.Q = np.ascontiguousarray(vt[:k])  # (k, n_meas), zero on excluded channels
         self.dof = max(int(self.keep.sum()) - k, 1)
+        a = 2.0 / (9.0 * self.dof)  # Wilson-Hilferty: the chi-square quantile per degree of freedom
+        self.threshold = float((1 - a + _Z_TAIL * np.sqrt(a)) ** 3
+                               + np.sum((self.allowance * self.w) ** 2) / self.dof)
         self._z = np.empty(self.y.shape[1])
 
     def __call__(self, y: np.ndarray) -> float:
@@ -151,4 +198,4 @@ class Consistency:
         return float((z @ z - p @ p) / self.dof)
 
     def masked(self, keep: np.ndarray) -> Consistency:
-        return Consistency(self.y, self.noise, keep, self.threshold)
+        return Consistency(self.y, self.noise, self.allowance, keep)

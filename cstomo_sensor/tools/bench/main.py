@@ -1,5 +1,6 @@
 """``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`) and the pyEIT comparison (:mod:`.pyeit`)."""
+GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`) and
+the scene field with the foreign-load flag (:mod:`.scene`)."""
 from __future__ import annotations
 
 import argparse
@@ -11,6 +12,7 @@ from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout
 from .pyeit import run as run_pyeit
+from .scene import run_scene
 from .table import run
 
 
@@ -23,6 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--heldout", type=int, metavar="N", help="both estimators on N held-out forces at 60 and 40 dB")
     g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
     g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
+    g.add_argument("--scene", action="store_true", help="scene stress field and foreign-load flag (accuracy, rates, cost)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
@@ -37,6 +40,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
 
         run_pyeit(a.out, a.cache_dir or None)
+        return 0
+    if a.scene:
+        run_scene(a.out, a.cache_dir or None)
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
