@@ -133,3 +133,54 @@ def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe):
     assert len(quiet) >= 100 and np.mean(quiet) <= 0.02, np.mean(quiet)
     assert np.mean(side) >= 0.95, np.mean(side)
     assert np.mean(top) >= 0.95, np.mean(top)
+
+
+def test_cli_estimate_flags_the_foreign_scene(tmp_path):
+    from cstomo_sensor.tools.cli import main
+
+    assert main(["simulate", "--scene", str(SCENES / "cuboid_foreign_60db.yaml"), "--out", str(tmp_path)]) == 0
+    assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
+                 "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(MODEL_H)]) == 0
+    lines = (tmp_path / "forces.csv").read_text().splitlines()
+    assert lines[0].endswith(",consistency,foreign_load")
+    # side press x2, top press x2, then a socket load x2 (one-frame reference: noise doubled, still quiet)
+    assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
+
+
+def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path, warm_model):
+    """Topic mode: a tare on unloaded frames, then frames of the side press: ~/consistency above the
+    threshold, /diagnostics WARN 'foreign load', the wrench still published."""
+    import time
+
+    from conftest import PIPE, Harness, diag, diag_records, wait_for
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float32MultiArray, Float64
+
+    truth = Truth(warm_model.geometry, truth_h=TRUTH_H, seed=31)
+    rng = np.random.default_rng(3)
+    unloaded = [add_noise(truth.reference, truth.reference, 60, rng) for _ in range(10)]
+    side = [add_noise(truth.voltages(Load.from_dict(SIDE)), truth.reference, 60, rng) for _ in range(20)]
+    elasticity.release()
+    params = dict(PIPE, input="topic", tare_on_start=True, tare_frames=10, qos_reliability="reliable",
+                  qos_depth=100, tare_file=str(tmp_path / "tare.csv"), stale_timeout=5.0)
+    h = Harness(ros, params)
+    try:
+        cons = h.record("/cstomo_sensor/consistency", Float64)
+        wrench = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        dg = diag_records(h)
+        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1, 20.0)
+        for v in unloaded + side:
+            pub.publish(Float32MultiArray(data=v.astype(np.float32).tolist()))
+            time.sleep(0.01)
+        assert wait_for(lambda: len(cons) >= 20 and len(wrench) >= 20, 10.0), (len(cons), len(wrench))
+        threshold = h.node.pipe.consistency.threshold
+        assert all(m.data > threshold for _, m in cons), [m.data for _, m in cons]
+        assert wait_for(lambda: any("foreign load" in diag(m)[1] for _, m in dg), 5.0)
+        level, message, kv = next(diag(m) for _, m in dg if "foreign load" in diag(m)[1])
+        assert level >= 1 and float(kv["consistency"]) > threshold, (level, message, kv)
+        assert wait_for(lambda: any(int(diag(m)[2].get("foreign_load_frames", 0)) == 20 for _, m in dg), 5.0)
+    finally:
+        h.close()

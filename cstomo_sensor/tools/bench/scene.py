@@ -54,7 +54,7 @@ def _costs(p: Pipeline, v: np.ndarray) -> dict[str, float]:
     return cost
 
 
-def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 100, say=print) -> list[dict]:
+def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=print) -> list[dict]:
     rows: list[dict] = []
     pipe = Pipeline.build(PipelineConfig(estimator="model", cache_dir=cache_dir or ""))
     sf = pipe.scene_field
