@@ -72,6 +72,7 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field", "consistency",
                                                                          "scene_stress_field")}
     assert len(msgs["/cstomo_sensor/consistency"]) == s.results
+    assert s.foreign_load == 0  # the bag's loads are on the socket
     rows = force_rows(msgs)
     assert rows.shape == (s.results, 6) and np.isfinite(rows).all()
     # stamps: the bag time of the input frame (the first TARE frames give no output)
@@ -102,7 +103,7 @@ def test_replay_forces_file_holds_the_consistency_columns(tmp_path, replayed, co
     want = np.array([m.data for _, m in replayed[1]["/cstomo_sensor/consistency"]])
     np.testing.assert_allclose(cons, want, rtol=1e-5)
     flags = np.array([int(r.split(",")[-1]) for r in lines[1:]])
-    assert np.array_equal(flags, cons > pipe.consistency.threshold)
+    assert np.array_equal(flags, cons > pipe.consistency.threshold) and flags.sum() == s.foreign_load
     np.testing.assert_allclose(read_forces(tmp_path / "f.csv"), force_rows(replayed[1])[:, :3], rtol=1e-6, atol=1e-6)
 
 

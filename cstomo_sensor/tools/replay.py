@@ -51,7 +51,8 @@ STORAGES = ("sqlite3", "mcap")
 @dataclass(frozen=True)
 class ReplaySummary:
     """What a replay did: input frames, results written, frames dropped as malformed, topics, and
-    frames rejected as implausible (no output for them, as the node publishes none)."""
+    frames rejected as implausible (no output for them, as the node publishes none), results flagged
+    as a foreign load (written all the same, as the node publishes them)."""
 
     frames_in: int
     results: int
@@ -59,6 +60,7 @@ class ReplaySummary:
     input_topic: str
     output_topics: tuple[str, ...]
     implausible: int = 0
+    foreign_load: int = 0
 
 
 def _typestore():
@@ -175,7 +177,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             shutil.rmtree(partial, ignore_errors=True)
     if proc.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
-    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible)
+    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible,
+                         sum(r.foreign_load for r in rows))
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -208,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cstomo replay: {err}", file=sys.stderr)
         return 2
     print(f"{s.frames_in} frames from {s.input_topic}: {s.results} results written to {args.out} "
-          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible")
+          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible; "
+          f"{s.foreign_load} foreign load")
     return 0
 
 
