@@ -174,3 +174,21 @@ def test_atomic_write_leaves_no_half_written_file(tmp_path):
     with atomic_write(target) as f:
         f.write(b"new\n")
     assert target.read_text() == "new\n" and os.listdir(tmp_path) == ["out.csv"]
+
+
+def test_forces_file_consistency_columns(tmp_path):
+    """The optional consistency and foreign_load columns (REFERENCE_SENSOR.md section 6): written after
+    valid, empty for a frame without a statistic, ignored by the reader."""
+    from cstomo_sensor.errors import FrameError
+    from cstomo_sensor.frames_io import read_forces, write_forces
+
+    f = np.array([[1.0, 2.0, -3.0], [np.nan] * 3, [0.0, 0.0, -5.0]])
+    write_forces(tmp_path / "f.csv", f, valid=np.array([True, False, True]),
+                 consistency=np.array([1.25, np.nan, 40.0]), foreign_load=np.array([False, False, True]))
+    lines = (tmp_path / "f.csv").read_text().splitlines()
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
+    assert lines[1].endswith(",1,1.25,0") and lines[2] == "1,,,,,,,0,," and lines[3].endswith(",1,40,1")
+    back, valid = read_forces(tmp_path / "f.csv", with_valid=True)
+    assert valid.tolist() == [True, False, True] and np.array_equal(back[[0, 2]], f[[0, 2]])
+    with pytest.raises(FrameError, match="both or neither"):
+        write_forces(tmp_path / "g.csv", f, consistency=np.zeros(3))

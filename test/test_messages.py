@@ -143,6 +143,27 @@ def test_stress_cloud_and_build_equal_rclpy(n_cells):
     assert "stress_field" not in out.build(_Result(np.ones(3), None), 0)
 
 
+def test_scene_cloud_and_consistency_equal_rclpy():
+    """A result with the scene's field and the consistency statistic: ~/scene_stress_field is the same
+    cloud layout as ~/stress_field with the scene's values; ~/consistency a Float64."""
+    rng = np.random.default_rng(8)
+    centers = rng.normal(size=(9, 3)) * 0.01
+    out = OutputMessages(centers, "cstomo_socket")
+    r = _Result(rng.normal(size=3), _Field(rng, 9))
+    r.scene_field, r.consistency = _Field(rng, 9), 3.25
+    msgs = out.build(r, STAMPS[1])
+    assert set(msgs) == {"wrench", "force_magnitude", "force_elevation", "force_azimuth", "stress_field",
+                         "scene_stress_field", "consistency"}
+    _same_cdr(msgs["consistency"], Float64(data=3.25))
+    ref = deserialize_message(msgs["stress_field"], PointCloud2)  # held equal to rclpy above
+    cols = np.column_stack([centers, r.scene_field.conductivity_change, r.scene_field.volumetric_compression,
+                            r.scene_field.pressure])
+    ref.data = cols.astype("<f4").tobytes()
+    _same_cdr(msgs["scene_stress_field"], ref)
+    r.consistency = float("nan")  # no statistic: no message
+    assert "consistency" not in out.build(r, 0)
+
+
 def test_raw_voltages_equal_rclpy():
     rng = np.random.default_rng(5)
     cdr = RawVoltagesCdr()

@@ -92,9 +92,9 @@ def test_cli_estimate_marks_an_all_zero_frame_invalid(tmp_path, bag_frames):
             "--grid", *map(str, PIPE["grid"])]
     assert main(args) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid"
-    assert lines[2] == "1,,,,,,,0"  # frame, six empty force fields, valid
-    assert lines[1].endswith(",1") and lines[3].endswith(",1")
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
+    assert lines[2] == "1,,,,,,,0,,"  # frame, six empty force fields, valid, no statistic
+    assert lines[1].split(",")[7] == "1" and lines[3].split(",")[7] == "1"
     forces, valid = read_forces(tmp_path / "forces.csv", with_valid=True)
     assert valid.tolist() == [True, False, True]
     assert np.isnan(forces[1]).all() and np.isfinite(forces[[0, 2]]).all()

@@ -69,7 +69,10 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     s, msgs = replayed
     inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
     assert s.frames_in == len(inputs) and s.corrupt == 0 and s.results == len(inputs) - TARE
-    assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field",)}
+    assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field", "consistency",
+                                                                         "scene_stress_field")}
+    assert len(msgs["/cstomo_sensor/consistency"]) == s.results
+    assert s.foreign_load == 0  # the bag's loads are on the socket
     rows = force_rows(msgs)
     assert rows.shape == (s.results, 6) and np.isfinite(rows).all()
     # stamps: the bag time of the input frame (the first TARE frames give no output)
@@ -81,6 +84,27 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     c = clouds[0][1]
     assert [f.name for f in c.fields] == ["x", "y", "z", "conductivity_change", "volumetric_compression", "pressure"]
     assert c.point_step == 24 and c.width * c.point_step == len(c.data)
+    scene = msgs["/cstomo_sensor/scene_stress_field"]  # the same layout and points, the mechanics' values
+    assert len(scene) == len(clouds) and [f.name for f in scene[0][1].fields] == [f.name for f in c.fields]
+    a = np.frombuffer(bytes(c.data), np.float32).reshape(-1, 6)
+    b = np.frombuffer(bytes(scene[0][1].data), np.float32).reshape(-1, 6)
+    assert np.array_equal(a[:, :3], b[:, :3]) and not np.array_equal(a[:, 3:], b[:, 3:])
+
+
+def test_replay_forces_file_holds_the_consistency_columns(tmp_path, replayed, config, pipe):
+    from cstomo_sensor.frames_io import read_forces
+    from cstomo_sensor.tools.replay import replay
+
+    s = replay(BAG, tmp_path / "out", config, tare_frames=TARE, pipeline=pipe, forces_file=tmp_path / "f.csv")
+    lines = (tmp_path / "f.csv").read_text().splitlines()
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
+    assert len(lines) == s.results + 1
+    cons = np.array([float(r.split(",")[-2]) for r in lines[1:]])
+    want = np.array([m.data for _, m in replayed[1]["/cstomo_sensor/consistency"]])
+    np.testing.assert_allclose(cons, want, rtol=1e-5)
+    flags = np.array([int(r.split(",")[-1]) for r in lines[1:]])
+    assert np.array_equal(flags, cons > pipe.consistency.threshold) and flags.sum() == s.foreign_load
+    np.testing.assert_allclose(read_forces(tmp_path / "f.csv"), force_rows(replayed[1])[:, :3], rtol=1e-6, atol=1e-6)
 
 
 def test_replay_with_a_reference_file_equals_the_tare_on_the_first_frames(tmp_path, replayed, config, pipe):
@@ -142,6 +166,8 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
         got = {t: h.record(f"/cstomo_sensor/{t}", Float64) for t in FORCE_TOPICS[1:]}
         got["wrench"] = h.record("/cstomo_sensor/wrench", WrenchStamped)
         got["stress_field"] = h.record("/cstomo_sensor/stress_field", PointCloud2)
+        got["scene_stress_field"] = h.record("/cstomo_sensor/scene_stress_field", PointCloud2)
+        got["consistency"] = h.record("/cstomo_sensor/consistency", Float64)
         pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
@@ -163,6 +189,10 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
     clouds_node = [m.data for _, m in got["stress_field"]]
     clouds_replay = [m.data for _, m in want["/cstomo_sensor/stress_field"]]
     assert len(clouds_node) == len(clouds_replay) and all(a == b for a, b in zip(clouds_node, clouds_replay))
+    for t in ("scene_stress_field", "consistency"):  # the new outputs: the same, frame by frame
+        node_t = [m.data for _, m in got[t]]
+        replay_t = [m.data for _, m in want[f"/cstomo_sensor/{t}"]]
+        assert len(node_t) == len(replay_t) and all(np.array_equal(a, b) for a, b in zip(node_t, replay_t)), t
 
 
 def test_replay_writes_nothing_for_implausible_frames_and_counts_them(tmp_path, config, pipe, capsys):

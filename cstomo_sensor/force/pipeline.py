@@ -51,6 +51,7 @@ from ..model.pattern import MeasurementPattern
 from .calibration import DeviceCalibration
 from .device import ScaleReport
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
+from .scene_field import Consistency, SceneField, mismatch_allowance
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +100,9 @@ class FrameResult:
 
     ``valid`` is False when the plausibility gate rejected the frame (module docstring): then
     ``reason`` says why, and force, angles and residual are NaN and there is no field.
+    ``scene_field`` is the mechanics' field of the estimated force (socket sensors, with the
+    field); ``consistency`` the frame's statistic against the socket load model and
+    ``foreign_load`` whether it trips (force/scene_field.py).
     """
 
     force: np.ndarray
@@ -109,6 +113,9 @@ class FrameResult:
     field: StressField | None
     valid: bool = True
     reason: str = ""
+    scene_field: StressField | None = None
+    consistency: float = float("nan")
+    foreign_load: bool = False
 
     @classmethod
     def implausible(cls, reason: str) -> FrameResult:
@@ -125,10 +132,14 @@ class Pipeline:
     """
 
     def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,
-                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force) -> None:
+                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force,
+                 scene_field: SceneField | None = None) -> None:
         self.geometry = geometry
         self.model = model
         self.estimator = estimator
+        self.scene_field = scene_field
+        self._allowance = mismatch_allowance(model)
+        self.consistency = Consistency(np.asarray(estimator.y), estimator.noise, self._allowance)
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None
@@ -168,7 +179,8 @@ class Pipeline:
         model = build_model(geometry, config.recon_spec, config.cache_dir or None, progress)
         calibration = DeviceCalibration.load(config.calibration_file, model.n_meas) if config.calibration_file else None
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
-        pipe = cls(geometry, model, estimator, max_force=config.max_force)
+        scene_field = SceneField.build(geometry, model, cache_dir=config.cache_dir or None)
+        pipe = cls(geometry, model, estimator, max_force=config.max_force, scene_field=scene_field)
         if calibration is not None:
             pipe.set_calibration(calibration)
         return pipe
@@ -183,6 +195,7 @@ class Pipeline:
             calibration.check_model(self.model)
             self.estimator = self.estimator.with_set(*calibration.corrected_set(forces, y))
         self.calibration = calibration
+        self._update_consistency()
 
     @property
     def base_estimator(self):
@@ -230,7 +243,13 @@ class Pipeline:
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
         self.scale_report, self.noise_measured = report, noise is not None
         self._update_gate()
+        self._update_consistency()
         return report
+
+    def _update_consistency(self) -> None:
+        """The foreign-load statistic on the estimator's training set and noise (both follow the
+        device: measured noise at a tare, corrected set with a calibration) and the current mask."""
+        self.consistency = Consistency(np.asarray(self.estimator.y), self.estimator.noise, self._allowance, self._keep)
 
     def _update_gate(self) -> None:
         """The gate's per-channel weight: the change relative to the device's own reference."""
@@ -260,7 +279,8 @@ class Pipeline:
             lam = self.model.damping * self._svd.s_max**2
             R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
         estimator = self.estimator.masked(keep)
-        self._keep, self._R, self.estimator = keep, R, estimator
+        consistency = self.consistency.masked(keep)
+        self._keep, self._R, self.estimator, self.consistency = keep, R, estimator, consistency
         self._update_gate()
 
     def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
@@ -294,8 +314,11 @@ class Pipeline:
         mag, el, az = force_angles3(force)
         if gate and not mag <= self.max_force:
             return FrameResult.implausible(f"force {mag:.4g} N beyond max_force {self.max_force:g} N")
-        field = None
+        c = self.consistency(y)
+        field = scene = None
         residual = float("nan")
+        if with_field and self.scene_field is not None:
+            scene = self.scene_field.field(force)
         if with_field:
             self._y32[:] = y
             np.matmul(self._R, self._y32, out=self._x)
@@ -303,7 +326,8 @@ class Pipeline:
             field = StressField.from_conductivity_change(dsigma, self.geometry.material)
             r = y - (self.model.S @ self._x) * self._keep
             residual = float(np.linalg.norm(r) / max(np.linalg.norm(y), 1e-300))
-        return FrameResult(force, mag, el, az, residual, field)
+        return FrameResult(force, mag, el, az, residual, field, scene_field=scene, consistency=c,
+                           foreign_load=c > self.consistency.threshold)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ Loads (REFERENCE_SENSOR.md section 4):
   reference carries elevations 15..90 deg. Below 15 deg the solve still runs (it is
   well-posed for any elevation > 0) but the contact sits on the rim, where the result depends on
   the mesh; a warning is logged.
-* :func:`solve_patch_load` - uniform normal pressure on regions of the top face.
+* :func:`solve_patch_load` - uniform normal pressure on regions of the top face or of a side face.
 
 Solver: the condensed stiffness (symmetric positive definite) is factorised once per mesh and set
 of fixed dofs (SuperLU in symmetric mode, :func:`~cstomo_sensor.model.cem.symmetric_lu`: about 2 s
@@ -78,6 +78,10 @@ rounding level, accepts a residual below 1e3 NEWTON_TOL |F|)."""
 _VOLUME_INTORDER = 2  # exact for the P2 stiffness (products of linear gradients)
 _SOCKET_INTORDER = 2  # p is constant per flat facet: order 2 integrates it against P2 exactly
 _PATCH_INTORDER = 4  # more quadrature points resolve the patch edges better
+#: The side faces a patch load can press (cuboid bodies): face -> (normal axis, sign). A patch's
+#: ``center`` is given in the face's own two coordinates: (y, z) on +-x, (x, z) on +-y, (x, y) on top.
+SIDE_FACES = {"+x": (0, 1), "-x": (0, -1), "+y": (1, 1), "-y": (1, -1)}
+_FACE_AXES = {"top": (0, 1), "+x": (1, 2), "-x": (1, 2), "+y": (0, 2), "-y": (0, 2)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -236,6 +240,10 @@ class _Problem:
         if which == "top":
             on = (np.abs(fp[2] - H) <= tol).all(axis=0)
             return bf[on]
+        if which in SIDE_FACES:  # a plane side face of a cuboid: x or y at the mesh's extent
+            k, sign = SIDE_FACES[which]
+            edge = m.p[k].max() if sign > 0 else m.p[k].min()
+            return bf[(np.abs(fp[k] - edge) <= tol).all(axis=0)]
         if which == "socket":
             if geometry is None:
                 raise ConfigError("boundary_facets(which='socket') needs the sensor geometry")
@@ -248,7 +256,7 @@ class _Problem:
             on_sphere = (np.abs(r - R) <= max(0.05 * R, 10 * FACE_TOL * R)).all(axis=0)
             below = cen[2] < H - tol
             return bf[on_sphere & below]
-        raise ConfigError(f"which={which!r}: expected 'bottom', 'top' or 'socket'")
+        raise ConfigError(f"which={which!r}: expected 'bottom', 'top', 'socket' or one of {list(SIDE_FACES)}")
 
     def facet_basis(self, facets: np.ndarray, intorder: int):
         from skfem import FacetBasis  # heavy: only where the elasticity is assembled
@@ -509,14 +517,16 @@ def solve_patch_load(
     patches: Sequence[Mapping[str, Any]],
     total_force: float,
 ) -> MechanicsSolution:
-    """Displacement under uniform normal pressure on regions of the top face, bottom face fixed.
+    """Displacement under uniform normal pressure on regions of one face, bottom face fixed.
 
-    A patch is ``{"shape": "square", "size": s, "center": (x, y)}`` (axis-aligned, side s) or
+    The face is the top one, or a side face of a cuboid given by ``face`` ('+x', '-x', '+y', '-y';
+    the same for every patch of the load), where ``center`` holds the face's own two coordinates
+    ((y, z) on +-x, (x, z) on +-y). A patch is ``{"shape": "square", "size": s, "center": (x, y)}`` (axis-aligned, side s) or
     ``{"shape": "circle", "radius": r, "center": (x, y)}``, metres. One pressure acts on the union
     of the patches, so the force splits over the patches by area. Approximation: a top-face
     quadrature point (degree-4 rule, 6 per facet) is loaded when it lies inside a patch, so a
     patch edge is resolved to within a facet; the pressure is then scaled so that the discrete
-    resultant is exactly (0, 0, -total_force).
+    resultant is exactly -total_force times the face's outward normal.
 
     Parameters
     ----------
@@ -525,7 +535,7 @@ def solve_patch_load(
     geometry : SensorGeometry
     patches : sequence of mappings
     total_force : float
-        Total normal force, N, positive when pressing down on the top face.
+        Total normal force, N, positive when pressing into the face.
 
     Returns
     -------
@@ -539,16 +549,24 @@ def solve_patch_load(
     load = {"type": "patches", "patches": [dict(q) for q in patches], "total_force": float(total_force)}
     prob = _problem(p, t, geometry.material)
     fixed = _fixed_bottom(prob, geometry)
-    top = prob.boundary_facets(geometry, "top")
+    faces = {q.get("face", "top") if isinstance(q, Mapping) else None for q in patches}
+    face = faces.pop()
+    if faces or face not in _FACE_AXES:
+        raise ConfigError(f"patches: face {sorted(map(str, faces | {face}))}: expected one face of "
+                          f"{list(_FACE_AXES)} for every patch of a load")
+    if face != "top" and geometry.shape != "cuboid":
+        raise ConfigError(f"patches: face={face!r} needs a cuboid body, not a {geometry.shape}")
+    top = prob.boundary_facets(geometry, face)
     if len(top) == 0:
-        raise ConfigError(f"mesh: no boundary facet on the top face z = {geometry.height} m")
+        raise ConfigError(f"mesh: no boundary facet on the {face} face")
     fb = prob.facet_basis(top, _PATCH_INTORDER)
     X = np.asarray(fb.global_coordinates())  # (3, nf, nq)
+    a, b = _FACE_AXES[face]
     inside = np.zeros(fb.dx.shape, dtype=bool)
     for i, q in enumerate(patches):
-        mask = _patch_mask(q, X[0], X[1], i)
+        mask = _patch_mask(q, X[a], X[b], i)
         if not mask.any():
-            raise ConfigError(f"patches[{i}]={dict(q)!r}: covers no part of the top face of the mesh")
+            raise ConfigError(f"patches[{i}]={dict(q)!r}: covers no part of the {face} face of the mesh")
         inside |= mask
     area = float(fb.dx[inside].sum())
     pres = np.where(inside, float(total_force) / area, 0.0)

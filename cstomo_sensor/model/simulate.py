@@ -19,6 +19,8 @@ Scene file (YAML)::
       - {socket: {magnitude: 20, elevation_deg: 30, azimuth_deg: 0}}
       - {socket: {force: [0, 0, -20]}}
       - {patches: [{shape: square, size: 0.01, center: [0, 0]}], total_force: 20}
+      - {patches: [{shape: circle, radius: 0.004, center: [0.005, 0.01], face: +y}], total_force: 10}
+                                    # a side face of a cuboid; center in the face's (x, z), m
       - {inclusion: {center: [0, 0, 0.01], radius: 0.003, contrast: 0.5}}   # no mechanics
 """
 from __future__ import annotations
@@ -97,9 +99,13 @@ class Load:
             total = float(d.get("total_force", 0.0))
             if total <= 0:
                 raise ConfigError(f"total_force={d.get('total_force')!r}: expected a positive force in N")
-            return cls("patches", force=(0.0, 0.0, -total), patches=tuple(
-                (p["shape"], float(p.get("size", p.get("radius", 0.0))), tuple(p.get("center", (0, 0))))
-                for p in d["patches"]))
+            patches = tuple((p["shape"], float(p.get("size", p.get("radius", 0.0))), tuple(p.get("center", (0, 0))),
+                             str(p.get("face", "top"))) for p in d["patches"])
+            inward = {"top": (0, 0, -1), "+x": (-1, 0, 0), "-x": (1, 0, 0), "+y": (0, -1, 0), "-y": (0, 1, 0)}
+            face = patches[0][3] if patches else "top"
+            if face not in inward:
+                raise ConfigError.bad_value("patches.face", face, f"one of {list(inward)}")
+            return cls("patches", force=tuple(total * float(c) for c in inward[face]), patches=patches)
         if "inclusion" in d:
             i = d["inclusion"]
             return cls("inclusion", inclusion=(*map(float, i["center"]), float(i["radius"]), float(i["contrast"])))
@@ -153,15 +159,20 @@ class Truth:
             if load.kind == "socket":
                 sol = elasticity.solve_socket_load(m.points, m.tets, self.geometry, load.force_vector)
             else:
-                patches = [{"shape": s, ("size" if s == "square" else "radius"): v, "center": c}
-                           for s, v, c in load.patches]
-                sol = elasticity.solve_patch_load(m.points, m.tets, self.geometry, patches, -load.force[2])
+                patches = [{"shape": s, ("size" if s == "square" else "radius"): v, "center": c, "face": f}
+                           for s, v, c, f in load.patches]
+                sol = elasticity.solve_patch_load(m.points, m.tets, self.geometry, patches,
+                                                  float(np.linalg.norm(load.force)))
             self._theta_cache[key] = self._sampler(sol.theta_vertices)
         return self._theta_cache[key]
 
-    def conductivity(self, load: Load) -> np.ndarray:
-        """Per-cell conductivity of the truth mesh under ``load``."""
+    def conductivity(self, load: Load | tuple[Load, ...]) -> np.ndarray:
+        """Per-cell conductivity of the truth mesh under ``load``, or under several mechanical loads
+        acting together (socket and patches: linear elasticity adds their compressions)."""
         fm = self.forward
+        if isinstance(load, tuple):
+            sigma, _ = conductivity_of_theta(sum(self.theta(ld) for ld in load), self.geometry.material)
+            return sigma
         if load.kind == "none" or (load.kind == "socket" and not any(load.force)):
             return fm.sigma0
         if load.kind == "inclusion":
@@ -173,8 +184,8 @@ class Truth:
             log.warning("%d cells beyond the percolation limit (clipped)", int(broken.sum()))
         return sigma
 
-    def voltages(self, load: Load) -> np.ndarray:
-        """Noise-free frame under ``load``."""
+    def voltages(self, load: Load | tuple[Load, ...]) -> np.ndarray:
+        """Noise-free frame under ``load`` (or several loads together, see :meth:`conductivity`)."""
         return self.forward.voltages(self.conductivity(load))
 
 

@@ -25,6 +25,8 @@ from ..frames_io import check_frame
 #: Output topics relative to the node (``~/<name>``), in the order :meth:`OutputMessages.build` fills.
 FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 STRESS_TOPIC = "stress_field"
+SCENE_TOPIC = "scene_stress_field"  # the mechanics' field of the estimated force (socket sensors; scene_field.py)
+CONSISTENCY_TOPIC = "consistency"  # the frame's statistic against the socket load model (scene_field.py)
 RAW_TOPIC = "raw_voltages"
 FILTERED_TOPIC = "wrench_filtered"  # the node's low-passed wrench (force/filter.py); replay does not write it
 #: Message type of every output topic, as rosbag2 names it.
@@ -34,6 +36,8 @@ TOPIC_TYPES = {
     "force_elevation": "std_msgs/msg/Float64",
     "force_azimuth": "std_msgs/msg/Float64",
     "stress_field": "sensor_msgs/msg/PointCloud2",
+    "scene_stress_field": "sensor_msgs/msg/PointCloud2",
+    "consistency": "std_msgs/msg/Float64",
     "raw_voltages": "std_msgs/msg/Float32MultiArray",
     "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
 }
@@ -135,15 +139,21 @@ class OutputMessages:
 
     def build(self, result: object, stamp_ns: int) -> dict[str, bytes]:
         """CDR messages of one :class:`~cstomo_sensor.pipeline.FrameResult`, keyed by topic name
-        (relative to the node); ``stress_field`` only when the result carries a field."""
+        (relative to the node); ``consistency`` when the result has the statistic, ``stress_field``
+        and ``scene_stress_field`` only when the result carries those fields (same layout)."""
         out = {
             "wrench": self.wrench(result.force, stamp_ns),
             "force_magnitude": self.float64(result.magnitude),
             "force_elevation": self.float64(result.elevation),
             "force_azimuth": self.float64(result.azimuth),
         }
+        c = getattr(result, "consistency", float("nan"))
+        if c == c:  # not NaN
+            out[CONSISTENCY_TOPIC] = self.float64(c)
         if getattr(result, "field", None) is not None:
             out[STRESS_TOPIC] = self.stress_field(result.field, stamp_ns)
+        if getattr(result, "scene_field", None) is not None:
+            out[SCENE_TOPIC] = self.stress_field(result.scene_field, stamp_ns)
         return out
 
 

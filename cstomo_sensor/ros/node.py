@@ -48,9 +48,11 @@ from ..force.pipeline import FrameProcessor, Pipeline, TareOutcome
 from ..model.geometry import load_sensor
 from . import log as ros_log
 from .messages import (
+    CONSISTENCY_TOPIC,
     FILTERED_TOPIC,
     FORCE_TOPICS,
     RAW_TOPIC,
+    SCENE_TOPIC,
     STRESS_TOPIC,
     TOPIC_TYPES,
     OutputMessages,
@@ -83,6 +85,9 @@ class _Stats:
         self.proc_max = 0.0
         self.proc_n = 0
         self.residual = math.nan
+        self.consistency = math.nan  # the latest frame's statistic against the socket load model
+        self.foreign = 0         # frames flagged as a foreign load (all time)
+        self.period_foreign = 0  # ... this period
         self.last_frame = None   # time.monotonic() of the latest frame
 
 
@@ -188,8 +193,9 @@ class CstomoSensorNode(LifecycleNode):
         self._reconnects = 0
         self._init_reference()
         qos = cfg.qos()
-        topics = list(FORCE_TOPICS) + [STRESS_TOPIC] + ([RAW_TOPIC] if cfg.input == "serial" else []) \
-            + ([FILTERED_TOPIC] if cfg.wrench_filter_hz > 0 else [])
+        topics = list(FORCE_TOPICS) + [STRESS_TOPIC, CONSISTENCY_TOPIC] \
+            + ([SCENE_TOPIC] if pipe.scene_field is not None else []) \
+            + ([RAW_TOPIC] if cfg.input == "serial" else []) + ([FILTERED_TOPIC] if cfg.wrench_filter_hz > 0 else [])
         for topic in topics:
             self._pubs[topic] = self.create_lifecycle_publisher(_msg_class(TOPIC_TYPES[topic]), f"~/{topic}", qos)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -466,6 +472,10 @@ class CstomoSensorNode(LifecycleNode):
             st.proc_max = max(st.proc_max, dt)
             if not math.isnan(result.residual):
                 st.residual = result.residual
+            st.consistency = result.consistency
+            if result.foreign_load:
+                st.foreign += 1
+                st.period_foreign += 1
 
     # --- diagnostics -------------------------------------------------------------------------------
 
@@ -501,6 +511,7 @@ class CstomoSensorNode(LifecycleNode):
             st.period_frames, st.proc_sum, st.proc_max, st.proc_n = 0, 0.0, 0.0, 0
             corrupt, late, residual, frames = st.corrupt, st.late, st.residual, st.frames
             rejected, period_reason, st.period_reason = st.rejected, st.period_reason, ""
+            consistency, foreign, period_foreign, st.period_foreign = st.consistency, st.foreign, st.period_foreign, 0
             kv_rejected = {"frames_rejected": rejected, "frames_all_excluded": st.all_excluded,
                            "frame_errors": st.errors, "reject_reason": st.reject_reason}
         status = DiagnosticStatus(name=f"{self.get_name()}: sensor", hardware_id=cfg.port if cfg and cfg.input == "serial" else "")
@@ -545,6 +556,13 @@ class CstomoSensorNode(LifecycleNode):
         if new_imp:
             level = max(level, DiagnosticStatus.WARN)
             msgs.append(f"{new_imp} implausible frames not published ({proc.implausible_reason})")
+        kv.update(consistency=f"{consistency:.4g}", foreign_load_frames=foreign)
+        if period_foreign:
+            level = max(level, DiagnosticStatus.WARN)
+            threshold = self.pipe.consistency.threshold if self.pipe is not None else math.nan
+            msgs.append(f"foreign load: {period_foreign} frames not explained by a load on the socket (consistency "
+                        f"{consistency:.3g}, limit {threshold:g}); something else presses the sensor or an "
+                        "electrode changed; forces still published")
         kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
                   processing_time_max_ms=f"{proc_max * 1e3:.3f}")
         reason = self.stale_reason() if self._active else ""

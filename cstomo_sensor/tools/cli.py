@@ -103,11 +103,15 @@ def cmd_estimate(a) -> int:
     valid = np.array([r.valid for r in results])
     # the optional valid column (REFERENCE_SENSOR.md section 6) is written when a frame was
     # rejected as implausible; without it, every row holds a force
-    write_forces(a.out, forces, valid=None if valid.all() else valid)
+    write_forces(a.out, forces, valid=None if valid.all() else valid,
+                 consistency=np.array([r.consistency for r in results]),
+                 foreign_load=np.array([r.foreign_load for r in results]))
     for i, r in enumerate(results):
         if not r.valid:
             print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)
-    print(f"wrote {a.out}: {valid.sum()} forces ({a.estimator} estimator); {(~valid).sum()} implausible")
+    foreign = sum(r.foreign_load for r in results)
+    print(f"wrote {a.out}: {valid.sum()} forces ({a.estimator} estimator); {(~valid).sum()} implausible"
+          + (f"; {foreign} with a foreign load (not on the socket)" if foreign else ""))
     return 0
 
 

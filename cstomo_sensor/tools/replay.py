@@ -32,7 +32,17 @@ from std_msgs.msg import Float32MultiArray
 from ..errors import ConfigError, CstomoError, FrameError
 from ..force.device import read_reference
 from ..force.pipeline import FrameProcessor, Pipeline, PipelineConfig
-from ..ros.messages import FORCE_TOPICS, RAW_TOPIC, STRESS_TOPIC, TOPIC_TYPES, OutputMessages, values_from_raw_msg
+from ..frames_io import write_forces
+from ..ros.messages import (
+    CONSISTENCY_TOPIC,
+    FORCE_TOPICS,
+    RAW_TOPIC,
+    SCENE_TOPIC,
+    STRESS_TOPIC,
+    TOPIC_TYPES,
+    OutputMessages,
+    values_from_raw_msg,
+)
 from .common import add_pipeline_args, pipeline_config
 
 log = logging.getLogger(__name__)
@@ -43,7 +53,8 @@ STORAGES = ("sqlite3", "mcap")
 @dataclass(frozen=True)
 class ReplaySummary:
     """What a replay did: input frames, results written, frames dropped as malformed, topics, and
-    frames rejected as implausible (no output for them, as the node publishes none)."""
+    frames rejected as implausible (no output for them, as the node publishes none), results flagged
+    as a foreign load (written all the same, as the node publishes them)."""
 
     frames_in: int
     results: int
@@ -51,6 +62,7 @@ class ReplaySummary:
     input_topic: str
     output_topics: tuple[str, ...]
     implausible: int = 0
+    foreign_load: int = 0
 
 
 def _typestore():
@@ -80,7 +92,8 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
            tare_frames: int = 50, stress_field_every: int = 0, frame_id: str = "cstomo_socket",
-           topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None) -> ReplaySummary:
+           topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
+           forces_file: str | Path | None = None) -> ReplaySummary:
     """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
 
     Parameters
@@ -95,6 +108,9 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         An already built pipeline for ``config`` (its reference and mask are reset here).
     storage : {'sqlite3', 'mcap'}
         Storage plugin of the output bag.
+    forces_file : path or None
+        Also write the results as a forces file (REFERENCE_SENSOR.md section 6) with the ``valid``,
+        ``consistency`` and ``foreign_load`` columns, one row per processed frame.
     """
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # optional: the [full] extra
 
@@ -119,7 +135,9 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     n_in = n_out = corrupt = 0
     with Reader(in_bag) as reader:
         prefix = raw_topic[: -len(RAW_TOPIC)]
-        names = list(FORCE_TOPICS) + ([STRESS_TOPIC] if stress_field_every else [])
+        names = list(FORCE_TOPICS) + [CONSISTENCY_TOPIC] + ([STRESS_TOPIC] if stress_field_every else []) \
+            + ([SCENE_TOPIC] if stress_field_every and pipe.scene_field is not None else [])
+        rows = []  # the forces file's results
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         partial = out_bag.with_name(f".{out_bag.name}.partial{os.getpid()}")  # renamed when complete
         shutil.rmtree(partial, ignore_errors=True)
@@ -142,6 +160,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                         corrupt += 1
                         log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
                         continue
+                    if result is not None:
+                        rows.append(result)
                     if result is None or not result.valid:
                         continue
                     n_out += 1
@@ -151,11 +171,17 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                 raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
                                   "no output written")
             os.replace(partial, out_bag)
+            if forces_file is not None:
+                write_forces(forces_file, np.array([r.force for r in rows]).reshape(-1, 3),
+                             valid=np.array([r.valid for r in rows], bool),
+                             consistency=np.array([r.consistency for r in rows]),
+                             foreign_load=np.array([r.foreign_load for r in rows], bool))
         finally:
             shutil.rmtree(partial, ignore_errors=True)
     if proc.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
-    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible)
+    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible,
+                         sum(r.foreign_load for r in rows))
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -169,6 +195,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--stress-field-every", type=int, default=0, help="write stress_field every N results")
     p.add_argument("--frame-id", default="cstomo_socket")
     p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
+    p.add_argument("--forces", help="also write a forces file (CSV) with the consistency and foreign_load columns")
     return p
 
 
@@ -182,12 +209,13 @@ def main(argv: list[str] | None = None) -> int:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
                    stress_field_every=args.stress_field_every, frame_id=args.frame_id, topic=args.topic,
-                   storage=args.storage, progress=lambda m: print(f"model: {m}", file=sys.stderr))
+                   storage=args.storage, forces_file=args.forces, progress=lambda m: print(f"model: {m}", file=sys.stderr))
     except (CstomoError, OSError, ReaderError, WriterError) as err:
         print(f"cstomo replay: {err}", file=sys.stderr)
         return 2
     print(f"{s.frames_in} frames from {s.input_topic}: {s.results} results written to {args.out} "
-          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible")
+          f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible; "
+          f"{s.foreign_load} foreign load")
     return 0
 
 

@@ -1,6 +1,7 @@
 """``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
 GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
-the weight rule (:mod:`.weight`) and the calibration effort (:mod:`.effort`)."""
+the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`) and the scene field with the
+foreign-load flag (:mod:`.scene`)."""
 from __future__ import annotations
 
 import argparse
@@ -13,6 +14,7 @@ from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout
 from .pyeit import run as run_pyeit
+from .scene import run_scene
 from .table import run
 from .weight import choose_weight
 
@@ -30,6 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
     g.add_argument("--choose-weight", action="store_true",
                    help="the rule for the Landweber weight power p on the training-side scenes")
+    g.add_argument("--scene", action="store_true", help="scene stress field and foreign-load flag (accuracy, rates, cost)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
                    help="with --heldout: a device calibration (cstomo calibrate) applied to both estimators")
@@ -54,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
     if a.calibration_effort:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         calibration_effort(a.out, cache_dir=a.cache_dir or None)
+        return 0
+    if a.scene:
+        run_scene(a.out, a.cache_dir or None)
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)

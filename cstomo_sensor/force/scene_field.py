@@ -1,0 +1,206 @@
+"""The scene's own stress field and the frame's consistency with the scene's load model.
+
+Scene field
+-----------
+For a socket scene (the joint) the mechanics predicts the whole stress field from the force.
+The frictionless contact problem is positively homogeneous in the force, so the field of a force
+F is ``|F| * theta1(F / |F|)`` with ``theta1`` the volumetric compression per newton of a
+direction. ``theta1`` is solved once per calibration direction (the estimators' 40 directions,
+:func:`~cstomo_sensor.force.estimate.calibration_directions`, on the calibration's mechanics mesh)
+and sampled at the reconstruction's cell centres, the points the node publishes (cached on disk,
+keyed by every input). Between directions it is interpolated by a thin-plate spline of degree 1
+on the unit directions (force/tps.py: exact at the 40 directions; measured error against direct
+solves at new directions in docs/node.md). Per frame: one (45 x n_cells) product, the material law
+for the published conductivity change, and K theta for the mean stress.
+
+Consistency
+-----------
+Socket loads change the normalised voltages y only within a low-dimensional set: the span of the
+calibration set's changes, whitened by the noise. The statistic is the part of the whitened change
+outside that span, per remaining degree of freedom::
+
+    c = || (I - Q^T Q) (y / noise) ||^2 / (n_kept - k)
+
+(Q: the k leading right singular vectors of the whitened calibration changes, those whose rms over
+the set is at least ``RANK_NOISE`` of the noise). For a socket load at the stated noise c is about
+1 (a chi-square per degree of freedom); the device's mismatch with the model adds to it, growing
+with the load. ``noise`` is an input (the estimator's per-channel noise: one place).
+
+The flag trips when c exceeds ``threshold = q / dof + ||allowance / noise||^2 / dof``: q the
+chi-square quantile of 1 - 1e-4 (noise alone trips it once in 10^4 frames), ``allowance`` the
+per-channel rms of the change a rated socket load leaves outside the span on a device within the
+honest simulation's mismatch (+-20 % contact impedance, 0.2 mm electrode jitter):
+``MISMATCH_REL`` of the reference's rms: on the held-out device of ``cstomo bench --scene`` the
+noise-free statistic of 101 random socket loads (5-40 N, elevation 20-90 deg) at 60 dB noise units is
+at most 7.8 (38.8 N at 21 deg elevation, rim contact), and the allowance is 10.2 of them (1.3 x).
+So the threshold is about 12.1 at 60 dB and 1.5 at 40 dB.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..inverse.reconstruction import ReconstructionModel
+from ..model import elasticity
+from ..model.geometry import SensorGeometry
+from ..model.material import StressField, conductivity_of_theta, pressure_of_theta
+from ..model.mesh import MeshSpec, build_mesh
+from .estimate import CalibrationSpec, calibration_directions
+from .tps import ThinPlateSpline
+
+log = logging.getLogger(__name__)
+
+SCENE_FIELD_FORMAT = 1
+#: Singular directions of the whitened calibration set kept as "explained by socket loads": those
+#: whose rms over the set reaches this multiple of the noise (8 at 60 dB). Fewer directions leave more
+#: of a foreign load unexplained: on a simulated device (seed 77, 60 dB) a 10 N press on the top face
+#: 18 mm from the axis gave 3.5-4.0 with 0.3 (15 directions) against at most 4.4 for socket loads,
+#: 9-12 with 1.0 (11) and 14-20 with 2.0 (8), socket loads staying at most 4.7.
+RANK_NOISE = 2.0
+#: The chi-square tail that noise alone may trip (per frame), and the mismatch allowance (module docstring).
+FALSE_ALARM_NOISE = 1e-4
+_Z_TAIL = 3.719  # the standard normal quantile of 1 - FALSE_ALARM_NOISE
+MISMATCH_REL = 3.2e-3
+
+
+def mismatch_allowance(model: ReconstructionModel) -> np.ndarray:
+    """(n_meas,) the mismatch allowance in y units: ``MISMATCH_REL`` rms(reference) / v_scale."""
+    return MISMATCH_REL * np.sqrt(np.mean(model.model_reference**2)) / model.v_scale
+
+
+def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
+                      cache_dir=None) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (n, 3), theta per newton (n, n_cells) at the model's cell centres), cached."""
+    dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
+    centers = np.asarray(model.centers, dtype=float)
+    key = input_hash({"format": SCENE_FIELD_FORMAT, "geometry": geometry.digest(), "centers": centers,
+                      "mechanics_mesh_size": spec.mechanics_mesh_size, "directions": dirs})
+    path = Path(cache_dir or default_cache_dir()) / "scene_fields" / f"{geometry.name}-{key}.npz"
+    hit = cache_load(path, key, names=("directions", "theta"))
+    if hit is not None:
+        return hit["directions"], hit["theta"]
+    t0 = time.perf_counter()
+    h = spec.mechanics_mesh_size
+    mech = build_mesh(geometry, MeshSpec(h=h, h_electrode=h), cache_dir)
+    sample = elasticity.point_sampler(mech.points, mech.tets, centers)
+    theta = np.array([sample(elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices)
+                      for d in dirs])
+    elasticity.release()
+    cache_save(path, key, directions=dirs, theta=theta)
+    log.info("scene field: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
+    return dirs, theta
+
+
+class SceneField:
+    """The mechanics' field of a socket force at the published points (module docstring).
+
+    Parameters
+    ----------
+    directions : (n, 3) ndarray
+        Unit force directions.
+    theta : (n, n_cells) ndarray
+        Volumetric compression per newton of each direction at the points.
+    geometry : SensorGeometry
+        Its material turns theta into pressure and conductivity.
+    """
+
+    def __init__(self, directions: np.ndarray, theta: np.ndarray, geometry: SensorGeometry) -> None:
+        self.material = mat = geometry.material
+        self.spline = ThinPlateSpline(directions, theta)
+        n = len(directions)
+        # the spline at a unit direction d: nodes p_i on the unit sphere give |d - p_i|^2 = 2 - 2 d.p_i
+        self._p = np.ascontiguousarray(self.spline.points)  # (n, 3)
+        self._coef = np.ascontiguousarray(self.spline.M.T)  # (n + 4, n_cells): [c | d_0 | d]
+        self._basis = np.ones(n + 4)
+        self._r2 = np.empty(n)
+        self._log = np.empty(n)
+        self.sigma0 = float(conductivity_of_theta(np.zeros(1), mat)[0][0])
+        # the material law without its clipping, where no clipping can happen (field())
+        self._theta_ok = (np.log(mat.phi_c / mat.phi0) + 1e-3, np.log(1.0 / mat.phi0) - 1e-3)
+
+    def theta(self, force: np.ndarray) -> np.ndarray:
+        """(n_cells,) volumetric compression under ``force`` (3,) N."""
+        f = np.asarray(force, dtype=float)
+        m = float(np.sqrt(f @ f))
+        if not m > 0:
+            return np.zeros(self._coef.shape[1])
+        d = f / m
+        n, r2, lg, b = len(self._p), self._r2, self._log, self._basis
+        np.dot(self._p, d, out=r2)
+        np.subtract(2.0, 2.0 * r2, out=r2)
+        np.maximum(r2, 1e-300, out=r2)
+        np.log(r2, out=lg)
+        np.multiply(r2, lg, out=b[:n])
+        b[:n] *= 0.5  # phi(r) = r^2 log r = r^2 log(r^2) / 2
+        b[n + 1:] = d
+        return m * (b @ self._coef)
+
+    def field(self, force: np.ndarray) -> StressField:
+        """The :class:`StressField` of ``force``: conductivity change by the material law, theta, K theta."""
+        th = self.theta(force)
+        mat = self.material
+        lo, hi = self._theta_ok
+        if th.size and lo < th.min() and th.max() < hi:  # the law of conductivity_of_theta, unclipped
+            sigma = ((mat.phi0 * np.exp(th) - mat.phi_c) / (1.0 - mat.phi_c)) ** mat.tau / mat.rho_h
+            clipped = np.zeros(th.shape, bool)
+        else:
+            sigma, clipped = conductivity_of_theta(th, mat)
+        return StressField(sigma - self.sigma0, th, pressure_of_theta(th, mat), clipped)
+
+    @classmethod
+    def build(cls, geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec = CalibrationSpec(),
+              cache_dir=None) -> SceneField | None:
+        """The scene field of a socket sensor; None for a sensor without a socket (patch scenes)."""
+        if geometry.socket_radius <= 0:
+            return None
+        return cls(*per_newton_fields(geometry, model, spec, cache_dir), geometry)
+
+
+class Consistency:
+    """The consistency statistic of a frame against the socket load model (module docstring).
+
+    Parameters
+    ----------
+    y : (n, n_meas) ndarray
+        The calibration set's normalised changes (socket loads through the model).
+    noise : (n_meas,) ndarray
+        Per-channel noise std of y (the estimator's).
+    allowance : (n_meas,) ndarray or None
+        The model mismatch allowed for (:func:`mismatch_allowance`); None: none.
+    keep : (n_meas,) bool ndarray or None
+        Channels in use.
+
+    Attributes
+    ----------
+    threshold : float
+        ``c`` above it trips the foreign-load flag (module docstring).
+    """
+
+    def __init__(self, y: np.ndarray, noise: np.ndarray, allowance: np.ndarray | None = None,
+                 keep: np.ndarray | None = None) -> None:
+        self.y, self.noise = np.asarray(y), np.asarray(noise, dtype=float)
+        self.allowance = np.zeros_like(self.noise) if allowance is None else np.asarray(allowance, dtype=float)
+        self.keep = np.ones(self.y.shape[1], bool) if keep is None else np.asarray(keep, bool)
+        self.w = np.where(self.keep, 1.0 / self.noise, 0.0)
+        yw = self.y * self.w
+        _, s, vt = np.linalg.svd(yw, full_matrices=False)
+        k = int(np.count_nonzero(s / np.sqrt(len(yw)) >= RANK_NOISE))
+        self.Q = np.ascontiguousarray(vt[:k])  # (k, n_meas), zero on excluded channels
+        self.dof = max(int(self.keep.sum()) - k, 1)
+        a = 2.0 / (9.0 * self.dof)  # Wilson-Hilferty: the chi-square quantile per degree of freedom
+        self.threshold = float((1 - a + _Z_TAIL * np.sqrt(a)) ** 3
+                               + np.sum((self.allowance * self.w) ** 2) / self.dof)
+        self._z = np.empty(self.y.shape[1])
+
+    def __call__(self, y: np.ndarray) -> float:
+        """The statistic of one frame's change ``y`` (n_meas,)."""
+        z = np.multiply(y, self.w, out=self._z)
+        p = self.Q @ z
+        return float((z @ z - p @ p) / self.dof)
+
+    def masked(self, keep: np.ndarray) -> Consistency:
+        return Consistency(self.y, self.noise, self.allowance, keep)

@@ -1,0 +1,205 @@
+"""The scene's own stress field and the foreign-load flag (force/scene_field.py), on honest
+simulations (REFERENCE_SENSOR.md section 7: the truth's mechanics on its own 4 mm mesh, the scene
+field's on the calibration's 6 mm mesh; forward truth on an independent 3 mm mesh, mismatched).
+
+Stated levels: the scene field of the estimated force correlates with the truth's volumetric
+compression on the published points at >= 0.9 for the paper's planar cases (measured 0.93, 0.96,
+0.96); the flag stays quiet on random socket loads (5-40 N, elevation 20-90 deg, 60 dB) at <= 2 %
+of frames and trips on >= 95 % of frames with a 10 N press on the +y side face (socket unloaded)
+or on the top face 18 mm from the socket axis (on top of random socket loads).
+"""
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import MODEL_H, TRUTH_H
+
+from cstomo_sensor.angles import force_from_angles
+from cstomo_sensor.force.estimate import CalibrationSpec, calibration_directions
+from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.scene_field import Consistency
+from cstomo_sensor.model import elasticity
+from cstomo_sensor.model.material import pressure_of_theta
+from cstomo_sensor.model.mesh import MeshSpec, build_mesh
+from cstomo_sensor.model.simulate import Load, Scene, Truth, add_noise, simulate
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SIDE = {"patches": [{"shape": "circle", "radius": 0.004, "center": [0.005, 0.010], "face": "+y"}], "total_force": 10}
+TOP = {"patches": [{"shape": "circle", "radius": 0.004, "center": [0.018 / np.sqrt(2), 0.018 / np.sqrt(2)]}],
+       "total_force": 10}
+
+
+@pytest.fixture(scope="module")
+def pipe():
+    return Pipeline.build(PipelineConfig(estimator="model", mesh_size=MODEL_H))
+
+
+def test_scene_field_correlates_with_the_truth_on_the_planar_cases(pipe):
+    scene = Scene.load(SCENES / "cuboid_planar_60db.yaml")
+    ref, frames, forces = simulate(scene)
+    truth = scene.truth()
+    m = truth.mechanics_mesh  # the truth's own mechanics (4 mm), not the scene field's (6 mm)
+    sample = elasticity.point_sampler(m.points, m.tets, pipe.model.centers)
+    pipe.set_reference(ref)
+    for v, f in zip(frames, forces):
+        r = pipe.process(v)
+        true_theta = sample(elasticity.solve_socket_load(m.points, m.tets, truth.geometry, f).theta_vertices)
+        sf = r.scene_field
+        assert sf is not None and sf.pressure.shape == (pipe.model.n_cells,)
+        assert np.corrcoef(sf.volumetric_compression, true_theta)[0, 1] >= 0.9, f
+        assert np.corrcoef(sf.pressure, pressure_of_theta(true_theta, truth.geometry.material))[0, 1] >= 0.9
+        peak = pipe.centers[np.argmax(sf.pressure)]  # the wrench frame: at the socket, on the pushed side
+        assert np.linalg.norm(peak) < 10e-3, peak
+        if abs(f[0]) > 5:
+            assert np.sign(peak[0]) == np.sign(f[0]), (f, peak)
+        # the field's size follows the force: its peak within 40 % of the truth's (measured 0.70-1.22:
+        # the 6 mm mesh rounds off the rim's concentration at 30 deg)
+        assert 0.6 < sf.volumetric_compression.max() / true_theta.max() < 1.4
+
+
+def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
+    sf = pipe.scene_field
+    dirs = calibration_directions(CalibrationSpec.n_directions, CalibrationSpec.min_elevation_deg)
+    nodes = sf.spline.M[:, : len(dirs)]
+    assert nodes.shape[1] == len(dirs)
+    one = sf.theta(dirs[7])
+    assert np.allclose(sf.theta(25.0 * dirs[7]), 25.0 * one, rtol=1e-12, atol=0)
+    assert not sf.theta(np.zeros(3)).any()
+    # the field of a calibration direction is its solve, sampled at the points (independent of the spline)
+    geom = pipe.geometry
+    h = CalibrationSpec.mechanics_mesh_size
+    mech = build_mesh(geom, MeshSpec(h=h, h_electrode=h))
+    sample = elasticity.point_sampler(mech.points, mech.tets, pipe.model.centers)
+    direct = [sample(elasticity.solve_socket_load(mech.points, mech.tets, geom, d).theta_vertices) for d in dirs[[7, 39]]]
+    assert np.allclose(sf.theta(dirs[7]), direct[0], rtol=1e-9, atol=1e-12 * np.abs(direct[0]).max())
+    assert np.allclose(sf.theta(dirs[39]), direct[1], rtol=1e-9, atol=1e-12 * np.abs(direct[1]).max())
+    # between the directions: the stated interpolation error against direct solves (docs/node.md)
+    rng = np.random.default_rng(13)
+    errs = []
+    for _ in range(6):
+        d = force_from_angles(1.0, np.radians(rng.uniform(20, 90)), rng.uniform(-np.pi, np.pi))
+        t = sample(elasticity.solve_socket_load(mech.points, mech.tets, geom, d).theta_vertices)
+        errs.append(np.linalg.norm(sf.theta(d) - t) / np.linalg.norm(t))
+    elasticity.release()
+    assert max(errs) < 0.1, errs
+
+
+def test_consistency_extremes(pipe):
+    c = Consistency(np.asarray(pipe.estimator.y), pipe.estimator.noise)
+    assert 1.3 < c.threshold < 1.5  # no allowance: the chi-square tail of noise alone
+    assert 11 < pipe.consistency.threshold < 12.5  # with the mismatch allowance at 60 dB
+    assert c(np.zeros(pipe.n_meas)) == 0.0
+    for i, j in [(5, 77), (1, 2), (100, 150)]:  # sums of two socket loads: within the span, to the truncation
+        y = pipe.estimator.y[i] + pipe.estimator.y[j]
+        z = y * c.w
+        assert c(y) * c.dof < 1e-3 * (z @ z) and c(y) < 0.2, (i, j, c(y))
+    noise = np.random.default_rng(2).normal(0, pipe.estimator.noise, (400, pipe.n_meas))
+    assert 0.9 < np.mean([c(n) for n in noise]) < 1.1  # chi-square per degree of freedom at the stated noise
+    keep = np.ones(pipe.n_meas, bool)
+    keep[:13] = False
+    cm = c.masked(keep)
+    spike = np.zeros(pipe.n_meas)
+    spike[3] = 1e3
+    assert cm(spike) == 0.0 and c(spike) > 0
+
+
+def test_patch_faces_are_checked(cuboid):
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.model.geometry import load_sensor
+
+    with pytest.raises(ConfigError, match="patches.face"):
+        Load.from_dict({"patches": [{"shape": "circle", "radius": 0.004, "center": [0, 0], "face": "+z"}],
+                        "total_force": 10})
+    m = build_mesh(cuboid, MeshSpec(h=6e-3, h_electrode=6e-3))
+    mixed = [dict(SIDE["patches"][0]), dict(TOP["patches"][0])]
+    with pytest.raises(ConfigError, match="one face"):
+        elasticity.solve_patch_load(m.points, m.tets, cuboid, mixed, 10.0)
+    cyl = load_sensor("cylinder")
+    with pytest.raises(ConfigError, match="cuboid"):
+        elasticity.solve_patch_load(m.points, m.tets, cyl, SIDE["patches"], 10.0)
+
+
+def test_side_face_patch_resultant_and_place(cuboid):
+    m = build_mesh(cuboid, MeshSpec(h=4e-3, h_electrode=4e-3))
+    sol = elasticity.solve_patch_load(m.points, m.tets, cuboid, SIDE["patches"], 10.0)
+    assert np.allclose(sol.resultant, [0, -10, 0], atol=1e-9)
+    cells = m.points[m.tets].mean(axis=1)
+    th = sol.cell_theta()
+    c = cells[np.argmax(th)]
+    assert np.linalg.norm(c - [0.005, 0.020, 0.010]) < 6e-3, c
+    assert Load.from_dict(SIDE).force == (0.0, -10.0, 0.0)
+
+
+def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe):
+    truth = Truth(pipe.geometry, truth_h=TRUTH_H, seed=31)  # no calibration sees this device
+    rng = np.random.default_rng(7)
+    tare = [add_noise(truth.reference, truth.reference, 60, rng) for _ in range(20)]
+    pipe.set_reference(np.mean(tare, axis=0))  # the node's tare: the mean of 20 frames
+
+    def flags(v, n):
+        out = [pipe.process(add_noise(v, truth.reference, 60, rng), with_field=False) for _ in range(n)]
+        assert all(r.valid for r in out)  # the force topics keep publishing
+        return [r.foreign_load for r in out]
+
+    quiet, top = [], []
+    for _ in range(40):
+        f = force_from_angles(rng.uniform(5, 40), np.radians(rng.uniform(20, 90)), rng.uniform(-np.pi, np.pi))
+        socket = Load("socket", force=tuple(f))
+        quiet += flags(truth.voltages(socket), 3)
+        top += flags(truth.voltages((socket, Load.from_dict(TOP))), 1)
+    side = flags(truth.voltages(Load.from_dict(SIDE)), 20)
+    elasticity.release()
+    assert len(quiet) >= 100 and np.mean(quiet) <= 0.02, np.mean(quiet)
+    assert np.mean(side) >= 0.95, np.mean(side)
+    assert np.mean(top) >= 0.95, np.mean(top)
+
+
+def test_cli_estimate_flags_the_foreign_scene(tmp_path):
+    from cstomo_sensor.tools.cli import main
+
+    assert main(["simulate", "--scene", str(SCENES / "cuboid_foreign_60db.yaml"), "--out", str(tmp_path)]) == 0
+    assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
+                 "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(MODEL_H)]) == 0
+    lines = (tmp_path / "forces.csv").read_text().splitlines()
+    assert lines[0].endswith(",consistency,foreign_load")
+    # side press x2, top press x2, then a socket load x2 (one-frame reference: noise doubled, still quiet)
+    assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
+
+
+def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path, warm_model):
+    """Topic mode: a tare on unloaded frames, then frames of the side press: ~/consistency above the
+    threshold, /diagnostics WARN 'foreign load', the wrench still published."""
+    import time
+
+    from conftest import PIPE, Harness, diag, diag_records, wait_for
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float32MultiArray, Float64
+
+    truth = Truth(warm_model.geometry, truth_h=TRUTH_H, seed=31)
+    rng = np.random.default_rng(3)
+    unloaded = [add_noise(truth.reference, truth.reference, 60, rng) for _ in range(10)]
+    side = [add_noise(truth.voltages(Load.from_dict(SIDE)), truth.reference, 60, rng) for _ in range(20)]
+    elasticity.release()
+    params = dict(PIPE, input="topic", tare_on_start=True, tare_frames=10, qos_reliability="reliable",
+                  qos_depth=100, tare_file=str(tmp_path / "tare.csv"), stale_timeout=5.0)
+    h = Harness(ros, params)
+    try:
+        cons = h.record("/cstomo_sensor/consistency", Float64)
+        wrench = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        dg = diag_records(h)
+        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+                                       QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1, 20.0)
+        for v in unloaded + side:
+            pub.publish(Float32MultiArray(data=v.astype(np.float32).tolist()))
+            time.sleep(0.01)
+        assert wait_for(lambda: len(cons) >= 20 and len(wrench) >= 20, 10.0), (len(cons), len(wrench))
+        threshold = h.node.pipe.consistency.threshold
+        assert all(m.data > threshold for _, m in cons), [m.data for _, m in cons]
+        assert wait_for(lambda: any("foreign load" in diag(m)[1] for _, m in dg), 5.0)
+        level, message, kv = next(diag(m) for _, m in dg if "foreign load" in diag(m)[1])
+        assert level >= 1 and float(kv["consistency"]) > threshold, (level, message, kv)
+        assert wait_for(lambda: any(int(diag(m)[2].get("foreign_load_frames", 0)) == 20 for _, m in dg), 5.0)
+    finally:
+        h.close()
