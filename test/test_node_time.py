@@ -15,13 +15,16 @@ rclpy = pytest.importorskip("rclpy")
 
 def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_path, source, warm_model):
     """The node's ROS clock (use_sim_time, driven by /clock here as ntp or a user would step the wall
-    clock) jumps 30 s forward, far beyond stale_timeout (0.3 s): wrenches go on within half a second,
+    clock) jumps 30 s forward, far beyond stale_timeout (1 s): wrenches go on within half a second,
     stamped on the new clock, and no frame is dropped as late. Before issue 14 every frame was "late"
     for clock_window (10 s) while the diagnostics said OK."""
     from geometry_msgs.msg import WrenchStamped
     from rosgraph_msgs.msg import Clock
 
-    h, board = start(ros, tmp_path, source, rate=100.0, tare_on_start=True, tare_frames=5, use_sim_time=True)
+    # stale_timeout 1 s (still 30 times below the step): a loaded host that starves the in-process
+    # board for 0.3 s must not make this test about stalls
+    h, board = start(ros, tmp_path, source, rate=100.0, tare_on_start=True, tare_frames=5, use_sim_time=True,
+                     stale_timeout=1.0)
     pub = h.probe.create_publisher(Clock, "/clock", 10)
     step = {"at": None, "offset": 1000.0}
     stop = threading.Event()
@@ -33,7 +36,7 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
                 step["offset"] = 1030.0
             ns = int((step["offset"] + t) * 1e9)
             pub.publish(Clock(clock=rclpy.time.Time(nanoseconds=ns).to_msg()))
-            stop.wait(0.01)
+            stop.wait(0.05)  # a 20 Hz /clock: enough for the stamps, light on the in-process board
 
     clock = threading.Thread(target=tick, daemon=True)
     clock.start()
@@ -55,7 +58,9 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
     # (bounds loose for a loaded machine; before the fix: no wrench for 10 s, every frame late)
     assert after and after[0][0] - t_step < 1.0, (after[:1], t_step)
     times = np.array([t for t, _ in after])
-    assert len(times) > 150 and np.diff(times).max() < 1.0  # 2.5 s at 100 frames/s, no blackout
+    # no blackout: wrenches all along the 2.5 s (the in-process board, sharing the GIL with the node,
+    # the probe and the clock thread, does not always keep its 100 frames/s)
+    assert len(times) > 100 and np.diff(times).max() < 1.0
     stamps = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for _, m in after[20:]])
     assert np.all(np.abs(stamps - (1030.0 + times[20:])) < 0.5)  # the new clock's time, minus the frame's age
     assert late < 10, late

@@ -7,7 +7,8 @@ One PNG per view, ``WINDOW`` pixels (600 wider per panel beyond two):
   30, 90 and 120 degrees in the x-z plane), side by side, in kPa on one colour scale: the truth's
   mean stress K theta (independent truth mesh, the truth's mechanics) and the EIT image's mean
   stress (the default pipeline's field of the honest noisy frame, voxel values shown on the
-  forward cells they hold); a panel for the scene's own field goes beside them (see ``panels``):
+  forward cells they hold), and the scene's own field (the mechanics' field of the estimated force,
+  ``~/scene_stress_field``, at the same voxels):
   ``load{i}_iso.png`` (iso-surfaces at 25/50/75 % of each field's own maximum) and
   ``load{i}_slices.png`` (horizontal slices at z = 5, 10, 15 mm and the vertical section y = 0);
 - ``voltages.png``: the 208 voltages of the unloaded and loaded frames, and their differences.
@@ -205,7 +206,9 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
         panels = [(_grid(tm.points, tm.tets, pressure_kPa=pressure * 1e-3), f"truth mean stress, kPa; {label}"),
                   (_grid(mesh.points, mesh.tets, pressure_kPa=res.field.pressure[cell_voxel] * 1e-3),
                    f"EIT image mean stress, kPa; {est}")]
-        # the scene's own field (issue 13 item 2) goes here as a third panel: (grid, title)
+        if res.scene_field is not None:  # the mechanics' field of the estimated force, at the image's voxels
+            panels.append((_grid(mesh.points, mesh.tets, pressure_kPa=res.scene_field.pressure[cell_voxel] * 1e-3),
+                           f"scene field mean stress, kPa; {est}"))
         paths += render_case(panels, out, i)
         say(f"wrote {paths[-2]}, {paths[-1]} ({label}; estimate {est})")
         frames.append(v)
