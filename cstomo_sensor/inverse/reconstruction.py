@@ -234,7 +234,7 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
         model.meta["cache_hit"] = True
         return model
     t = time.perf_counter()
-    say(f"meshing {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm; cached after the first time)")
+    say(f"mesh of {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm): shipped with the package, cached, or meshed now")
     mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
     seconds = {"mesh": time.perf_counter() - t}
     model = model_of_mesh(geometry, spec, mesh, key, say)
