@@ -18,7 +18,7 @@ import numpy as np
 
 from ...force.filter import LowPass
 from .models import Builder, Setting
-from .report import write_csv
+from .report import write_rows
 from .scenes import NOISE_SEED, SceneSet
 from .timing import run_frames
 
@@ -67,9 +67,4 @@ def filter_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict
                                  "tau_ms": 1e3 / (2 * np.pi * fc), "t63_ms": 1e3 * float(np.median(p["t63"])),
                                  "t95_ms": 1e3 * float(np.median(p["t95"])), "raw_sd_n": raw_sd,
                                  "filtered_sd_n": filt_sd, "sd_ratio": filt_sd / raw_sd})
-    cols = list(rows[0])
-    write_csv(Path(out) / "filter.csv", rows, cols)
-    say("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in rows:
-        say("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r.values()) + " |")
-    return rows
+    return write_rows(Path(out) / "filter.csv", rows, say)

@@ -11,7 +11,7 @@ from ...angles import force_angles
 from ...force.calibration import DeviceCalibration
 from ...force.device import reference_of
 from .models import Builder, Setting
-from .report import write_csv
+from .report import write_rows
 from .scenes import NOISE_SEED, SceneSet, errors, quantile
 from .timing import run_frames, time_frames
 
@@ -47,9 +47,4 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibrati
                              "angle_med": quantile(a, 0.5), "angle_p90": quantile(a, 0.9), "angle_max": float(np.max(a)),
                              "mag_pct_med": quantile(r, 0.5), "mag_pct_p90": quantile(r, 0.9),
                              "estimator_ms_med": float(np.median(t)) * 1e3})
-    cols = list(rows[0])
-    write_csv(Path(out) / "heldout.csv", rows, cols)
-    say("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
-    for r in rows:
-        say("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r.values()) + " |")
-    return rows
+    return write_rows(Path(out) / "heldout.csv", rows, say)

@@ -26,6 +26,16 @@ def write_csv(path: Path, rows: list[dict], cols: list[str]) -> None:
             w.writerow({k: (repr(v) if isinstance(v, float) else v) for k, v in r.items()})
 
 
+def write_rows(path: Path, rows: list[dict], say) -> list[dict]:
+    """``rows`` (dicts with the same keys) to the CSV file ``path`` and, as a markdown table, to ``say``."""
+    cols = list(rows[0])
+    write_csv(path, rows, cols)
+    say("| " + " | ".join(cols) + " |\n|" + "---|" * len(cols))
+    for r in rows:
+        say("| " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v) for v in r.values()) + " |")
+    return rows
+
+
 MD_COLS = [("setting", "setting", "{}"), ("grid", "grid", "{}"), ("k", "iterations", "{}"), ("p", "weight_power", "{:g}"),
            ("n_vox", "n_voxels", "{}"), ("build s", "build_s", "{:.1f}"), ("build MB", "build_mem_mb", "{:.0f}"),
            ("frame ms (med/p99)", None, None), ("estimator ms (med/p99)", None, None), ("fps", "fps", "{:.0f}"),
