@@ -43,7 +43,8 @@ def test_adjoint_identity_tangent_against_geselowitz(cuboid_forward, cuboid_solu
 
 @pytest.mark.parametrize("p", [0.0, 0.7, 1.0])
 def test_closed_form_equals_iterations_on_the_real_sensitivity(cuboid_model, p):
-    """The model's R (float32) against the weighted iteration g += step (W S^T (y - S g) - lam g)."""
+    """The model's R (float32) against the weighted iteration g += step (W S^T (y - S g) - lam g) on
+    the basis, averaged onto the image's voxels; ``fit`` against S g."""
     S = cuboid_model.S
     y = S @ np.random.default_rng(3).standard_normal(S.shape[1]) * 0.01
     w = column_weight(S, p)
@@ -52,13 +53,16 @@ def test_closed_form_equals_iterations_on_the_real_sensitivity(cuboid_model, p):
         assert m.weight_power == p
         lam = damping * np.linalg.norm(S * np.sqrt(w), 2) ** 2
         g = landweber(S, y, k, step=m.step, damping=lam, weight=w if p else None)
-        np.testing.assert_allclose(m.R.astype(float) @ y, g, rtol=1e-5, atol=1e-6 * np.abs(g).max())
+        x = m.average @ g
+        np.testing.assert_allclose(m.R.astype(float) @ y, x, rtol=1e-5, atol=1e-6 * np.abs(x).max())
+        np.testing.assert_allclose(m.fit.astype(float) @ y, S @ g, rtol=1e-4, atol=1e-6 * np.abs(S @ g).max())
 
 
 def test_weight_power_zero_is_the_plain_matrix_exactly(cuboid_model):
     plain = LandweberSVD.from_jacobian(cuboid_model.S)
     m = cuboid_model.with_settings(7, 0.0, weight_power=0.0)
-    assert np.array_equal(m.R, plain.matrix(7, 1.0 / plain.s_max**2, dtype=np.float32))
+    Rb = plain.matrix(7, 1.0 / plain.s_max**2, dtype=np.float64)
+    assert np.array_equal(m.R, (cuboid_model.average @ Rb).astype(np.float32))
     assert cuboid_model.weight_power == ReconSpec.weight_power > 0  # the default model is weighted
     with pytest.raises(ConfigError, match="weight_power"):
         ReconSpec(weight_power=-0.1)
@@ -70,6 +74,22 @@ def test_sensitivity_rank_is_at_most_104(cuboid_model):
     svd = LandweberSVD.from_jacobian(cuboid_model.S)
     assert svd.rank <= 104
     print(f"S: rank {svd.rank}, condition {svd.condition:.3g}, k = {cuboid_model.iterations}")
+
+
+def test_image_is_the_volume_average_of_the_basis(cuboid_forward, cuboid_model):
+    """``average`` against the forward cells: a basis image that is a linear function of position
+    averages to that function at each image voxel's centroid (exact: the grids nest), rows
+    sum to 1, and every basis voxel's volume lands in the image (none lost)."""
+    from cstomo_sensor.inverse.reconstruction import voxel_basis
+
+    A = cuboid_model.average
+    np.testing.assert_allclose(np.asarray(A.sum(axis=1)).ravel(), 1.0, rtol=1e-12)
+    lin = cuboid_model.basis_centers @ np.array([1.0, -2.0, 3.0]) + 0.5
+    np.testing.assert_allclose(A @ lin, cuboid_model.centers @ np.array([1.0, -2.0, 3.0]) + 0.5, rtol=1e-9)
+    mesh = cuboid_forward.mesh
+    _, _, basis_volumes = voxel_basis(None, mesh, ReconSpec().basis_grid)
+    np.testing.assert_allclose(A.T @ cuboid_model.volumes, basis_volumes, rtol=1e-9)
+    assert cuboid_model.S.shape[1] == len(basis_volumes) > 4 * cuboid_model.n_cells
 
 
 # stated distance: the peak voxel (5 x 5 x 5 mm voxels) lies within 10 mm (two voxel widths) of
@@ -126,7 +146,7 @@ def test_ill_conditioned_sensitivity_reported_and_finite(cuboid_model):
 
 def test_float32_matches_float64(cuboid_model, cuboid_truth):
     svd = cuboid_model.svd()
-    R64 = svd.matrix(cuboid_model.iterations, cuboid_model.step, dtype=np.float64)
+    R64, _ = cuboid_model.matrices(svd, cuboid_model.iterations, cuboid_model.step, dtype=np.float64)
     y = cuboid_model.normalise(cuboid_truth.voltages(Load("inclusion", inclusion=(0, 0, 0.01, 0.004, 1.0))),
                                cuboid_truth.reference)
     x32 = cuboid_model.R @ y.astype(np.float32)
@@ -168,8 +188,9 @@ def test_masked_channels_ignored(cuboid_model, cuboid_truth):
     y = pipe.normalise(v)  # by the device's own reference scale (issue 11), as process forms it
     g = landweber(cuboid_model.S[keep], y[keep], cuboid_model.iterations, step=cuboid_model.step,
                   weight=column_weight(cuboid_model.S, cuboid_model.weight_power))
-    np.testing.assert_allclose(clean.field.conductivity_change, g * cuboid_model.sigma0, rtol=1e-4,
-                               atol=1e-5 * np.abs(g).max() * cuboid_model.sigma0)
+    x = cuboid_model.average @ g
+    np.testing.assert_allclose(clean.field.conductivity_change, x * cuboid_model.sigma0, rtol=1e-4,
+                               atol=1e-5 * np.abs(x).max() * cuboid_model.sigma0)
 
 
 @pytest.mark.parametrize("contrast", [1e-3 - 1.0, 1e3])

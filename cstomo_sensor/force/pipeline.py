@@ -146,6 +146,7 @@ class Pipeline:
         self._svd: LandweberSVD | None = None
         self._dtype = np.dtype(image_dtype)
         self._R = model.R.astype(self._dtype, copy=False)
+        self._fit = model.fit.astype(self._dtype, copy=False)  # y -> the part the image explains
         self._keep = np.ones(self.n_meas, dtype=bool)
         self._y = np.empty(self.n_meas, dtype=np.float64)
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
@@ -262,7 +263,7 @@ class Pipeline:
     def set_bad_channels(self, bad: np.ndarray) -> None:
         """Exclude measurements (saturated channel, dead electrode): R and the estimator get the mask.
 
-        Re-SVDs the 208 x n_voxels sensitivity (milliseconds); the forward model is not rebuilt.
+        Re-SVDs the 208 x n_basis sensitivity (tens of milliseconds); the forward model is not rebuilt.
         """
         keep = ~np.asarray(bad, dtype=bool)
         if keep.shape != (self.n_meas,):
@@ -271,16 +272,16 @@ class Pipeline:
             return
         # everything is computed before anything is assigned: a refused mask changes nothing
         if keep.all():
-            R = self.model.R.astype(self._dtype, copy=False)
+            R, fit = (a.astype(self._dtype, copy=False) for a in (self.model.R, self.model.fit))
         else:
             if self._svd is None:
                 self._svd = self.model.svd()
-            svd = self._svd.masked(keep)
             lam = self.model.damping * self._svd.s_max**2
-            R = svd.matrix(self.model.iterations, self.model.step, lam, dtype=self._dtype)
+            R, fit = self.model.matrices(self._svd.masked(keep), self.model.iterations, self.model.step, lam,
+                                         dtype=self._dtype)
         estimator = self.estimator.masked(keep)
         consistency = self.consistency.masked(keep)
-        self._keep, self._R, self.estimator, self.consistency = keep, R, estimator, consistency
+        self._keep, self._R, self._fit, self.estimator, self.consistency = keep, R, fit, estimator, consistency
         self._update_gate()
 
     def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
@@ -324,7 +325,7 @@ class Pipeline:
             np.matmul(self._R, self._y32, out=self._x)
             dsigma = self._x.astype(np.float64) * self.model.sigma0
             field = StressField.from_conductivity_change(dsigma, self.geometry.material)
-            r = y - (self.model.S @ self._x) * self._keep
+            r = (y - self._fit @ self._y32) * self._keep
             residual = float(np.linalg.norm(r) / max(np.linalg.norm(y), 1e-300))
         return FrameResult(force, mag, el, az, residual, field, scene_field=scene, consistency=c,
                            foreign_load=c > self.consistency.threshold)

@@ -23,6 +23,7 @@ class Setting:
     varied: str
     mesh_size: float = 4.0e-3  # m
     grid: tuple = (8, 8, 4)
+    basis_grid: tuple = ReconSpec.basis_grid  # the unknowns' grid (averaged onto ``grid``)
     iterations: str | int = "auto"  # "auto", "few", "many" or a count
     damping: float = 0.0
     weight_power: float | None = None  # None = the model's (ReconSpec default); k by the rule for it
@@ -41,6 +42,8 @@ def settings_for(mode: str) -> list[Setting]:
           Setting("iterations few", "iterations", iterations="few"),
           Setting("iterations many", "iterations", iterations="many"),
           Setting("damping 0.1", "damping", damping=0.1),
+          Setting("basis 16x16x8", "basis", basis_grid=(16, 16, 8)),
+          Setting("basis = image grid (before)", "basis", basis_grid=(8, 8, 4)),
           Setting("plain (p=0, tau=1.1: before)", "weight", **PLAIN),
           Setting("weight p=1", "weight", weight_power=1.0),
           Setting("float64", "dtype", dtype="float64"),
@@ -72,11 +75,11 @@ class Builder:
             tracemalloc.stop()
         return out, dt, peak / 2**20
 
-    def model(self, mesh_size: float, grid: tuple):
+    def model(self, mesh_size: float, grid: tuple, basis_grid: tuple = ReconSpec.basis_grid):
 
-        key = (mesh_size, tuple(grid))
+        key = (mesh_size, tuple(grid), tuple(basis_grid))
         if key not in self._models:
-            spec = ReconSpec(mesh_size=mesh_size, grid=tuple(grid))
+            spec = ReconSpec(mesh_size=mesh_size, grid=tuple(grid), basis_grid=tuple(basis_grid))
             self._models[key] = self._traced(lambda: build_model(self.geometry, spec, self.cache_dir))
         return self._models[key]
 
@@ -91,7 +94,7 @@ class Builder:
     def pipeline(self, s: Setting):
         """(pipeline, build seconds, build MB) for a setting."""
 
-        model, t_load, mb = self.model(s.mesh_size, s.grid)
+        model, t_load, mb = self.model(s.mesh_size, s.grid, s.basis_grid)
         build_s = float(sum(model.meta.get("seconds", {}).values()))
         est, t_est, mb_est = self.estimator(s.mesh_size, s.estimator)
         extra = 0.0
@@ -100,7 +103,7 @@ class Builder:
             if s.weight_power is not None or s.tau is not None:  # k by the discrepancy rule for this p, tau
                 svd = model.svd(s.weight_power)
                 k0 = discrepancy_iterations(self.geometry, svd, model.S, model.v_scale, model.model_reference,
-                                            model.centers, 1.0 / svd.s_max**2, 0.0, tau=s.tau or ReconSpec.tau)
+                                            model.basis_centers, 1.0 / svd.s_max**2, 0.0, tau=s.tau or ReconSpec.tau)
             k = {"auto": k0, "few": max(1, k0 // 4), "many": 4 * k0}.get(s.iterations, s.iterations)
             model, extra, mb2 = self._traced(lambda: model.with_settings(int(k), s.damping, s.weight_power))
             mb = max(mb, mb2)

@@ -58,7 +58,7 @@ MODES = {
 }
 
 
-TABLE_COLS = ["setting", "varied", "mesh_mm", "grid", "iterations", "damping", "dtype", "estimator", "weight_power",
+TABLE_COLS = ["setting", "varied", "mesh_mm", "grid", "basis", "iterations", "damping", "dtype", "estimator", "weight_power",
               "n_voxels", "build_s", "build_mem_mb", "peak_rss_mb", "frame_med_ms", "frame_p99_ms",
               "estimator_med_ms", "estimator_p99_ms", "fps", "angle_med_deg", "angle_p90_deg",
               "mag_err_med_n", "mag_err_p90_n", "img_corr_med", "peak_dist_med_mm", "n_frames"]
@@ -75,7 +75,7 @@ def measure(s: Setting, builder: Builder, scenes: SceneSet, ref, frames, true, n
     tv = np.repeat(scenes.truth_on_voxels(pipe.model.centers), reps, axis=0)
     corr, dist = image_errors(images, tv, pipe.model.centers)
     tp, te = time_frames(pipe, frames, n_time)
-    return {"setting": s.name, "varied": s.varied, "mesh_mm": s.mesh_size * 1e3, "grid": "x".join(map(str, s.grid)),
+    return {"setting": s.name, "varied": s.varied, "mesh_mm": s.mesh_size * 1e3, "grid": "x".join(map(str, s.grid)), "basis": "x".join(map(str, s.basis_grid)),
             "iterations": pipe.model.iterations, "damping": s.damping, "weight_power": pipe.model.weight_power,
             "dtype": s.dtype, "estimator": s.estimator,
             "n_voxels": pipe.model.n_cells, "build_s": build_s, "build_mem_mb": mb,
