@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cstomo_sensor.force.estimate import CalibrationSpec, calibration_set
-from cstomo_sensor.inverse.reconstruction import MODEL_ARRAYS, ReconSpec, build_model
+from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
 from cstomo_sensor.model import mesh as meshmod
 from cstomo_sensor.model.mesh import MeshSpec, build_mesh
 
@@ -26,12 +26,12 @@ DEFAULT_SPECS = [MeshSpec(h=ReconSpec.mesh_size), MeshSpec(h=CalibrationSpec.mec
 BUILD = """
 import json, sys, numpy as np
 from cstomo_sensor.model.geometry import load_sensor
-from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model, MODEL_ARRAYS
+from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
 from cstomo_sensor.force.estimate import CalibrationSpec, calibration_set
 g = load_sensor("cuboid_joint")
 m = build_model(g, ReconSpec(), sys.argv[1])
 f, y = calibration_set(g, m, CalibrationSpec(), sys.argv[1])
-np.savez(sys.argv[2], forces=f, y=y, k=m.iterations, **{k: getattr(m, k) for k in MODEL_ARRAYS})
+np.savez(sys.argv[2], forces=f, y=y, k=m.iterations, **m.arrays())
 """
 
 
@@ -86,7 +86,7 @@ def test_two_cold_builds_of_the_default_model_are_bit_identical(cuboid, tmp_path
     subprocess.run([sys.executable, "-c", BUILD, str(b_dir), str(tmp_path / "b.npz")], check=True, env=env)
     with np.load(tmp_path / "b.npz") as b:
         assert int(b["k"]) == model.iterations
-        for name in MODEL_ARRAYS:
-            assert np.array_equal(b[name], getattr(model, name)), name
+        for name, a in model.arrays().items():
+            assert np.array_equal(b[name], a), name
         assert np.array_equal(b["forces"], forces) and np.array_equal(b["y"], y)
     assert json.dumps(model.meta["mesh"]) == json.dumps(build_model(cuboid, ReconSpec(), b_dir).meta["mesh"])

@@ -201,11 +201,16 @@ class ReconstructionModel:
                                    fit, self.basis_centers, self.average)
 
     # -- one file, no pickle ----------------------------------------------------------------
-    def save(self, path: str | Path) -> None:
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays :meth:`save` writes (:data:`MODEL_ARRAYS`; the sparse average as (row, col), weights)."""
         arrays = {k: getattr(self, k) for k in MODEL_ARRAYS[:-2]}
         a = self.average.tocoo()
         arrays["average"] = np.stack([a.row, a.col]).astype(np.int64)
         arrays["average_weights"] = a.data
+        return arrays
+
+    def save(self, path: str | Path) -> None:
+        arrays = self.arrays()
         scalars = {"sigma0": self.sigma0, "iterations": self.iterations, "damping": self.damping,
                    "step": self.step, "weight_power": self.weight_power, "meta": self.meta}
         cache_save(Path(path), self.key, scalars=np.array(json.dumps(scalars)), **arrays)

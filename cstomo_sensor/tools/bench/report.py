@@ -36,7 +36,8 @@ def write_rows(path: Path, rows: list[dict], say) -> list[dict]:
     return rows
 
 
-MD_COLS = [("setting", "setting", "{}"), ("grid", "grid", "{}"), ("basis", "basis", "{}"), ("k", "iterations", "{}"), ("p", "weight_power", "{:g}"),
+MD_COLS = [("setting", "setting", "{}"), ("grid", "grid", "{}"), ("basis", "basis", "{}"), ("k", "iterations", "{}"),
+           ("p", "weight_power", "{:g}"),
            ("n_vox", "n_voxels", "{}"), ("build s", "build_s", "{:.1f}"), ("build MB", "build_mem_mb", "{:.0f}"),
            ("frame ms (med/p99)", None, None), ("estimator ms (med/p99)", None, None), ("fps", "fps", "{:.0f}"),
            ("angle deg (med/p90)", None, None), ("|F| err N (med/p90)", None, None),

@@ -11,7 +11,8 @@ Knobs are varied one at a time around the default (mesh 4 mm, grid 8x8x4, Landwe
 discrepancy rule, no damping, float32 image product, linear estimator):
 
 - forward mesh size (6 mm; a model and a calibration of their own),
-- reconstruction grid (6x6x3, 10x10x5; the linear estimator of the same mesh is reused: the
+- reconstruction basis (16x16x8; 8x8x4, the image grid itself, as before the basis existed),
+- image grid (6x6x3, 10x10x5; the linear estimator of the same mesh is reused: the
   calibration data depend only on the mesh, so a separate calibration would give the same numbers),
 - Landweber iterations (few = k/4, many = 4k) and damping (``model.with_settings``: one SVD),
 - float64 instead of float32 for the per-frame image product,
@@ -75,7 +76,8 @@ def measure(s: Setting, builder: Builder, scenes: SceneSet, ref, frames, true, n
     tv = np.repeat(scenes.truth_on_voxels(pipe.model.centers), reps, axis=0)
     corr, dist = image_errors(images, tv, pipe.model.centers)
     tp, te = time_frames(pipe, frames, n_time)
-    return {"setting": s.name, "varied": s.varied, "mesh_mm": s.mesh_size * 1e3, "grid": "x".join(map(str, s.grid)), "basis": "x".join(map(str, s.basis_grid)),
+    return {"setting": s.name, "varied": s.varied, "mesh_mm": s.mesh_size * 1e3, "grid": "x".join(map(str, s.grid)),
+            "basis": "x".join(map(str, s.basis_grid)),
             "iterations": pipe.model.iterations, "damping": s.damping, "weight_power": pipe.model.weight_power,
             "dtype": s.dtype, "estimator": s.estimator,
             "n_voxels": pipe.model.n_cells, "build_s": build_s, "build_mem_mb": mb,
