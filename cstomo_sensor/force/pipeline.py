@@ -182,6 +182,7 @@ class Pipeline:
         estimator = build_estimator(config.estimator, geometry, model, config.cache_dir or None, progress)
         scene_field = SceneField.build(geometry, model, cache_dir=config.cache_dir or None)
         pipe = cls(geometry, model, estimator, max_force=config.max_force, scene_field=scene_field)
+        pipe._svd = model.svd()  # now (0.1 s), not at the first masked channel in the frame path
         if calibration is not None:
             pipe.set_calibration(calibration)
         return pipe
