@@ -59,7 +59,8 @@ log = logging.getLogger(__name__)
 
 SCENE_FIELD_FORMAT = 1
 #: Singular directions of the whitened calibration set kept as "explained by socket loads": those
-#: whose rms over the set reaches this multiple of the noise (8 at 60 dB). Fewer directions leave more
+#: whose rms over the set reaches this multiple of the noise (8 at 60 dB; 7 after a one-frame tare,
+#: whose own noise counts: Pipeline._update_consistency). Fewer directions leave more
 #: of a foreign load unexplained: on a simulated device (seed 77, 60 dB) a 10 N press on the top face
 #: 18 mm from the axis gave 3.5-4.0 with 0.3 (15 directions) against at most 4.4 for socket loads,
 #: 9-12 with 1.0 (11) and 14-20 with 2.0 (8), socket loads staying at most 4.7.
