@@ -10,7 +10,7 @@ import pytest
 from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import angle_between
-from cstomo_sensor.errors import ConfigError
+from cstomo_sensor.errors import ConfigError, FrameError
 from cstomo_sensor.force.device import (
     UNEXPLAINED_WARN,
     ScaleReport,
@@ -116,15 +116,27 @@ def test_reference_files_mean_spread_and_saved_noise(tmp_path, device):
     np.testing.assert_allclose(noise, frames.std(0, ddof=1), rtol=1e-6)
     write_frames(tmp_path / "one.csv", frames[:1])
     assert read_reference(tmp_path / "one.csv")[1] is None  # one frame, no noise file: the default
-    write_reference(tmp_path / "tare.csv", ref, noise, comment="test")
+    write_reference(tmp_path / "tare.csv", ref, noise, comment="test", frames=10)
     r2, n2, k = read_reference(tmp_path / "tare.csv")
     np.testing.assert_allclose(n2, noise, rtol=1e-8)
-    assert k == 1
+    assert k == 10  # the count of frames the one row averages, recorded in a comment line
+    # a tare saved before the count was recorded: the node's comment gives it, else 2 (its noise needs >= 2)
+    write_frames(tmp_path / "tare.csv", ref, comment="cstomo_sensor tare of 'cuboid_joint': mean of 7 frames, 2024")
+    assert read_reference(tmp_path / "tare.csv")[2] == 7
+    write_frames(tmp_path / "tare.csv", ref, comment="an older tare")
+    assert read_reference(tmp_path / "tare.csv")[2] == 2
+    write_frames(tmp_path / "tare.csv", ref, comment="reference frames: 0")
+    with pytest.raises(FrameError, match="reference frames"):
+        read_reference(tmp_path / "tare.csv")
+    with pytest.raises(ConfigError, match="frames"):
+        write_reference(tmp_path / "tare.csv", ref, noise, comment="test", frames=0)
+    write_reference(tmp_path / "tare.csv", ref, noise, comment="test", frames=10)
     write_frames(tmp_path / "tare.noise.csv", noise * 1e6)  # not a board's noise
     with pytest.raises(ConfigError, match="SNR"):
         read_reference(tmp_path / "tare.csv")
-    write_reference(tmp_path / "tare.csv", ref, None, comment="test")  # a later one-frame tare
+    write_reference(tmp_path / "tare.csv", ref, None, comment="test", frames=1)  # a later one-frame tare
     assert not (tmp_path / "tare.noise.csv").exists()
+    assert read_reference(tmp_path / "tare.csv")[1:] == (None, 1)
 
 
 def test_cli_estimate_reports_the_scale_and_the_noise(tmp_path, device, capsys):

@@ -236,6 +236,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         assert 0.3e-3 < np.median(noise) / np.sqrt(np.mean(saved**2)) < 3e-3
         kv = {v.key: v.value for v in h.node.diagnostics().values}
         assert kv["noise"] == "measured by the tare" and 0.8 < float(kv["reference_scale"]) < 1.25, kv
+        assert h.node.pipe.reference_frames == 50  # the tare's count: the consistency statistic's noise
     finally:
         board.close()
         h.close()
@@ -245,7 +246,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         assert wait_for(lambda: h.state() == "active", 20.0)
         assert h.node.reference_source.startswith("saved tare")
         np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-12)
-        assert h.node.pipe.noise_measured
+        assert h.node.pipe.noise_measured and h.node.pipe.reference_frames == 50  # saved with the tare
         np.testing.assert_allclose(h.node.pipe.estimator.noise * h.node.pipe._y_scale,
                                    np.maximum(noise[0], 0.1 * np.median(noise)), rtol=1e-8)
     finally:

@@ -6,7 +6,9 @@ Stated levels: the scene field of the estimated force correlates with the truth'
 compression on the published points at >= 0.9 for the paper's planar cases (measured 0.93, 0.96,
 0.96); the flag stays quiet on random socket loads (5-40 N, elevation 20-90 deg, 60 dB) at <= 2 %
 of frames and trips on >= 95 % of frames with a 10 N press on the +y side face (socket unloaded)
-or on the top face 18 mm from the socket axis (on top of random socket loads).
+or on the top face 18 mm from the socket axis (on top of random socket loads). The tare's own noise
+is counted: under noise alone the statistic averages about 1 after a one-frame tare too (measured
+1.07, 2.12 with the frame's noise alone) and after a 20-frame one (0.99).
 """
 from pathlib import Path
 
@@ -15,6 +17,7 @@ import pytest
 from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import force_from_angles
+from cstomo_sensor.errors import ConfigError
 from cstomo_sensor.force.estimate import CalibrationSpec, calibration_directions
 from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
 from cstomo_sensor.force.scene_field import Consistency
@@ -32,6 +35,23 @@ TOP = {"patches": [{"shape": "circle", "radius": 0.004, "center": [0.018 / np.sq
 @pytest.fixture(scope="module")
 def pipe():
     return Pipeline.build(PipelineConfig(estimator="model", mesh_size=MODEL_H))
+
+
+@pytest.fixture(scope="module")
+def device31(pipe):
+    """A device no calibration sees (seed 31) and its clean frames: 40 random socket loads (5-40 N,
+    elevation 20-90 deg), each also with the top press, and the side press (socket unloaded)."""
+    truth = Truth(pipe.geometry, truth_h=TRUTH_H, seed=31)
+    rng = np.random.default_rng(7)
+    socket, top = [], []
+    for _ in range(40):
+        f = force_from_angles(rng.uniform(5, 40), np.radians(rng.uniform(20, 90)), rng.uniform(-np.pi, np.pi))
+        load = Load("socket", force=tuple(f))
+        socket.append(truth.voltages(load))
+        top.append(truth.voltages((load, Load.from_dict(TOP))))
+    side = truth.voltages(Load.from_dict(SIDE))
+    elasticity.release()
+    return truth, socket, top, side
 
 
 def test_scene_field_correlates_with_the_truth_on_the_planar_cases(pipe):
@@ -87,7 +107,8 @@ def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
 def test_consistency_extremes(pipe):
     c = Consistency(np.asarray(pipe.estimator.y), pipe.estimator.noise)
     assert 1.3 < c.threshold < 1.5  # no allowance: the chi-square tail of noise alone
-    assert 11 < pipe.consistency.threshold < 12.5  # with the mismatch allowance at 60 dB
+    with_allowance = Consistency(c.y, c.noise, pipe.consistency.allowance)
+    assert 11 < with_allowance.threshold < 12.5  # with the mismatch allowance, the change's noise at 60 dB
     assert c(np.zeros(pipe.n_meas)) == 0.0
     for i, j in [(5, 77), (1, 2), (100, 150)]:  # sums of two socket loads: within the span, to the truncation
         y = pipe.estimator.y[i] + pipe.estimator.y[j]
@@ -104,7 +125,6 @@ def test_consistency_extremes(pipe):
 
 
 def test_patch_faces_are_checked(cuboid):
-    from cstomo_sensor.errors import ConfigError
     from cstomo_sensor.model.geometry import load_sensor
 
     with pytest.raises(ConfigError, match="patches.face"):
@@ -130,28 +150,63 @@ def test_side_face_patch_resultant_and_place(cuboid):
     assert Load.from_dict(SIDE).force == (0.0, -10.0, 0.0)
 
 
-def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe):
-    truth = Truth(pipe.geometry, truth_h=TRUTH_H, seed=31)  # no calibration sees this device
+def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe, device31):
+    truth, socket, top_press, side_press = device31
     rng = np.random.default_rng(7)
     tare = [add_noise(truth.reference, truth.reference, 60, rng) for _ in range(20)]
-    pipe.set_reference(np.mean(tare, axis=0))  # the node's tare: the mean of 20 frames
+    pipe.set_reference(np.mean(tare, axis=0), n_frames=20)  # the node's tare: the mean of 20 frames
 
     def flags(v, n):
         out = [pipe.process(add_noise(v, truth.reference, 60, rng), with_field=False) for _ in range(n)]
         assert all(r.valid for r in out)  # the force topics keep publishing
         return [r.foreign_load for r in out]
 
-    quiet, top = [], []
-    for _ in range(40):
-        f = force_from_angles(rng.uniform(5, 40), np.radians(rng.uniform(20, 90)), rng.uniform(-np.pi, np.pi))
-        socket = Load("socket", force=tuple(f))
-        quiet += flags(truth.voltages(socket), 3)
-        top += flags(truth.voltages((socket, Load.from_dict(TOP))), 1)
-    side = flags(truth.voltages(Load.from_dict(SIDE)), 20)
-    elasticity.release()
+    quiet = [q for v in socket for q in flags(v, 3)]
+    top = [t for v in top_press for t in flags(v, 1)]
+    side = flags(side_press, 20)
     assert len(quiet) >= 100 and np.mean(quiet) <= 0.02, np.mean(quiet)
     assert np.mean(side) >= 0.95, np.mean(side)
     assert np.mean(top) >= 0.95, np.mean(top)
+
+
+def test_reference_noise_counts_in_the_statistic(pipe, device31):
+    """The tare is a mean of n noisy frames: its noise (variance noise^2 / n) is in every change, so the
+    statistic whitens by noise * sqrt(1 + 1/n) (Pipeline._update_consistency). Under noise alone (frames
+    of the unloaded device plus fresh noise) it is then about 1, as the threshold's chi-square assumes;
+    the frame's noise alone gave about 2 with a one-frame tare, and the noise-alone tail (stated 10^-4)
+    tripped on most frames. Socket loads stay within the stated false-alarm rate (<= 2 %)."""
+    truth, socket, _, _ = device31
+    ref = truth.reference
+    rng = np.random.default_rng(23)
+    for bad in (0, -1, 2.5, True, "1"):
+        with pytest.raises(ConfigError, match="n_frames"):
+            pipe.set_reference(ref, n_frames=bad)
+    for n in (1, 20):
+        tare = np.mean([add_noise(ref, ref, 60, rng) for _ in range(n)], axis=0)
+        pipe.set_reference(tare, n_frames=n)
+        frame_noise = np.asarray(pipe.estimator.noise)  # the estimators keep the frame's noise
+        plain = Consistency(np.asarray(pipe.estimator.y), frame_noise, pipe.consistency.allowance)
+        tail, tail_plain = (Consistency(c.y, c.noise) for c in (pipe.consistency, plain))  # no allowance
+        alone = [add_noise(ref, ref, 60, rng) for _ in range(200)]
+        results = [pipe.process(v, with_field=False) for v in alone]
+        ys = pipe.normalise(np.array(alone))
+        stat = np.array([r.consistency for r in results])
+        np.testing.assert_allclose(stat, [pipe.consistency(y) for y in ys], rtol=1e-9)
+        stat_plain = np.array([plain(y) for y in ys])
+        trips = np.mean([tail(y) > tail.threshold for y in ys])
+        trips_plain = np.mean([tail_plain(y) > tail_plain.threshold for y in ys])
+        quiet = [pipe.process(add_noise(v, ref, 60, rng), with_field=False) for v in socket for _ in range(3)]
+        socket_stat = np.array([r.consistency for r in quiet])
+        print(f"{n}-frame reference, 60 dB: noise alone, mean statistic {stat.mean():.3f} (frame noise only: "
+              f"{stat_plain.mean():.3f}); chi-square tail {tail.threshold:.3f} tripped by {trips:.1%} "
+              f"(frame noise only: {trips_plain:.1%} of {tail_plain.threshold:.3f}); {len(quiet)} socket frames: "
+              f"flagged {np.mean([r.foreign_load for r in quiet]):.1%}, statistic median "
+              f"{np.median(socket_stat):.2f}, max {socket_stat.max():.2f}, threshold {pipe.consistency.threshold:.2f}")
+        assert 0.8 < stat.mean() < 1.25, (n, stat.mean())
+        assert trips <= 0.01, (n, trips)  # 2 of 200 at the stated 10^-4 has probability 2e-4
+        assert all(r.valid for r in quiet) and len(quiet) >= 100
+        assert np.mean([r.foreign_load for r in quiet]) <= 0.02
+        np.testing.assert_allclose(pipe.consistency.noise, frame_noise * np.sqrt(1 + 1 / n), rtol=1e-12)
 
 
 def test_cli_estimate_flags_the_foreign_scene(tmp_path):
@@ -162,7 +217,7 @@ def test_cli_estimate_flags_the_foreign_scene(tmp_path):
                  "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(MODEL_H)]) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
     assert lines[0].endswith(",consistency,foreign_load")
-    # side press x2, top press x2, then a socket load x2 (one-frame reference: noise doubled, still quiet)
+    # side press x2, top press x2, then a socket load x2 (one-frame reference: its noise counted, still quiet)
     assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
 
 

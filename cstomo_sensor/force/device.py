@@ -13,10 +13,13 @@ difference, and it also tells two things about the device:
 
 Files: a reference is a frames file (section 6); several rows are several unloaded frames (mean and
 spread). The node saves a tare as a one-row frames file and its noise beside it (``<tare>.noise.csv``,
-one row of volts), read back by :func:`read_reference`.
+one row of volts), read back by :func:`read_reference`. The one row is the mean of N frames: a comment
+line ``# reference frames: N`` records N (the reference's own noise is the frame's / sqrt(N), which the
+foreign-load statistic counts; :data:`LEGACY_NOISE_FRAMES` for a file saved before the line existed).
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +40,14 @@ UNEXPLAINED_WARN = 0.05
 #: A measured noise (std / rms of the reference) outside these SNRs is not a noise of a board (s.8:
 #: 40..70 dB): a saved noise file outside is refused.
 NOISE_DB_RANGE = (10.0, 120.0)
+#: The comment of a saved one-row reference that records how many frames it is the mean of.
+FRAMES_COMMENT = "reference frames:"
+#: A one-row reference saved without that line (before it existed) but with a noise file: the node's
+#: comment "mean of N frames" gives N when present; else its noise was measured from >= 2 frames, and 2
+#: is the count that assumes the most reference noise (the foreign-load statistic stays at its rate).
+LEGACY_NOISE_FRAMES = 2
+_RECORDED = (re.compile(r"#\s*" + re.escape(FRAMES_COMMENT) + r"\s*(\S+)\s*$"),
+             re.compile(r"#.*\bmean of (\d+) frames\b"))  # the node's own comment before the line existed
 
 
 @dataclass(frozen=True)
@@ -101,26 +112,49 @@ def check_noise(noise: np.ndarray, reference: np.ndarray, what: str = "noise") -
     return n
 
 
+def _recorded_frames(path: str | Path) -> int | None:
+    """The frame count a one-row reference file records in its comments (module docstring), or None."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        comments = [s.strip() for s in f if s.lstrip().startswith("#")]
+    for pattern in _RECORDED:
+        for c in comments:
+            m = pattern.match(c)
+            if m:
+                if not m.group(1).isdigit() or int(m.group(1)) < 1:
+                    raise FrameError(f"{path}: comment {c!r}: expected '# {FRAMES_COMMENT} N', N >= 1 frames")
+                return int(m.group(1))
+    return None
+
+
 def read_reference(path: str | Path, n_meas: int = 208) -> tuple[np.ndarray, np.ndarray | None, int]:
     """(reference, noise or None, frames) of a frames file of unloaded frames: the mean and spread of
     several rows; for one row, the noise of ``<name>.noise.csv`` beside it if present, else None
-    (the estimators then assume :data:`DEFAULT_NOISE_DB`)."""
+    (the estimators then assume :data:`DEFAULT_NOISE_DB`). ``frames`` is how many frames the reference
+    averages: the rows, or for one row the count its comment records (module docstring); one row
+    without it: :data:`LEGACY_NOISE_FRAMES` with a noise file (an older saved tare), else 1."""
     frames = read_frames(path, n_meas)
     ref, noise = reference_of(frames)
+    count = len(frames)
     npath = noise_path(path)
     if noise is None and npath.is_file():
         rows = read_frames(npath, n_meas)
         if len(rows) != 1:
             raise FrameError(f"{npath}: {len(rows)} rows, expected one row of per-channel noise (volts)")
         noise = check_noise(rows[0], ref, f"noise file {npath}")
-    return ref, noise, len(frames)
+    if count == 1:
+        count = _recorded_frames(path) or (LEGACY_NOISE_FRAMES if noise is not None else 1)
+    return ref, noise, count
 
 
-def write_reference(path: str | Path, reference: np.ndarray, noise: np.ndarray | None, comment: str) -> None:
-    """Save a reference (one row) and its noise beside it (or remove a stale noise file)."""
+def write_reference(path: str | Path, reference: np.ndarray, noise: np.ndarray | None, comment: str,
+                    frames: int) -> None:
+    """Save a reference (one row: the mean of ``frames`` frames, recorded in a comment line) and its
+    noise beside it (or remove a stale noise file)."""
+    if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1:
+        raise ConfigError.bad_value("frames", frames, "the count of frames averaged into the reference (>= 1)")
     npath = noise_path(path)
     if noise is None:
         npath.unlink(missing_ok=True)
     else:
         write_frames(npath, noise, comment=f"per-channel noise (std, volts) of the tare {Path(path).name}")
-    write_frames(path, reference, comment=comment)
+    write_frames(path, reference, comment=f"{comment}\n{FRAMES_COMMENT} {int(frames)}")

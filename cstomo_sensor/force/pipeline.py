@@ -139,7 +139,7 @@ class Pipeline:
         self.estimator = estimator
         self.scene_field = scene_field
         self._allowance = mismatch_allowance(model)
-        self.consistency = Consistency(np.asarray(estimator.y), estimator.noise, self._allowance)
+        self.reference_frames = 1  # frames averaged into the reference (set_reference)
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None
@@ -148,6 +148,7 @@ class Pipeline:
         self._R = model.R.astype(self._dtype, copy=False)
         self._fit = model.fit.astype(self._dtype, copy=False)  # y -> the part the image explains
         self._keep = np.ones(self.n_meas, dtype=bool)
+        self._update_consistency()
         self._y = np.empty(self.n_meas, dtype=np.float64)
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
@@ -222,15 +223,20 @@ class Pipeline:
     def bad_channels(self) -> np.ndarray:
         return ~self._keep
 
-    def set_reference(self, frame: np.ndarray, noise: np.ndarray | None = None) -> ScaleReport:
+    def set_reference(self, frame: np.ndarray, noise: np.ndarray | None = None, n_frames: int = 1) -> ScaleReport:
         """Use the device's own unloaded frame (tare) as the difference reference; returns how it
         compares with the model (:class:`~.device.ScaleReport`).
 
         The change is normalised by ``c * v_scale``, ``c`` the reference's global factor against the
         model's, so a device whose voltages are all scaled alike gives the same forces. ``noise``
-        (n_meas,) volts, the per-channel std of the tare frames, sets the estimators' noise; None
-        assumes :data:`~.device.DEFAULT_NOISE_DB` relative to the reference.
+        (n_meas,) volts, the per-channel std of one frame (of the tare frames), sets the estimators'
+        noise; None assumes :data:`~.device.DEFAULT_NOISE_DB` relative to the reference.
+        ``n_frames`` (>= 1) is how many frames were averaged into ``frame``: the reference carries
+        noise of std ``noise / sqrt(n_frames)`` on every change, so the consistency statistic whitens
+        by ``noise * sqrt(1 + 1 / n_frames)`` (force/scene_field.py); the estimators keep ``noise``.
         """
+        if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
+            raise ConfigError.bad_value("n_frames", n_frames, "the count of frames averaged into the reference (>= 1)")
         ref = check_frame(frame, self.n_meas, "reference").copy()
         report = ScaleReport.of(ref, self.model_reference)
         c = report.factor if np.isfinite(report.factor) and report.factor > 0 else 1.0
@@ -244,14 +250,17 @@ class Pipeline:
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
         self.scale_report, self.noise_measured = report, noise is not None
+        self.reference_frames = int(n_frames)
         self._update_gate()
         self._update_consistency()
         return report
 
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the
-        device: measured noise at a tare, corrected set with a calibration) and the current mask."""
-        self.consistency = Consistency(np.asarray(self.estimator.y), self.estimator.noise, self._allowance, self._keep)
+        device: measured noise at a tare, corrected set with a calibration) and the current mask. Its
+        noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``)."""
+        noise = np.asarray(self.estimator.noise) * np.sqrt(1.0 + 1.0 / self.reference_frames)
+        self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep)
 
     def _update_gate(self) -> None:
         """The gate's per-channel weight: the change relative to the device's own reference."""
@@ -567,7 +576,7 @@ class FrameProcessor:
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         if outcome.ok:
-            report = self.pipe.set_reference(outcome.reference, outcome.noise)
+            report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
             log.info("tare: new reference from %d frames (spread %.2f%% of its rms; noise %s)", outcome.frames,
                      100 * outcome.spread, "measured" if outcome.noise is not None else "assumed 60 dB")
             (log.warning if report.warn else log.info)("tare: %s", report.message)

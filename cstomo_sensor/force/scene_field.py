@@ -24,7 +24,9 @@ outside that span, per remaining degree of freedom::
 (Q: the k leading right singular vectors of the whitened calibration changes, those whose rms over
 the set is at least ``RANK_NOISE`` of the noise). For a socket load at the stated noise c is about
 1 (a chi-square per degree of freedom); the device's mismatch with the model adds to it, growing
-with the load. ``noise`` is an input (the estimator's per-channel noise: one place).
+with the load. ``noise`` is an input: the noise of the change ``V - V_ref``, the frame's and the
+reference's (``Pipeline._update_consistency``: the estimator's per-channel noise times
+``sqrt(1 + 1/n)`` for a reference averaged from n frames; a one-frame reference doubles the variance).
 
 The flag trips when c exceeds ``threshold = q / dof + ||allowance / noise||^2 / dof``: q the
 chi-square quantile of 1 - 1e-4 (noise alone trips it once in 10^4 frames), ``allowance`` the
@@ -33,7 +35,8 @@ honest simulation's mismatch (+-20 % contact impedance, 0.2 mm electrode jitter)
 ``MISMATCH_REL`` of the reference's rms: on the held-out device of ``cstomo bench --scene`` the
 noise-free statistic of 101 random socket loads (5-40 N, elevation 20-90 deg) at 60 dB noise units is
 at most 7.8 (38.8 N at 21 deg elevation, rim contact), and the allowance is 10.2 of them (1.3 x).
-So the threshold is about 12.1 at 60 dB and 1.5 at 40 dB.
+So the threshold is about 12.1 at 60 dB and 1.5 at 40 dB for noise at that level (a 20-frame reference
+at 60 dB: 11.6; a one-frame reference, whose noise counts twice: 6.7, in units of that larger noise).
 """
 from __future__ import annotations
 
@@ -56,7 +59,8 @@ log = logging.getLogger(__name__)
 
 SCENE_FIELD_FORMAT = 1
 #: Singular directions of the whitened calibration set kept as "explained by socket loads": those
-#: whose rms over the set reaches this multiple of the noise (8 at 60 dB). Fewer directions leave more
+#: whose rms over the set reaches this multiple of the noise (8 at 60 dB; 7 after a one-frame tare,
+#: whose own noise counts: Pipeline._update_consistency). Fewer directions leave more
 #: of a foreign load unexplained: on a simulated device (seed 77, 60 dB) a 10 N press on the top face
 #: 18 mm from the axis gave 3.5-4.0 with 0.3 (15 directions) against at most 4.4 for socket loads,
 #: 9-12 with 1.0 (11) and 14-20 with 2.0 (8), socket loads staying at most 4.7.
@@ -168,7 +172,7 @@ class Consistency:
     y : (n, n_meas) ndarray
         The calibration set's normalised changes (socket loads through the model).
     noise : (n_meas,) ndarray
-        Per-channel noise std of y (the estimator's).
+        Per-channel noise std of y, the frame's and the reference's together (module docstring).
     allowance : (n_meas,) ndarray or None
         The model mismatch allowed for (:func:`mismatch_allowance`); None: none.
     keep : (n_meas,) bool ndarray or None

@@ -280,12 +280,13 @@ class CstomoSensorNode(LifecycleNode):
             why = f"no saved tare of this device at {path}"
             if path.is_file():
                 try:
-                    ref, noise, _ = read_reference(path, self.pipe.n_meas)
+                    ref, noise, n_ref = read_reference(path, self.pipe.n_meas)
                     why = tare_problem(ref, self.pipe.model_reference)
                     if not why:
-                        report = self.pipe.set_reference(ref, noise)
+                        report = self.pipe.set_reference(ref, noise, n_ref)
                         self.reference_source = f"saved tare {path}"
-                        log.info(f"saved tare {path}: noise {'measured' if noise is not None else 'assumed 60 dB'}")
+                        log.info(f"saved tare {path}: mean of {n_ref} frame(s), noise "
+                                 f"{'measured' if noise is not None else 'assumed 60 dB'}")
                         (log.warning if report.warn else log.info)(f"tare: {report.message}")
                         return
                     why = f"saved tare {path} not used: {why}"
@@ -308,7 +309,8 @@ class CstomoSensorNode(LifecycleNode):
             write_reference(path, outcome.reference, outcome.noise,
                             comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
                                     f"(geometry {self.pipe.geometry.digest()}): mean of "
-                                    f"{outcome.frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+                                    f"{outcome.frames} frames, {time.strftime('%Y-%m-%dT%H:%M:%S%z')}",
+                            frames=outcome.frames)
         except OSError as err:
             note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
             self.get_logger().error(note)

@@ -111,9 +111,10 @@ def run(a) -> int:
         print(f"bag: {len(frames)} of {n_v} frames paired with one of {n_w} wrenches within {a.stamp_tolerance:g} s")
         unloaded = np.linalg.norm(forces, axis=1) < a.unloaded_below
         if a.reference:
-            ref, noise, _ = read_reference(a.reference)
+            ref, noise, n_ref = read_reference(a.reference)
         elif unloaded.sum() >= 1:
             ref, noise = reference_of(frames[unloaded])
+            n_ref = int(unloaded.sum())
             source["reference"] = f"{int(unloaded.sum())} paired frames under {a.unloaded_below:g} N"
         else:
             raise ConfigError(f"no --reference and no paired frame under {a.unloaded_below:g} N to tare on")
@@ -121,7 +122,7 @@ def run(a) -> int:
     else:
         if not (a.reference and a.frames and a.forces):
             raise ConfigError("give --reference, --frames and --forces (or --bag with its topics)")
-        ref, noise, _ = read_reference(a.reference)
+        ref, noise, n_ref = read_reference(a.reference)
         all_frames = read_frames(a.frames)
         idx, forces = read_force_rows(a.forces)
         if len(idx) and idx.max() >= len(all_frames):
@@ -131,7 +132,7 @@ def run(a) -> int:
     if a.reference:
         source["reference"] = str(a.reference)
     pipe = Pipeline.build(cfg, progress=lambda m: print(f"model: {m}", file=sys.stderr))
-    report = pipe.set_reference(ref, noise)
+    report = pipe.set_reference(ref, noise, n_ref)
     print(f"reference: {report.message}")
     cal = calibrate(pipe, frames, forces, fitted_on=source)
     out = Path(a.out)

@@ -93,7 +93,7 @@ def cmd_estimate(a) -> int:
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    report = pipe.set_reference(ref, noise)
+    report = pipe.set_reference(ref, noise, n_ref)
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
           f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
     cal = pipe.calibration

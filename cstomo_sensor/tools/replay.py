@@ -126,7 +126,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
     proc = FrameProcessor(pipe, stress_field_every=stress_field_every)
     if ref is not None:
-        report = pipe.set_reference(ref[0], ref[1])
+        report = pipe.set_reference(*ref)
         (log.warning if report.warn else log.info)("reference %s (%d frames): %s", reference, ref[2], report.message)
     else:
         proc.start_tare(tare_frames)

@@ -47,7 +47,7 @@ def calibration_effort(out: str | os.PathLike, n_held: int = 40, scene: str | os
         held = add_noise(clean_held, ref, snr, rng)
         for name in ("linear", "model"):
             pipe = Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or "")))
-            report = pipe.set_reference(*reference_of(tare))
+            report = pipe.set_reference(*reference_of(tare), n_frames=len(tare))
             for n in COUNTS:
                 t = time.perf_counter()
                 if n:

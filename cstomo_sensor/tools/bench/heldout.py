@@ -35,7 +35,7 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibrati
         for name in ("linear", "model"):
             pipe, *_ = builder.pipeline(Setting(name, "estimator", estimator=name))
             pipe.set_calibration(DeviceCalibration.load(calibration) if calibration else None)
-            est, *_ = run_frames(pipe, ref, frames, with_field=False, noise=noise)
+            est, *_ = run_frames(pipe, ref, frames, with_field=False, noise=noise, n_frames=TARE_FRAMES)
             ang, mag = errors(est, scenes.forces)
             rel = 100 * mag / np.linalg.norm(scenes.forces, axis=1)
             t = time_frames(pipe, frames, 2000)[1]

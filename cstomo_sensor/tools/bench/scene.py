@@ -92,16 +92,19 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
     say(f"scene field between directions (20 new directions, elevation 20-90 deg): relative L2 error "
         f"median {np.median(errs):.3f}, max {np.max(errs):.3f}")
 
-    # 3. the flag: the held-out device, a tare of 20 frames, 3 frames per socket load
+    # 3. the flag: the held-out device, a tare of 20 frames, 3 frames per socket load; the statistic's
+    # noise is the change's, the frame's and the tare's (as Pipeline._update_consistency forms it)
+    n_tare = 20
     dev = Truth(pipe.geometry, truth_h=3e-3, mechanics_h=4e-3, seed=TRUTH_SEED, cache_dir=cache_dir)
     socket = [Load("socket", force=tuple(f)) for f in random_forces(n_loads // 3 + 1)]
     clean = {"socket": [dev.voltages(ld) for ld in socket], "side": [dev.voltages(SIDE)],
              "top + socket": [dev.voltages((ld, TOP)) for ld in socket]}
     elasticity.release()
     for snr in (60.0, 40.0):
-        check = Consistency(np.asarray(pipe.estimator.y), _noise_y(pipe.model, snr), mismatch_allowance(pipe.model))
+        noise = _noise_y(pipe.model, snr) * np.sqrt(1.0 + 1.0 / n_tare)
+        check = Consistency(np.asarray(pipe.estimator.y), noise, mismatch_allowance(pipe.model))
         rng = np.random.default_rng(int(snr))
-        tare = np.mean([add_noise(dev.reference, dev.reference, snr, rng) for _ in range(20)], axis=0)
+        tare = np.mean([add_noise(dev.reference, dev.reference, snr, rng) for _ in range(n_tare)], axis=0)
         for what, vs in clean.items():
             reps = 3 if what == "socket" else max(1, 60 // len(vs))
             stats = [check((add_noise(v, dev.reference, snr, rng) - tare) / pipe.model.v_scale)

@@ -7,11 +7,13 @@ import time
 import numpy as np
 
 
-def run_frames(pipe, ref: np.ndarray, frames: np.ndarray, with_field: bool = True, noise: np.ndarray | None = None):
+def run_frames(pipe, ref: np.ndarray, frames: np.ndarray, with_field: bool = True, noise: np.ndarray | None = None,
+               n_frames: int = 1):
     """(forces, images, residuals, implausible): what the estimator gives on every frame, the
     plausibility gate bypassed (the studies feed inputs beyond the rated range on purpose), and how
-    many frames the gate would reject. ``noise``: the tare's per-channel noise (None: 60 dB assumed)."""
-    pipe.set_reference(ref, noise)
+    many frames the gate would reject. ``noise``: the tare's per-channel noise (None: 60 dB assumed);
+    ``n_frames``: how many frames ``ref`` averages."""
+    pipe.set_reference(ref, noise, n_frames)
     out = [pipe.process(f, with_field=with_field, gate=False) for f in frames]
     forces = np.array([r.force for r in out])
     images = np.array([r.field.conductivity_change for r in out]) if with_field else None
