@@ -183,7 +183,8 @@ def test_a_rosbag_with_jittered_stamps_calibrates_as_the_csv_files(tmp_path, dev
     a, b = DeviceCalibration.load(tmp_path / "csv.yaml"), DeviceCalibration.load(tmp_path / "bag.yaml")
     assert a.fitted_on["loads"] == b.fitted_on["loads"] == 10
     np.testing.assert_allclose(b.force_map, a.force_map, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(b.correction, a.correction, rtol=0, atol=1e-6 * np.abs(a.correction).max())
+    # the CSV frames carry 10 significant digits; the correction fits changes ~1e-3 of the voltages
+    np.testing.assert_allclose(b.correction, a.correction, rtol=0, atol=1e-5 * np.abs(a.correction).max())
     assert (tmp_path / "csv.cv.csv").read_text().splitlines()[0].startswith("calibration,estimator,method")
 
 
