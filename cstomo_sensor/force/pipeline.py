@@ -51,7 +51,7 @@ from ..model.pattern import MeasurementPattern
 from .calibration import DeviceCalibration
 from .device import ScaleReport
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
-from .scene_field import Consistency, SceneField, mismatch_allowance
+from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
 
 log = logging.getLogger(__name__)
 
@@ -259,7 +259,7 @@ class Pipeline:
         """The foreign-load statistic on the estimator's training set and noise (both follow the
         device: measured noise at a tare, corrected set with a calibration) and the current mask. Its
         noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``)."""
-        noise = np.asarray(self.estimator.noise) * np.sqrt(1.0 + 1.0 / self.reference_frames)
+        noise = change_noise(self.estimator.noise, self.reference_frames)
         self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep)
 
     def _update_gate(self) -> None:

@@ -164,6 +164,12 @@ class SceneField:
         return cls(*per_newton_fields(geometry, model, spec, cache_dir), geometry)
 
 
+def change_noise(noise: np.ndarray, reference_frames: int) -> np.ndarray:
+    """Per-channel noise of a change ``V - V_ref``: a frame's ``noise`` plus that of a reference
+    averaged from ``reference_frames`` frames."""
+    return np.asarray(noise, dtype=float) * np.sqrt(1.0 + 1.0 / reference_frames)
+
+
 class Consistency:
     """The consistency statistic of a frame against the socket load model (module docstring).
 

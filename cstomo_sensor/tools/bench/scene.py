@@ -17,7 +17,7 @@ import numpy as np
 from ...angles import force_from_angles
 from ...force.estimate import CalibrationSpec, _noise_y
 from ...force.pipeline import Pipeline, PipelineConfig
-from ...force.scene_field import Consistency, mismatch_allowance
+from ...force.scene_field import Consistency, change_noise, mismatch_allowance
 from ...model import elasticity
 from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh
@@ -101,7 +101,7 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
              "top + socket": [dev.voltages((ld, TOP)) for ld in socket]}
     elasticity.release()
     for snr in (60.0, 40.0):
-        noise = _noise_y(pipe.model, snr) * np.sqrt(1.0 + 1.0 / n_tare)
+        noise = change_noise(_noise_y(pipe.model, snr), n_tare)
         check = Consistency(np.asarray(pipe.estimator.y), noise, mismatch_allowance(pipe.model))
         rng = np.random.default_rng(int(snr))
         tare = np.mean([add_noise(dev.reference, dev.reference, snr, rng) for _ in range(n_tare)], axis=0)
