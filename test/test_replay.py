@@ -70,7 +70,7 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
     assert s.frames_in == len(inputs) and s.corrupt == 0 and s.results == len(inputs) - TARE
     assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field", "consistency",
-                                                                         "scene_stress_field")}
+                                                                         "scene_stress_field", "wrench_filtered")}
     assert len(msgs["/cstomo_sensor/consistency"]) == s.results
     assert s.foreign_load == 0  # the bag's loads are on the socket
     rows = force_rows(msgs)

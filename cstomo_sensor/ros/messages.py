@@ -1,9 +1,9 @@
 """What the node publishes, built in one place for the live node and for ``cstomo replay``.
 
-Both :mod:`cstomo_sensor.ros.node` and :mod:`cstomo_sensor.tools.replay` feed frames of 208 volts
-through a :class:`~cstomo_sensor.force.pipeline.FrameProcessor` (tare, bad-channel mask, pipeline)
-and turn its results into messages with :class:`OutputMessages`; so the same frames give the same
-numbers in the same message types, live or replayed.
+Both :mod:`cstomo_sensor.ros.node` and :mod:`cstomo_sensor.tools.replay` push frames of 208 volts
+through a :class:`~cstomo_sensor.force.stream.FrameStream` and turn what it emits into messages with
+:class:`OutputMessages`; so the same frames give the same numbers in the same message types, live or
+replayed.
 
 Imports the ROS message packages (``std_msgs``, ``geometry_msgs``, ``sensor_msgs``) but not rclpy's
 node machinery, so replay works without a running ROS graph.
@@ -22,24 +22,19 @@ from ..board.wire import N_VALUES as N_MEAS
 from ..errors import ConfigError
 from ..frames_io import check_frame
 
-#: Output topics relative to the node (``~/<name>``), in the order :meth:`OutputMessages.build` fills.
-FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
-STRESS_TOPIC = "stress_field"
-SCENE_TOPIC = "scene_stress_field"  # the mechanics' field of the estimated force (socket sensors; scene_field.py)
-CONSISTENCY_TOPIC = "consistency"  # the frame's statistic against the socket load model (scene_field.py)
 RAW_TOPIC = "raw_voltages"
-FILTERED_TOPIC = "wrench_filtered"  # the node's low-passed wrench (force/filter.py); replay does not write it
-#: Message type of every output topic, as rosbag2 names it.
+#: Message type of every topic, as rosbag2 names it: the stream's outputs (force/stream.py OUTPUTS,
+#: the one list of what the node publishes and replay writes) and the raw frames.
 TOPIC_TYPES = {
     "wrench": "geometry_msgs/msg/WrenchStamped",
+    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
     "force_magnitude": "std_msgs/msg/Float64",
     "force_elevation": "std_msgs/msg/Float64",
     "force_azimuth": "std_msgs/msg/Float64",
+    "consistency": "std_msgs/msg/Float64",
     "stress_field": "sensor_msgs/msg/PointCloud2",
     "scene_stress_field": "sensor_msgs/msg/PointCloud2",
-    "consistency": "std_msgs/msg/Float64",
-    "raw_voltages": "std_msgs/msg/Float32MultiArray",
-    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
+    RAW_TOPIC: "std_msgs/msg/Float32MultiArray",
 }
 #: PointCloud2 fields of ``~/stress_field`` (float32 each, in this order).
 CLOUD_FIELDS = ("x", "y", "z", "conductivity_change", "volumetric_compression", "pressure")
@@ -56,8 +51,20 @@ def raw_voltages_msg(values: np.ndarray) -> Float32MultiArray:
 
 
 def values_from_raw_msg(msg: Float32MultiArray) -> np.ndarray:
-    """The (208,) float64 volts of a ``raw_voltages`` message; :class:`FrameError` if malformed."""
+    """The (208,) float64 volts of a ``raw_voltages`` message; :class:`FrameError` if malformed or if
+    the board flagged a channel (NaN: :func:`frame_from_raw_msg` reads those)."""
     return check_frame(np.asarray(msg.data, dtype=np.float64), N_MEAS, "raw_voltages message")
+
+
+def frame_from_raw_msg(msg: Float32MultiArray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(volts (208,), flagged (208,) bool or None) of a ``raw_voltages`` message: NaN marks a
+    measurement the board flagged (saturated, or on an electrode whose contact failed), as the node
+    records them; :class:`FrameError` if malformed (wrong length, infinite values)."""
+    v = np.asarray(msg.data, dtype=np.float64)
+    flagged = np.isnan(v)
+    if not flagged.any() or v.shape != (N_MEAS,):
+        return check_frame(v, N_MEAS, "raw_voltages message"), None
+    return check_frame(v, N_MEAS, "raw_voltages message", used=~flagged), flagged
 
 
 class OutputMessages:
@@ -137,23 +144,27 @@ class OutputMessages:
         tpl[self._cloud_at:self._cloud_at + buf.nbytes] = buf.tobytes()
         return bytes(tpl)
 
-    def build(self, result: object, stamp_ns: int) -> dict[str, bytes]:
-        """CDR messages of one :class:`~cstomo_sensor.pipeline.FrameResult`, keyed by topic name
-        (relative to the node); ``consistency`` when the result has the statistic, ``stress_field``
-        and ``scene_stress_field`` only when the result carries those fields (same layout)."""
-        out = {
-            "wrench": self.wrench(result.force, stamp_ns),
+    def build(self, result: object, stamp_ns: int, filtered=None) -> dict[str, bytes]:
+        """CDR messages of one :class:`~cstomo_sensor.force.pipeline.FrameResult` at ``stamp_ns``, keyed
+        by topic name (relative to the node), in the order of the stream's outputs:
+        ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given, ``consistency`` when the
+        result has the statistic, ``stress_field`` and ``scene_stress_field`` only when the result
+        carries those fields (same layout)."""
+        out = {"wrench": self.wrench(result.force, stamp_ns)}
+        if filtered is not None:
+            out["wrench_filtered"] = self.wrench(filtered, stamp_ns)
+        out.update({
             "force_magnitude": self.float64(result.magnitude),
             "force_elevation": self.float64(result.elevation),
             "force_azimuth": self.float64(result.azimuth),
-        }
+        })
         c = getattr(result, "consistency", float("nan"))
         if c == c:  # not NaN
-            out[CONSISTENCY_TOPIC] = self.float64(c)
+            out["consistency"] = self.float64(c)
         if getattr(result, "field", None) is not None:
-            out[STRESS_TOPIC] = self.stress_field(result.field, stamp_ns)
+            out["stress_field"] = self.stress_field(result.field, stamp_ns)
         if getattr(result, "scene_field", None) is not None:
-            out[SCENE_TOPIC] = self.stress_field(result.scene_field, stamp_ns)
+            out["scene_stress_field"] = self.stress_field(result.scene_field, stamp_ns)
         return out
 
 
@@ -166,6 +177,9 @@ class RawVoltagesCdr:
         self._at = len(self._tpl) - 4 * N_MEAS
         self._view = np.frombuffer(self._tpl, dtype="<f4", count=N_MEAS, offset=self._at)
 
-    def __call__(self, values: np.ndarray) -> bytes:
+    def __call__(self, values: np.ndarray, flagged: np.ndarray | None = None) -> bytes:
+        """The message of ``values`` (208,) volts, NaN where ``flagged`` (:func:`frame_from_raw_msg`)."""
         self._view[:] = values
+        if flagged is not None:
+            self._view[flagged] = np.nan
         return bytes(self._tpl)

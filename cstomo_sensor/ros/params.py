@@ -15,6 +15,7 @@ from ..board.wire import PROTOCOLS
 from ..cache import default_cache_dir
 from ..errors import ConfigError
 from ..force.pipeline import PipelineConfig
+from ..force.stream import StreamConfig
 from ..model.geometry import SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE
 
@@ -91,16 +92,16 @@ class NodeConfig:
     baudrate: int = 921600
     protocol: str = PROTOCOLS[0]
     rate_hz: float = 0.0
-    tare_frames: int = 50
+    tare_frames: int = StreamConfig.tare_frames
     tare_file: str = ""
     tare_on_start: bool = False
     frame_id: str = "cstomo_socket"
     autostart: bool = True
-    stress_field_every: int = 10
-    wrench_filter_hz: float = 20.0
+    stress_field_every: int = StreamConfig.stress_field_every
+    wrench_filter_hz: float = StreamConfig.wrench_filter_hz
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
-    stale_timeout: float = 0.5
+    stale_timeout: float = StreamConfig.stale_timeout
     clock_window: float = 10.0
 
     def __post_init__(self) -> None:
@@ -131,6 +132,12 @@ class NodeConfig:
             raise ConfigError(f"parameter '{err.key}'={err.value!r}: expected {err.expected}") from err
         names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
         return cls(pipeline=pipe, **{n: get(n) for n in names})
+
+    @property
+    def stream(self) -> StreamConfig:
+        """The frame stream's settings."""
+        return StreamConfig(tare_frames=self.tare_frames, stress_field_every=self.stress_field_every,
+                            wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout)
 
     @property
     def cache_path(self) -> Path:

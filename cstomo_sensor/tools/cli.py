@@ -16,7 +16,8 @@ import numpy as np
 
 from ..errors import CstomoError
 from ..force.device import DEFAULT_NOISE_DB, read_reference
-from ..force.pipeline import Pipeline
+from ..force.pipeline import FrameResult, Pipeline
+from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
 from ..model.cem import ForwardModel
@@ -93,16 +94,18 @@ def cmd_estimate(a) -> int:
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    report = pipe.set_reference(ref, noise, n_ref)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0))  # the node's frame path
+    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
-          f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
+          f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
-    results = [pipe.process(f, with_field=False) for f in frames]
+    outputs = [stream.push(f) for f in frames]  # a dropped frame (None) is a row without a force
+    results = [o.result if o is not None else FrameResult.implausible(stream.counts.reject_reason) for o in outputs]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
-    # the optional valid column (REFERENCE_SENSOR.md section 6) is written when a frame was
-    # rejected as implausible; without it, every row holds a force
+    # the optional valid column (docs/formats.md#forces-file) is written when a frame was rejected as
+    # implausible; without it, every row holds a force
     write_forces(a.out, forces, valid=None if valid.all() else valid,
                  consistency=np.array([r.consistency for r in results]),
                  foreign_load=np.array([r.foreign_load for r in results]))
