@@ -1,7 +1,7 @@
 """Device calibration on known loads (cstomo_sensor.force.calibration, ``cstomo calibrate``).
 
 The device is scenes/devices/cuboid_joint_device_a.yaml (material and electrode placement inside
-REFERENCE_SENSOR.md section 8), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
+docs/physics.md#real-devices), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
 (independent 3 mm mesh, +-30 % contact impedance, 60 dB); the models are the nominal cuboid_joint's.
 Calibration loads and held-out loads are different random forces with different noise.
 

@@ -1,4 +1,4 @@
-"""The device's own reference (REFERENCE_SENSOR.md section 8): normalisation by the tare, the scale
+"""The device's own reference (docs/physics.md#real-devices): normalisation by the tare, the scale
 report, noise from the tare.
 
 Stated tolerances: voltages scaled by a constant give the unscaled forces to 1e-9 N; at 40 dB with

@@ -1,4 +1,4 @@
-"""Sensor geometry files: presets as in REFERENCE_SENSOR.md, and clear errors for bad input."""
+"""Sensor geometry files: presets as in docs/physics.md#geometry, and clear errors for bad input."""
 import copy
 import re
 

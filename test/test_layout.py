@@ -1,7 +1,7 @@
 """The house rules: the layers' import contract, no cycles, no heavy import in the core, one source of
 truth for the settings, and the lint.
 
-Layers (DESIGN.md): the core (``model``, ``inverse``, ``force``, ``board`` and the top-level helpers)
+Layers (README.md, "What is where"): the core (``model``, ``inverse``, ``force``, ``board`` and the top-level helpers)
 never imports ``ros`` or ``tools``; ``ros`` never imports ``tools``. Imports are read as text (module
 level and inside functions), so a function-level import cannot hide a crossing.
 """

@@ -1,5 +1,5 @@
 """The scene's own stress field and the foreign-load flag (force/scene_field.py), on honest
-simulations (REFERENCE_SENSOR.md section 7: the truth's mechanics on its own 4 mm mesh, the scene
+simulations (docs/physics.md#honest-simulation: the truth's mechanics on its own 4 mm mesh, the scene
 field's on the calibration's 6 mm mesh; forward truth on an independent 3 mm mesh, mismatched).
 
 Stated levels: the scene field of the estimated force correlates with the truth's volumetric

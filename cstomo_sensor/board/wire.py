@@ -204,7 +204,7 @@ class DataFrame:
     board_time_us : int or None
         Board's monotonic clock at the measurement, microseconds; None in text mode.
     values : (208,) float64 ndarray
-        Volts, in the order of REFERENCE_SENSOR.md section 2 (float32 on the binary wire).
+        Volts, in the order of docs/physics.md#measurement-order (float32 on the binary wire).
     saturated : (208,) bool ndarray
         True where the board's voltage channel saturated for that value.
     contact_ok : (16,) bool ndarray

@@ -4,7 +4,7 @@ Calibration (once per sensor and reconstruction model, cached): forces on a Fibo
 directions (elevation 15..90 deg, every azimuth) and several magnitudes (5..40 N) are pushed through
 the mechanics (frictionless socket contact; one solve per direction, as the contact problem is
 positively homogeneous in the force), the material law and the forward model on the
-reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md, reconstruction
+reconstruction's mesh, giving normalised voltage changes y (README, *Numerical choices*, and the reconstruction
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
 - ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with

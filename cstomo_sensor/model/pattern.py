@@ -1,4 +1,4 @@
-"""The drive and measurement order (REFERENCE_SENSOR.md section 2), generated from the pair-list rule.
+"""The drive and measurement order (docs/physics.md#measurement-order), generated from the pair-list rule.
 
 Electrodes are numbered from 1 in documents and from 0 in arrays; every array here is 0-based.
 """
@@ -80,7 +80,7 @@ class MeasurementPattern:
 
         Returns
         -------
-        (n_meas,) ndarray in the order of REFERENCE_SENSOR.md section 2.
+        (n_meas,) ndarray in the order of docs/physics.md#measurement-order.
         """
         d, m = self.rows[:, 0], self.measure
         return electrode_potentials[d, m[:, 0]] - electrode_potentials[d, m[:, 1]]

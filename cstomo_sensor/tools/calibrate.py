@@ -1,6 +1,6 @@
 """``cstomo calibrate``: fit a device calibration on known loads (see cstomo_sensor.force.calibration).
 
-From files (REFERENCE_SENSOR.md section 6)::
+From files (formats: docs/formats.md)::
 
     cstomo calibrate --sensor S --reference REF.csv --frames FRAMES.csv --forces FORCES.csv --out DEVICE.yaml
 

@@ -154,7 +154,7 @@ def render_voltages(ref: np.ndarray, frames: np.ndarray, labels: list[str], out:
     a.set_title("the 208 voltages")
     b.set_title("loaded minus unloaded")
     for ax in (a, b):
-        ax.set_xlabel("measurement (section 2 order)")
+        ax.set_xlabel("measurement (docs/physics.md order)")
         ax.set_ylabel("mV")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)

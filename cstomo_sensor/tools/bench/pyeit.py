@@ -6,7 +6,7 @@ can and cannot do for ``cuboid_joint``:
 - it takes a 3D tetrahedral mesh (``PyEITMesh(node, element)``, tetrahedra must be positively
   oriented in its convention: we reorder them), so it runs on our own forward mesh;
 - it takes a custom protocol (``PyEITProtocol(ex_mat, meas_mat, keep_ba)``): our 16 drive pairs
-  and 13 measurement pairs per drive, in the 208-value order of REFERENCE_SENSOR.md section 2;
+  and 13 measurement pairs per drive, in the 208-value order of docs/physics.md#measurement-order;
 - it has point electrodes only (one mesh node per electrode; "CEM is under development" in its
   ``Forward.solve``): no disc area, no contact impedance. We use the boundary node nearest each
   electrode's centre. Its currents are unit: we scale by the drive current;
