@@ -75,7 +75,7 @@ class OutputMessages:
     centers : (n_cells, 3) ndarray
         Cell centres in the wrench frame (metres), the points of the stress cloud.
     frame_id : str
-        ``header.frame_id`` of the wrench and the cloud (the wrench frame, REFERENCE_SENSOR.md 1).
+        ``header.frame_id`` of the wrench and the cloud (the wrench frame, docs/physics.md#coordinate-frames).
 
     Notes
     -----
