@@ -148,26 +148,67 @@ def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config
         replay(tmp_path / "out", tmp_path / "out2", config)
 
 
-def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
-    """The bag is played with its own timing by a test publisher into ~/raw_voltages_in."""
+MASKED = range(30, 36)  # frames whose channel 7 the board flagged (NaN in the recorded message)
+ZEROED = 45             # an all-zero frame: implausible
+OUTPUT_TOPICS = FORCE_TOPICS + ("wrench_filtered", "consistency", "stress_field", "scene_stress_field")
+
+
+def _edited_inputs():
+    """The committed bag's frames with channel 7 flagged in MASKED and an all-zero frame at ZEROED."""
+    from std_msgs.msg import Float32MultiArray
+
+    inputs = []
+    for t, msg in read_bag(BAG)["/cstomo_sensor/raw_voltages"]:
+        k = len(inputs)
+        data = np.asarray(msg.data, np.float32).copy()
+        if k in MASKED:
+            data[7] = np.nan
+        if k == ZEROED:
+            data[:] = 0.0
+        m = Float32MultiArray()
+        m.layout = msg.layout
+        m.data = data
+        inputs.append((t, m))
+    return inputs
+
+
+def _write_raw_bag(path, inputs):
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
+    with Writer(path, version=9) as w:
+        c = w.add_connection("/cstomo_sensor/raw_voltages", "std_msgs/msg/Float32MultiArray", typestore=store)
+        for t, msg in inputs:
+            w.write(c, t, serialize_message(msg))
+
+
+def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe):
+    """The bag (with a tare at its start, a flagged channel in frames 30..35 and an all-zero frame) is
+    played with its own timing by a test publisher into ~/raw_voltages_in. Then the same frames,
+    stamped with the times the node received them (its wrench stamps), are replayed: every topic
+    (wrench, filtered wrench, angles, magnitude, consistency, both stress fields) is identical,
+    message by message, stamps included."""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import PointCloud2
     from std_msgs.msg import Float32MultiArray, Float64
 
-    s, want = replayed
-    inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
+    from cstomo_sensor.ros.messages import TOPIC_TYPES
+    from cstomo_sensor.tools.replay import replay
+
+    inputs = _edited_inputs()
+    outputs = [k for k in range(len(inputs)) if k >= TARE and k != ZEROED]  # the frames that give a force
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     params = dict(PIPE, input="topic", tare_on_start=True, tare_frames=TARE, stress_field_every=EVERY,
                   qos_reliability="reliable", qos_depth=1000, tare_file=str(tmp_path / "tare.csv"), stale_timeout=2.0)
     h = Harness(ctx, params)
+    types = {"geometry_msgs/msg/WrenchStamped": WrenchStamped, "std_msgs/msg/Float64": Float64,
+             "sensor_msgs/msg/PointCloud2": PointCloud2}
     try:
-        got = {t: h.record(f"/cstomo_sensor/{t}", Float64) for t in FORCE_TOPICS[1:]}
-        got["wrench"] = h.record("/cstomo_sensor/wrench", WrenchStamped)
-        got["stress_field"] = h.record("/cstomo_sensor/stress_field", PointCloud2)
-        got["scene_stress_field"] = h.record("/cstomo_sensor/scene_stress_field", PointCloud2)
-        got["consistency"] = h.record("/cstomo_sensor/consistency", Float64)
+        got = {t: h.record(f"/cstomo_sensor/{t}", types[TOPIC_TYPES[t]]) for t in OUTPUT_TOPICS}
         pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
@@ -178,21 +219,33 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
             if delay > 0:
                 time.sleep(delay)
             pub.publish(msg)
-        assert wait_for(lambda: len(got["wrench"]) >= s.results, 30.0), len(got["wrench"])
+        assert wait_for(lambda: len(got["wrench"]) >= len(outputs), 30.0), len(got["wrench"])
         time.sleep(0.2)
         assert Path(tmp_path / "tare.csv").is_file()
+        kv = {v.key: v.value for v in h.node.diagnostics().values}
     finally:
         h.close()
         rclpy.try_shutdown(context=ctx)
-    node_msgs = {f"/cstomo_sensor/{t}": [(0, m) for _, m in v] for t, v in got.items()}
-    np.testing.assert_array_equal(force_rows(node_msgs), force_rows(want))
-    clouds_node = [m.data for _, m in got["stress_field"]]
-    clouds_replay = [m.data for _, m in want["/cstomo_sensor/stress_field"]]
-    assert len(clouds_node) == len(clouds_replay) and all(a == b for a, b in zip(clouds_node, clouds_replay))
-    for t in ("scene_stress_field", "consistency"):  # the new outputs: the same, frame by frame
-        node_t = [m.data for _, m in got[t]]
-        replay_t = [m.data for _, m in want[f"/cstomo_sensor/{t}"]]
-        assert len(node_t) == len(replay_t) and all(np.array_equal(a, b) for a, b in zip(node_t, replay_t)), t
+    assert len(got["wrench"]) == len(outputs) and kv["implausible"] == "1", (len(got["wrench"]), kv)
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in got["wrench"]]
+    # the node's reception times: the frames that gave a force at their wrench stamps, the others in between
+    timed, it = [], iter(stamps)
+    for k, (_, msg) in enumerate(inputs):
+        timed.append([next(it) if k in outputs else None, msg])
+    for k in range(len(timed) - 1, -1, -1):  # a frame without a force: 1 us before the next one
+        if timed[k][0] is None:
+            timed[k][0] = timed[k + 1][0] - 1000
+    _write_raw_bag(tmp_path / "timed", [tuple(x) for x in timed])
+    s = replay(tmp_path / "timed", tmp_path / "out", config, tare_frames=TARE, stress_field_every=EVERY, pipeline=pipe)
+    want = read_bag(tmp_path / "out")
+    assert s.implausible == 1 and s.results == len(outputs)
+    assert set(want) == {f"/cstomo_sensor/{t}" for t in OUTPUT_TOPICS}
+    for t in OUTPUT_TOPICS:
+        node_t = [m for _, m in got[t]]
+        replay_t = [m for _, m in want[f"/cstomo_sensor/{t}"]]
+        assert len(node_t) == len(replay_t) > 0 and node_t == replay_t, t  # every field, stamps included
+    masked = [outputs.index(k) for k in MASKED]  # the flagged channel changed the forces, not dropped them
+    assert np.isfinite(force_rows(want)[masked]).all()
 
 
 def test_replay_writes_nothing_for_implausible_frames_and_counts_them(tmp_path, config, pipe, capsys):
