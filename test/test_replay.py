@@ -323,3 +323,26 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     code, io, out = run(tmp_path / "one_bad")
     assert code == 0 and "; 1 corrupt;" in io.out, io
     assert len(read_bag(out)["/cstomo_sensor/wrench"]) == len(raws) - TARE - 1
+
+
+def test_a_failing_replay_writes_nothing_and_repeated_errors_are_throttled(tmp_path, capsys, caplog):
+    """--forces into a missing directory or onto a directory: exit 2 with one line, no output bag and
+    nothing beside it; a bag of 20 garbage messages: one line for them (not one per message)."""
+    from cstomo_sensor.tools.replay import main
+
+    base = [str(BAG), "--mesh-size", str(PIPE["mesh_size"]), "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE)]
+    (tmp_path / "a_dir").mkdir()
+    for forces in (tmp_path / "missing" / "f.csv", tmp_path / "a_dir"):
+        out = tmp_path / "out"
+        assert main([*base, "--out", str(out), "--forces", str(forces)]) == 2
+        err = capsys.readouterr().err
+        assert err.strip().splitlines()[-1].startswith("cstomo replay: ") and "Traceback" not in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a_dir"] and not list((tmp_path / "a_dir").iterdir())
+
+    _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 20)
+    caplog.clear()
+    assert main([str(tmp_path / "garbage"), "--out", str(tmp_path / "out2"), *base[1:]]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "none of the 20 messages" in err[-1], err
+    dropped = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert len(dropped) == 1, dropped
