@@ -104,6 +104,30 @@ def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
     assert max(errs) < 0.1, errs
 
 
+def test_the_calibration_and_the_scene_field_share_one_mechanics(cuboid, cuboid_model, tmp_path, monkeypatch):
+    """At a cold start the socket solves run once (socket_mechanics, cached) and serve both the
+    calibration set and the scene field, whose directions are the calibration's; a stale mechanics
+    entry is rebuilt, not used."""
+    from cstomo_sensor.cache import cache_save
+    from cstomo_sensor.force.estimate import calibration_set, socket_mechanics
+    from cstomo_sensor.force.scene_field import per_newton_fields
+
+    solve, calls = elasticity.solve_socket_load, []
+    monkeypatch.setattr(elasticity, "solve_socket_load", lambda *a: calls.append(a[3]) or solve(*a))
+    spec = CalibrationSpec(n_directions=4, magnitudes=(10.0,))
+    forces, _ = calibration_set(cuboid, cuboid_model, spec, tmp_path)
+    dirs, theta = per_newton_fields(cuboid, cuboid_model, spec, tmp_path)
+    assert len(calls) == 4 and np.array_equal(np.array(calls), dirs) and np.array_equal(forces, 10.0 * dirs)
+    mech, _, theta_v = socket_mechanics(cuboid, spec, tmp_path)
+    assert len(calls) == 4 and theta_v.shape == (4, len(mech.tets), 4)
+    sample = elasticity.point_sampler(mech.points, mech.tets, cuboid_model.centers)
+    assert np.array_equal(theta, [sample(t) for t in theta_v])
+    (entry,) = (tmp_path / "socket_mechanics").glob("*.npz")
+    cache_save(entry, "another-key", theta=np.zeros_like(theta_v))  # stale: built for other inputs
+    assert np.array_equal(socket_mechanics(cuboid, spec, tmp_path)[2], theta_v) and len(calls) == 8
+    elasticity.release()
+
+
 def test_consistency_extremes(pipe):
     c = Consistency(np.asarray(pipe.estimator.y), pipe.estimator.noise)
     assert 1.3 < c.threshold < 1.5  # no allowance: the chi-square tail of noise alone
