@@ -17,7 +17,7 @@ Loads (docs/physics.md#loads):
   G(a) = 1/2 int max(0, -n.a)^2 dA - F.a, whose gradient is (int t dA) - F. The integral is the
   same facet quadrature that builds the load vector, so the discrete resultant equals F to
   rounding error. A force must push into the socket (elevation atan2(-Fz, |Fxy|) > 0); the
-  reference carries elevations 15..90 deg. Below 15 deg the solve still runs (it is
+  sensor carries elevations 15..90 deg (docs/physics.md#socket-contact). Below 15 deg the solve still runs (it is
   well-posed for any elevation > 0) but the contact sits on the rim, where the result depends on
   the mesh; a warning is logged.
 * :func:`solve_patch_load` - uniform normal pressure on regions of the top face or of a side face.
