@@ -38,13 +38,12 @@ def read_bag(path):
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
 
-    from cstomo_sensor.ros.messages import TOPIC_TYPES
     from cstomo_sensor.ros.node import _msg_class
 
     out: dict[str, list] = {}
     with Reader(path) as r:
         for c, t, raw in r.messages():
-            cls = _msg_class(TOPIC_TYPES[c.topic.rsplit("/", 1)[-1]])
+            cls = _msg_class(c.msgtype)
             out.setdefault(c.topic, []).append((t, deserialize_message(bytes(raw), cls)))
     return out
 
@@ -154,8 +153,9 @@ OUTPUT_TOPICS = FORCE_TOPICS + ("wrench_filtered", "consistency", "stress_field"
 
 
 def _edited_inputs():
-    """The committed bag's frames with channel 7 flagged in MASKED and an all-zero frame at ZEROED."""
-    from std_msgs.msg import Float32MultiArray
+    """The committed bag's frames as the node now records them (stamped images, stamped with the bag
+    time), with measurement 7 flagged in MASKED and an all-zero frame at ZEROED."""
+    from cstomo_sensor.ros.messages import raw_voltages_msg
 
     inputs = []
     for t, msg in read_bag(BAG)["/cstomo_sensor/raw_voltages"]:
@@ -165,10 +165,7 @@ def _edited_inputs():
             data[7] = np.nan
         if k == ZEROED:
             data[:] = 0.0
-        m = Float32MultiArray()
-        m.layout = msg.layout
-        m.data = data
-        inputs.append((t, m))
+        inputs.append((t, raw_voltages_msg(data, t)))
     return inputs
 
 
@@ -177,23 +174,25 @@ def _write_raw_bag(path, inputs):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
+    from cstomo_sensor.ros.messages import TOPIC_TYPES
+
     store = get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
     with Writer(path, version=9) as w:
-        c = w.add_connection("/cstomo_sensor/raw_voltages", "std_msgs/msg/Float32MultiArray", typestore=store)
+        c = w.add_connection("/cstomo_sensor/raw_voltages", TOPIC_TYPES["raw_voltages"], typestore=store)
         for t, msg in inputs:
             w.write(c, t, serialize_message(msg))
 
 
 def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe):
-    """The bag (with a tare at its start, a flagged channel in frames 30..35 and an all-zero frame) is
-    played with its own timing by a test publisher into ~/raw_voltages_in. Then the same frames,
-    stamped with the times the node received them (its wrench stamps), are replayed: every topic
-    (wrench, filtered wrench, angles, magnitude, consistency, both stress fields) is identical,
-    message by message, stamps included."""
+    """The bag's frames as the node records them (stamped; a tare at the start, a flagged measurement
+    in frames 30..35, an all-zero frame) are played with their timing by a test publisher into
+    ~/raw_voltages_in, and replayed from a bag of the same messages: every topic (wrench, filtered
+    wrench, angles, magnitude, consistency, both stress fields) is identical, message by message,
+    stamps included."""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import Float32MultiArray, Float64
+    from sensor_msgs.msg import Image, PointCloud2
+    from std_msgs.msg import Float64
 
     from cstomo_sensor.ros.messages import TOPIC_TYPES
     from cstomo_sensor.tools.replay import replay
@@ -209,7 +208,7 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe)
              "sensor_msgs/msg/PointCloud2": PointCloud2}
     try:
         got = {t: h.record(f"/cstomo_sensor/{t}", types[TOPIC_TYPES[t]]) for t in OUTPUT_TOPICS}
-        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+        pub = h.probe.create_publisher(Image, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
                         and all(h.probe.count_publishers(f"/cstomo_sensor/{t}") for t in got))
@@ -227,16 +226,9 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe)
         h.close()
         rclpy.try_shutdown(context=ctx)
     assert len(got["wrench"]) == len(outputs) and kv["implausible"] == "1", (len(got["wrench"]), kv)
-    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in got["wrench"]]
-    # the node's reception times: the frames that gave a force at their wrench stamps, the others in between
-    timed, it = [], iter(stamps)
-    for k, (_, msg) in enumerate(inputs):
-        timed.append([next(it) if k in outputs else None, msg])
-    for k in range(len(timed) - 1, -1, -1):  # a frame without a force: 1 us before the next one
-        if timed[k][0] is None:
-            timed[k][0] = timed[k + 1][0] - 1000
-    _write_raw_bag(tmp_path / "timed", [tuple(x) for x in timed])
-    s = replay(tmp_path / "timed", tmp_path / "out", config, tare_frames=TARE, stress_field_every=EVERY, pipeline=pipe)
+    _write_raw_bag(tmp_path / "stamped", inputs)
+    s = replay(tmp_path / "stamped", tmp_path / "out", config, tare_frames=TARE, stress_field_every=EVERY,
+               pipeline=pipe)
     want = read_bag(tmp_path / "out")
     assert s.implausible == 1 and s.results == len(outputs)
     assert set(want) == {f"/cstomo_sensor/{t}" for t in OUTPUT_TOPICS}
@@ -244,7 +236,9 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe)
         node_t = [m for _, m in got[t]]
         replay_t = [m for _, m in want[f"/cstomo_sensor/{t}"]]
         assert len(node_t) == len(replay_t) > 0 and node_t == replay_t, t  # every field, stamps included
-    masked = [outputs.index(k) for k in MASKED]  # the flagged channel changed the forces, not dropped them
+    wrench_stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in got["wrench"]]
+    assert wrench_stamps == [inputs[k][0] for k in outputs]  # the frames' own stamps, not the reception's
+    masked = [outputs.index(k) for k in MASKED]  # the flagged measurement changed the forces, not dropped them
     assert np.isfinite(force_rows(want)[masked]).all()
 
 
@@ -308,7 +302,8 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     code, io, out = run(tmp_path / "strings")
     assert code == 2 and not out.exists() and "Traceback" not in io.err
     assert io.err.strip().splitlines()[-1] == ("cstomo replay: topic /cstomo_sensor/raw_voltages: message type "
-                                               "std_msgs/msg/String, expected std_msgs/msg/Float32MultiArray")
+                                               "std_msgs/msg/String, expected sensor_msgs/msg/Image (or "
+                                               "std_msgs/msg/Float32MultiArray of older recordings)")
 
     _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 5)
     code, io, out = run(tmp_path / "garbage")

@@ -253,7 +253,10 @@ def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path,
     from conftest import PIPE, Harness, diag, diag_records, wait_for
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import Float32MultiArray, Float64
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float64
+
+    from cstomo_sensor.ros.messages import raw_voltages_msg
 
     truth = Truth(warm_model.geometry, truth_h=TRUTH_H, seed=31)
     rng = np.random.default_rng(3)
@@ -267,11 +270,11 @@ def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path,
         cons = h.record("/cstomo_sensor/consistency", Float64)
         wrench = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
-        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+        pub = h.probe.create_publisher(Image, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1, 20.0)
         for v in unloaded + side:
-            pub.publish(Float32MultiArray(data=v.astype(np.float32).tolist()))
+            pub.publish(raw_voltages_msg(v))  # no stamp: the node stamps on reception
             time.sleep(0.01)
         assert wait_for(lambda: len(cons) >= 20 and len(wrench) >= 20, 10.0), (len(cons), len(wrench))
         threshold = h.node.pipe.consistency.threshold

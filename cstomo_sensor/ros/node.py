@@ -35,7 +35,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.task import Future
-from std_msgs.msg import Float32MultiArray
+from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
@@ -160,7 +160,7 @@ class CstomoSensorNode(LifecycleNode):
                                                f"(geometry {pipe.geometry.digest()})")
         self._board_clock = ClockMapper(cfg.clock_window)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
-        self._raw_cdr = RawVoltagesCdr()
+        self._raw_cdr = RawVoltagesCdr(cfg.frame_id)
         self._reconnects = 0
         why = self.stream.init_reference(cfg.tare_on_start)
         if why:
@@ -192,7 +192,7 @@ class CstomoSensorNode(LifecycleNode):
             self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
             self._thread.start()
         else:
-            self._sub = self.create_subscription(Float32MultiArray, "~/raw_voltages_in", self._on_raw, qos)
+            self._sub = self.create_subscription(Image, "~/raw_voltages_in", self._on_raw, qos)
         log.info(f"configured: input {cfg.input} ({cfg.port if cfg.input == 'serial' else '~/raw_voltages_in'}), "
                  f"reference: {self.reference_source}")
         return TransitionCallbackReturn.SUCCESS
@@ -291,24 +291,28 @@ class CstomoSensorNode(LifecycleNode):
                 if frame.board_time_us is not None:
                     mono_ns = time.monotonic_ns()
                     age_ns = mono_ns - self._board_clock.stamp_ns(frame.board_time_us, mono_ns)
-                if self._active:  # the raw frame as received, NaN where the board flagged a channel
+                stamp_ns = now_ns - age_ns
+                if self._active:  # the raw frame as measured, NaN where the board flagged a measurement
                     flagged = self.stream.flagged(frame.saturated, frame.contact_ok)
-                    self._pubs[RAW_TOPIC].publish(self._raw_cdr(frame.values, flagged))
-                self._publish(self.stream.push(frame.values, frame.saturated, frame.contact_ok, now_ns - age_ns,
+                    self._pubs[RAW_TOPIC].publish(self._raw_cdr(frame.values, stamp_ns, flagged))
+                self._publish(self.stream.push(frame.values, frame.saturated, frame.contact_ok, stamp_ns,
                                                age_ns, process=self._active or self.stream.taring))
             except RCLError:
                 if not self.context.ok():
                     return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
                 raise
 
-    def _on_raw(self, msg: Float32MultiArray) -> None:
+    def _on_raw(self, msg: Image) -> None:
+        """A recorded or relayed raw frame: stamped with its own header stamp (the time it was
+        measured, as the serial node stamps it), else the host time on reception."""
         host_ns = self.get_clock().now().nanoseconds
         try:
-            values, flagged = frame_from_raw_msg(msg)
+            values, flagged, stamp_ns = frame_from_raw_msg(msg)
         except FrameError as err:
             self.stream.drop(err, corrupt=True)
             return
-        self._publish(self.stream.push(values, flagged, None, host_ns, 0, process=self._active or self.stream.taring))
+        self._publish(self.stream.push(values, flagged, None, stamp_ns or host_ns, 0,
+                                       process=self._active or self.stream.taring))
 
     def _publish(self, output) -> None:
         if output is None or not output.result.valid or not self._active:
@@ -430,11 +434,11 @@ def usage() -> str:
     lines = ["usage: cstomo_sensor_node [-h] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __ns:=/NS]]",
              "", __doc__.splitlines()[0].replace("``", ""), "", "publishes (in the node's namespace):"]
     lines += [f"  ~/{name:<19} {desc}" for name, desc in OUTPUTS.items()]
-    lines += [f"  ~/{RAW_TOPIC:<19} std_msgs/Float32MultiArray: the board's 208 volts (serial input; NaN where the "
-              "board flagged a channel), for ros2 bag record",
+    lines += [f"  ~/{RAW_TOPIC:<19} sensor_msgs/Image (32FC1, 1 x 208): the board's volts, stamped when measured "
+              "(serial input; NaN where the board flagged a measurement), for ros2 bag record",
               f"  {'/diagnostics':<21} diagnostic_msgs/DiagnosticArray, status named '<namespace>/<node>: sensor'",
               "service:", f"  {'~/tare':<21} std_srvs/Trigger: a new reference on the next tare_frames frames",
-              "subscribes (input: topic):", f"  {'~/raw_voltages_in':<21} std_msgs/Float32MultiArray",
+              "subscribes (input: topic):", f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages",
               "(docs/node.md)", "", "parameters (default):"]
     for name, (default, desc) in PARAMETERS.items():
         lines.append(f"  {name:<20} {default!r:<16} {desc.description}")

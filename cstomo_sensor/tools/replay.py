@@ -1,7 +1,8 @@
 """``cstomo replay``: run a recorded rosbag2 of raw voltages through the node's frame stream offline.
 
-Reads every message of the topic ending in ``raw_voltages`` (std_msgs/Float32MultiArray, sqlite3 or
-mcap storage; NaN marks a channel the board flagged, as the node records it) with the ``rosbags``
+Reads every message of the topic ending in ``raw_voltages`` (sensor_msgs/Image 32FC1 as the node
+publishes it, or the std_msgs/Float32MultiArray of older recordings; sqlite3 or mcap storage; NaN
+marks a measurement the board flagged) with the ``rosbags``
 library and writes a new bag with the node's output topics under the same namespace as the input
 topic, with the same message types and the same numbers the live node publishes: both push the
 frames through a :class:`~cstomo_sensor.force.stream.FrameStream` and build the messages with
@@ -12,9 +13,9 @@ Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<
 (the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise) is the
 reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); without it,
 the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
-exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries the bag's
-receive time of its input frame, as the topic-mode node stamps with the host time on reception; the
-filtered wrench runs on those stamps.
+exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
+frame's own stamp (the time it was measured), as the node stamps it; a legacy frame without one, the
+bag's receive time. The filtered wrench runs on those stamps.
 
 Nothing is left behind when the command fails: the bag is written in a temporary directory beside
 ``--out`` and moved into place (its files named after ``--out``) only when it and the forces file are
@@ -34,13 +35,14 @@ from pathlib import Path
 import numpy as np
 from rclpy._rclpy_pybind11 import RMWError
 from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, CstomoError, FrameError
 from ..force.pipeline import Pipeline, PipelineConfig
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import write_forces
-from ..ros.messages import RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
+from ..ros.messages import LEGACY_RAW_TYPE, RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
 from .common import add_pipeline_args, pipeline_config
 
 log = logging.getLogger(__name__)
@@ -83,8 +85,9 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
             raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
         topic = raw[0]
     types = sorted({c.msgtype for c in connections if c.topic == topic})
-    if types != [TOPIC_TYPES[RAW_TOPIC]]:
-        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]}")
+    if len(types) != 1 or types[0] not in (TOPIC_TYPES[RAW_TOPIC], LEGACY_RAW_TYPE):
+        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]} "
+                          f"(or {LEGACY_RAW_TYPE} of older recordings)")
     return topic
 
 
@@ -148,14 +151,15 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         with Reader(in_bag) as reader, Writer(partial, version=9, storage_plugin=plugin) as writer:
             conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
             inputs = [c for c in reader.connections if c.topic == raw_topic]
+            cls = Image if inputs[0].msgtype == TOPIC_TYPES[RAW_TOPIC] else Float32MultiArray
             for _conn, t_ns, raw in reader.messages(connections=inputs):
                 n_in += 1
                 try:
-                    values, flagged = frame_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray))
+                    values, flagged, stamp_ns = frame_from_raw_msg(deserialize_message(bytes(raw), cls))
                 except (RMWError, FrameError) as err:  # not a frame: dropped and counted, as the node does
                     stream.drop(FrameError(f"frame {n_in - 1} at {t_ns} ns: {str(err).split(',')[0]}"), corrupt=True)
                     continue
-                output = stream.push(values, flagged, None, t_ns)
+                output = stream.push(values, flagged, None, stamp_ns or t_ns)
                 if output is None:
                     continue
                 rows.append(output.result)
@@ -163,7 +167,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                     continue  # implausible: no message, as the node publishes none
                 n_out += 1
                 for name, data in out.build(output.result, output.stamp_ns, output.filtered).items():  # CDR bytes
-                    writer.write(conns[name], t_ns, data)
+                    writer.write(conns[name], t_ns, data)  # at the input's bag time, stamped as the node stamps
         corrupt = stream.counts.corrupt + stream.counts.rejected
         if n_in and corrupt == n_in:
             raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
