@@ -25,7 +25,15 @@ from ..errors import ConfigError, require_positive
 from .material import Material
 
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
+# The reference sensor and board (REFERENCE_SENSOR.md), defined here once and imported everywhere else:
+#: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name).
+DEFAULT_SENSOR = "cuboid_joint"
 N_ELECTRODES = 16  # the board drives 16 electrodes and the measurement pattern has 208 values
+#: A: the board's constant current between adjacent electrodes (a sensor file's ``drive_current``).
+DRIVE_CURRENT_A = 8.0e-3
+#: dB: the default scene's noise (s.5), also the noise the estimators and the reconstruction's
+#: discrepancy rule assume when none is measured.
+DEFAULT_SNR_DB = 60.0
 #: A sensor name: it names cache files and the default tare file, so no path separator, no '..'.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 NAME_EXPECTED = "1..64 letters, digits, '_', '.' or '-', not starting with '.' (it names cache files)"
@@ -56,7 +64,7 @@ class SensorGeometry:
     electrodes: tuple[Electrode, ...]
     layers: int = 1
     socket_radius: float = 0.0
-    drive_current: float = 8.0e-3
+    drive_current: float = DRIVE_CURRENT_A
     contact_impedance: float = 1.0e-5
     material: Material = field(default_factory=Material)
 
