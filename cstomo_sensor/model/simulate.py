@@ -52,6 +52,11 @@ TRUTH_MESH_SIZE = 3.0e-3
 MECHANICS_MESH_SIZE = 4.0e-3
 CONTACT_MISMATCH = 0.2
 ELECTRODE_JITTER = 2.0e-4
+#: A scene file's keys (module docstring; ``cstomo simulate --help``) and those of its ``mismatch``:
+#: any other key is refused, named.
+SCENE_KEYS = ("sensor", "snr_db", "seed", "truth_mesh_size", "mechanics_mesh_size", "mismatch", "frames_per_load",
+              "loads")
+MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
 
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
@@ -216,9 +221,16 @@ class Scene:
         if not p.is_file():
             raise ConfigError(f"scene file {str(p)!r}: not found")
         d = yaml.safe_load(p.read_text()) or {}
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p}: expected a mapping of the keys {list(SCENE_KEYS)}")
         if "loads" not in d:
             raise ConfigError(f"{p}: missing key 'loads'")
         mm = d.get("mismatch") or {}
+        for where, m, keys in (("", d, SCENE_KEYS), ("mismatch.", mm, MISMATCH_KEYS)):
+            unknown = sorted(str(k) for k in m if k not in keys) if isinstance(m, dict) else []
+            if unknown:
+                raise ConfigError(f"{p}: unknown keys {[where + k for k in unknown]}; expected some of "
+                                  f"{[where + k for k in keys]}")
         sensor = str(d.get("sensor", DEFAULT_SENSOR))
         if not Path(sensor).is_absolute() and Path(sensor).suffix in (".yaml", ".yml"):
             sensor = str(p.parent / sensor)
