@@ -29,13 +29,13 @@ from .material import Material
 log = logging.getLogger(__name__)
 
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
-# The reference sensor and board (REFERENCE_SENSOR.md), defined here once and imported everywhere else:
+# The reference sensor and board (docs/physics.md#geometry), defined here once and imported everywhere else:
 #: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name).
 DEFAULT_SENSOR = "cuboid_joint"
 N_ELECTRODES = 16  # the board drives 16 electrodes and the measurement pattern has 208 values
 #: A: the board's constant current between adjacent electrodes (a sensor file's ``drive_current``).
 DRIVE_CURRENT_A = 8.0e-3
-#: dB: the default scene's noise (s.5), also the noise the estimators and the reconstruction's
+#: dB: the default scene's noise (docs/physics.md#noise), also the noise the estimators and the reconstruction's
 #: discrepancy rule assume when none is measured.
 DEFAULT_SNR_DB = 60.0
 #: A sensor name: it names cache files and the default tare file, so no path separator, no '..'.

@@ -45,14 +45,14 @@ from .mesh import MeshSpec, TetMesh, build_mesh
 
 log = logging.getLogger(__name__)
 
-#: The honest simulation's defaults (section 7; a scene file may set each): the truth's independent
+#: The honest simulation's defaults (docs/physics.md#honest-simulation; a scene file may set each): the truth's independent
 #: mesh and its mechanics mesh (m), and the device's mismatch: contact impedances scaled by
 #: U(1 -+ CONTACT_MISMATCH) per electrode, electrodes moved by up to ELECTRODE_JITTER m.
 TRUTH_MESH_SIZE = 3.0e-3
 MECHANICS_MESH_SIZE = 4.0e-3
 CONTACT_MISMATCH = 0.2
 ELECTRODE_JITTER = 2.0e-4
-#: A scene file's keys (module docstring; ``cstomo simulate --help``) and those of its ``mismatch``:
+#: A scene file's keys (docs/formats.md#scene-file; ``cstomo simulate --help``) and those of its ``mismatch``:
 #: any other key is refused, named.
 SCENE_KEYS = ("sensor", "snr_db", "seed", "truth_mesh_size", "mechanics_mesh_size", "mismatch", "frames_per_load",
               "loads")

@@ -125,15 +125,15 @@ def cmd_simulate(a) -> int:
     return 0
 
 
-#: ``cstomo simulate --help``: the scene file's keys (model/simulate.py's docstring has an example),
+#: ``cstomo simulate --help``: the scene file's keys (the table: docs/formats.md#scene-file),
 #: with the defaults of :class:`~cstomo_sensor.model.simulate.Scene`.
 SIMULATE_HELP = f"""\
-Frames of an honestly simulated device (REFERENCE_SENSOR.md section 7): the truth on an independent
+Frames of an honestly simulated device (docs/physics.md#honest-simulation): the truth on an independent
 mesh, electrodes and contact impedances mismatched (seeded), white noise. Writes, under --out,
 reference.csv (the unloaded frame), frames.csv (frames_per_load frames per load, in order) and
 truth.csv (each frame's force in N, wrench frame; 0 for loads that are not socket or patch forces).
 
-scene file (a YAML mapping; only `loads` is required; any other key is refused):
+scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` required, other keys refused):
   sensor               preset name or sensor YAML path (relative: to the scene file)
                        (default {DEFAULT_SENSOR})
   snr_db               noise, dB below the reference's rms; null for none (default {Scene.snr_db:g})
