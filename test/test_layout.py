@@ -159,3 +159,13 @@ def test_ruff_finds_nothing():
     out = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "."], capture_output=True, text=True,
                          cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_the_default_sensor_is_named_only_where_it_is_defined():
+    """``DEFAULT_SENSOR`` (model/geometry.py) is the one place the default sensor's name is written
+    in code; every other module imports it (docstrings and comments may name it)."""
+    from cstomo_sensor.model.geometry import DEFAULT_SENSOR
+
+    wrong = [f"{m}:{n.lineno}" for m, p in MODULES.items() if m != "cstomo_sensor.model.geometry"
+             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Constant) and n.value == DEFAULT_SENSOR]
+    assert not wrong, wrong

@@ -17,12 +17,11 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import FrameError
+from ..model.geometry import DRIVE_CURRENT_A, N_ELECTRODES
 
 PROTOCOL_VERSION = 1
 PROTOCOLS = ("binary", "text")  # the two wire modes a board may speak
 N_VALUES = 208
-N_ELECTRODES = 16
-DRIVE_CURRENT_A = 0.008
 
 _HEADER = struct.Struct("<BBH")  # version, type, payload length
 _CRC = struct.Struct("<I")

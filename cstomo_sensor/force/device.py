@@ -27,9 +27,10 @@ import numpy as np
 
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame, read_frames, write_frames
+from ..model.geometry import DEFAULT_SNR_DB
 
 #: The noise assumed without a measurement (one-frame reference): 60 dB, the default scene (docs/physics.md#noise).
-DEFAULT_NOISE_DB = 60.0
+DEFAULT_NOISE_DB = DEFAULT_SNR_DB
 #: Global factors of a rubber within docs/physics.md#real-devices that need no comment (beyond: a WARN naming it).
 SCALE_OK = (0.5, 2.0)
 #: The relative rms of the reference that the global factor does not explain, above which the tare

@@ -33,7 +33,7 @@ from ..errors import ConfigError
 from ..inverse.reconstruction import ReconstructionModel
 from ..model import elasticity
 from ..model.cem import ForwardModel
-from ..model.geometry import SensorGeometry
+from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.material import conductivity_of_theta
 from ..model.mesh import MeshSpec, TetMesh, build_mesh
 from .tps import ThinPlateSpline
@@ -51,7 +51,7 @@ class CalibrationSpec:
     min_elevation_deg: float = 15.0
     mechanics_mesh_size: float = 6e-3
     ridge: float = 1e-3
-    noise_db: float = 60.0
+    noise_db: float = DEFAULT_SNR_DB
 
 
 def calibration_directions(n: int, min_elevation_deg: float) -> np.ndarray:

@@ -21,7 +21,7 @@ from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame
 from ..inverse.landweber import LandweberSVD
 from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
-from ..model.geometry import SensorGeometry, load_sensor
+from ..model.geometry import DEFAULT_SENSOR, SensorGeometry, load_sensor
 from ..model.material import StressField
 from .calibration import DeviceCalibration
 from .device import ScaleReport
@@ -40,7 +40,7 @@ class PipelineConfig:
     """Every setting of the per-frame path: the one source of their defaults and choices (the
     node's parameters, the parameter file and the command line take theirs from here)."""
 
-    sensor: str = "cuboid_joint"
+    sensor: str = DEFAULT_SENSOR
     cache_dir: str = ""  # '' = default_cache_dir()
     estimator: str = ESTIMATORS[0]
     mesh_size: float = ReconSpec.mesh_size  # m

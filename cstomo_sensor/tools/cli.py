@@ -21,9 +21,9 @@ from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
 from ..model.cem import ForwardModel
-from ..model.geometry import load_sensor
+from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
-from ..model.simulate import simulate_scene_files
+from ..model.simulate import Scene, simulate_scene_files
 from .common import add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -125,6 +125,33 @@ def cmd_simulate(a) -> int:
     return 0
 
 
+#: ``cstomo simulate --help``: the scene file's keys (the table: docs/formats.md#scene-file),
+#: with the defaults of :class:`~cstomo_sensor.model.simulate.Scene`.
+SIMULATE_HELP = f"""\
+Frames of an honestly simulated device (docs/physics.md#honest-simulation): the truth on an independent
+mesh, electrodes and contact impedances mismatched (seeded), white noise. Writes, under --out,
+reference.csv (the unloaded frame), frames.csv (frames_per_load frames per load, in order) and
+truth.csv (each frame's force in N, wrench frame; 0 for loads that are not socket or patch forces).
+
+scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` required, other keys refused):
+  sensor               preset name or sensor YAML path (relative: to the scene file)
+                       (default {DEFAULT_SENSOR})
+  snr_db               noise, dB below the reference's rms; null for none (default {Scene.snr_db:g})
+  seed                 seed of the mismatch and of the noise (default {Scene.seed})
+  truth_mesh_size      m, the truth's independent mesh (default {Scene.truth_mesh_size:g})
+  mechanics_mesh_size  m, the mesh of the mechanics of a force (default {Scene.mechanics_mesh_size:g})
+  mismatch             contact_impedance: +- fraction per electrode (default {Scene.z_rel:g});
+                       electrode_jitter: m, at most, within the face (default {Scene.jitter:g})
+  frames_per_load      noisy frames per load (default {Scene.frames_per_load})
+  loads                a list; each item is one of
+      socket: {{force: [fx, fy, fz]}}  or  {{magnitude: N, elevation_deg: D, azimuth_deg: D (default 0)}}
+      patches: [{{shape: square, size: m | shape: circle, radius: m, center: [u, v] m (default [0, 0]),
+                 face: top (default), +x, -x, +y or -y}}], total_force: N (uniform normal pressure;
+                 center in the face's own coordinates: (x, y) on top, (y, z) on +-x, (x, z) on +-y)
+      inclusion: {{center: [x, y, z] m, radius: m, contrast: relative conductivity change}} (no mechanics)
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
     p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
@@ -145,10 +172,14 @@ def build_parser() -> argparse.ArgumentParser:
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
-    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file")
-    s.add_argument("--scene", required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--cache-dir", default="")
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--scene", required=True, metavar="FILE",
+                   help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
+    s.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory, created if missing: reference.csv, frames.csv, truth.csv")
+    s.add_argument("--cache-dir", default="", metavar="DIR",
+                   help="cache of meshes and models (default: the user's cache, $CSTOMO_CACHE_DIR)")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")

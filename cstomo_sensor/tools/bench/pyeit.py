@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from ...inverse.reconstruction import ReconSpec, model_of_mesh, voxel_basis
 from ...model.cem import ForwardModel
-from ...model.geometry import load_sensor
+from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.mesh import MeshSpec, build_mesh
 from .models import PLAIN
 from .scenes import NOISE_SEED, SceneSet, image_errors
@@ -128,7 +128,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    g = load_sensor("cuboid_joint")
+    g = load_sensor(DEFAULT_SENSOR)
     sigma0 = g.material.sigma0
     I = g.drive_current
     mesh = build_mesh(g, MeshSpec(h=MESH_SIZE), cache_dir)
