@@ -1,7 +1,7 @@
 """Sensor geometries as data: YAML presets under ``config/sensors`` loaded into frozen dataclasses.
 
 Units are SI everywhere (metres, siemens per metre, ohm square metres, amperes, pascals).
-The body frame has z up and its origin at the centre of the bottom face (REFERENCE_SENSOR.md s.1).
+The body frame has z up and its origin at the centre of the bottom face (docs/physics.md#coordinate-frames).
 
 A new sensor is a new YAML file (see ``config/sensors/cuboid_joint.yaml`` for every key); pass its
 path wherever a sensor name is accepted. Which keys are required and which have defaults:

@@ -1,4 +1,4 @@
-"""Honest simulation (REFERENCE_SENSOR.md section 7) and scene files.
+"""Honest simulation (docs/physics.md#honest-simulation) and scene files.
 
 The truth is simulated on an independent tetrahedralisation finer than any model mesh, with
 electrode positions jittered by up to 0.2 mm and contact impedances varied by +-20 % per electrode
@@ -9,7 +9,7 @@ model. The reference frame is the same simulated device, unloaded.
 Scene file (YAML)::
 
     sensor: cuboid_joint          # preset or geometry file
-    snr_db: 60                    # noise (section 5); omit or null for none
+    snr_db: 60                    # noise (docs/physics.md#noise); omit or null for none
     seed: 1
     truth_mesh_size: 0.003        # m; the independent mesh
     mechanics_mesh_size: 0.004    # m
@@ -60,7 +60,7 @@ MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
 
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
-    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (section 5); None = no noise."""
+    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (docs/physics.md#noise); None = no noise."""
     if snr_db is None:
         return np.array(v, dtype=float)
     std = np.sqrt(np.mean(np.asarray(reference) ** 2)) * 10 ** (-snr_db / 20)
@@ -262,7 +262,7 @@ def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def simulate_scene_files(scene_path, out_dir, cache_dir=None) -> None:
-    """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (section 6)."""
+    """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (docs/formats.md)."""
     scene = Scene.load(scene_path)
     ref, frames, forces = simulate(scene, cache_dir)
     out = Path(out_dir)
