@@ -120,7 +120,9 @@ class Pipeline:
         self._fit = model.fit.astype(self._dtype, copy=False)  # y -> the part the image explains
         self._keep = np.ones(self.n_meas, dtype=bool)
         self._update_consistency()
-        self._y = np.empty(self.n_meas, dtype=np.float64)
+        self._y = np.empty(self.n_meas, dtype=np.float64)  # the latest frame's change (last_y)
+        self.scale = 1.0  # the uniform scale of the voltages since the tare (the stream's drift tracker sets it)
+        self.change_plausible = False  # the latest frame passed the gate's change bounds
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
         if not max_force > 0:
@@ -168,11 +170,17 @@ class Pipeline:
     def estimator_name(self) -> str:
         return self.estimator.name
 
+    @property
+    def last_y(self) -> np.ndarray:
+        """The normalised change of the latest processed frame (n_meas,), zero on excluded channels."""
+        return self._y
+
     def normalise(self, frames: np.ndarray) -> np.ndarray:
-        """``(V - V_ref) / (c v_scale)`` of (n_meas,) or (n, n_meas) frames, as :meth:`process` forms it."""
+        """``(V / s - V_ref) / (c v_scale)`` of (n_meas,) or (n, n_meas) frames, as :meth:`process` forms it
+        (``s`` the :attr:`scale`, 1 unless the stream tracks the device's drift)."""
         if self.reference is None:
             raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
-        return (check_frame(frames, self.n_meas, "frame", batch=True) - self.reference) / self._y_scale
+        return (check_frame(frames, self.n_meas, "frame", batch=True) / self.scale - self.reference) / self._y_scale
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -208,6 +216,7 @@ class Pipeline:
             noise_y = np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
+        self.scale = 1.0  # a new reference: no change of the device since
         self.scale_report, self.noise_measured = report, noise is not None
         self.reference_frames = int(n_frames)
         self._update_gate()
@@ -262,10 +271,12 @@ class Pipeline:
         v = check_frame(frame, self.n_meas, used=self._keep)
         y = self._y
         with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
-            np.subtract(v, self.reference, out=y)
+            np.multiply(v, 1.0 / self.scale, out=y)  # the device's slow change (force/drift.py)
+            y -= self.reference
             y /= self._y_scale
             y[~self._keep] = 0.0
         why = self.gate.change(y) if gate else ""
+        self.change_plausible = not why  # a change some load (or a uniform drift) can cause
         if why:
             return FrameResult.implausible(why)
         force = self.estimator.estimate(y)

@@ -9,6 +9,8 @@ owns, per sensor:
   is not of this sensor: :func:`tare_problem`), the saved tare file, and the masks of flagged channels;
 - the per-frame core (:class:`~.pipeline.Pipeline`: plausibility gate, estimator, consistency, fields);
 - the filtered wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps);
+- the zero that holds: the device's slow change since the tare (:class:`~.drift.DriftTracker`,
+  ``drift_tracking``), followed frame by frame and applied by the pipeline;
 - the accounting: frames, late frames, dropped frames and why, implausible and foreign-load frames,
   the processing time, and the losses over the last :data:`LOSS_WINDOW` s;
 - the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`): the node's
@@ -41,8 +43,10 @@ from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
 from .device import DEFAULT_NOISE_DB, read_reference, write_reference
+from .drift import DriftTracker
 from .filter import LowPass
 from .pipeline import FrameResult, Pipeline
+from .scene_field import change_noise
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +103,7 @@ class StreamConfig:
     stress_field_every: int = 10  # attach the fields to every N-th processed frame (the first included); 0 never
     wrench_filter_hz: float = 20.0  # 0 = no filtered wrench
     stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
+    drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
@@ -261,6 +266,7 @@ class FrameStream:
         self.counts_lock = threading.Lock()
         self.counts = _Counts()
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
+        self.drift: DriftTracker | None = None  # made with each reference (drift_tracking)
         n_el = len(pipe.geometry.electrodes)
         pattern = MeasurementPattern(n_el, pipe.geometry.layers)
         self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
@@ -308,6 +314,7 @@ class FrameStream:
         if why:
             raise ConfigError(f"{source} not used: {why}")
         report = self.pipe.set_reference(ref, noise, n_frames)
+        self._new_drift()
         self.reference_source = source
         noise_what = "measured" if noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB"
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
@@ -420,6 +427,7 @@ class FrameStream:
         when = time.strftime("%H:%M:%S")
         if outcome.ok:
             report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
+            self._new_drift()
             self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
                               f"{outcome.frames} frames, spread {outcome.spread:.2%}"
             log.info("tare taken at %s (noise %s)", self.tare_taken,
@@ -459,6 +467,17 @@ class FrameStream:
         self.reference_source = f"tare saved to {path}"
         log.info("tare saved to %s", path)
         return ""
+
+    def _new_drift(self) -> None:
+        """A drift tracker for the reference just set (none without ``drift_tracking``)."""
+        pipe = self.pipe
+        if not self.config.drift_tracking or pipe.reference is None:
+            self.drift = None
+            return
+        est = pipe.estimator
+        self.drift = DriftTracker(pipe.reference / pipe._y_scale, np.asarray(est.y),
+                                  change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
+        pipe.scale = 1.0
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -504,6 +523,8 @@ class FrameStream:
             return False
         self.pipe.set_bad_channels(mask.copy())  # raises before changing anything if refused
         self._mask = mask
+        if self.drift is not None:
+            self.drift = self.drift.with_mask(~mask)
         self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
                                  channels=int(mask.sum()))
         if mask.any():
@@ -512,12 +533,13 @@ class FrameStream:
         return True
 
     def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
-                contact_ok: np.ndarray | None = None) -> FrameResult | None:
+                contact_ok: np.ndarray | None = None, t: float | None = None) -> FrameResult | None:
         """The :class:`FrameResult` of one frame, or None while the frame goes into a pending tare (or
         no reference exists yet). Raises :class:`FrameError` for a frame that must be dropped (it then
         counts for nothing, not even for a pending tare). An implausible result (``valid`` False) is
         counted in ``implausible``; a run of them is logged once when it starts and once when it ends.
-        :meth:`push` is this with the accounting, the filter and the stamps."""
+        A valid frame updates the drift tracker (``t``: its time in seconds; None: 10 ms after the
+        previous one). :meth:`push` is this with the accounting, the filter and the stamps."""
         if self._tare_left:
             mask = self._mask_of(saturated, contact_ok)[0]
             v = check_frame(values, self.pipe.n_meas, "tare frame", used=~mask)
@@ -541,6 +563,10 @@ class FrameStream:
         elif self._implausible_run:
             log.warning("plausible frames again after %d implausible ones", self._implausible_run)
             self._implausible_run = 0
+        drift = self.drift
+        if drift is not None and self.pipe.change_plausible:  # an estimate beyond max_force may be drift
+            drift.observe(self.pipe.last_y, t)
+            self.pipe.scale = drift.scale
         return result
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
@@ -562,7 +588,7 @@ class FrameStream:
             return None
         try:
             with self.lock:
-                result = self.process(values, saturated, contact_ok)
+                result = self.process(values, saturated, contact_ok, stamp_ns * 1e-9 if stamp_ns else None)
                 filtered = None
                 if result is not None and result.valid and self.filter is not None:
                     filtered = self.filter(result.force, stamp_ns * 1e-9)
@@ -687,6 +713,15 @@ class FrameStream:
                 msgs.append(report.message)
         cal = pipe.calibration
         kv.update(calibration=cal.path if cal else "none (nominal model)", calibration_accuracy=cal.accuracy if cal else "")
+        drift = self.drift
+        if drift is not None:
+            d_level, d_msg = drift.status()
+            kv.update(drift_change=f"{drift.change:+.3%}", drift_kelvin=drift.kelvin_text, drift_rest_frames=drift.rest_frames)
+            if d_msg:
+                level = max(level, d_level)
+                msgs.append(d_msg)
+        else:
+            kv.update(drift_change="not tracked (drift_tracking false)")
         return level, msgs, kv
 
     def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:

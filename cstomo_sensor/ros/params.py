@@ -65,6 +65,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
                                   lo=0, hi=1_000_000),
     "wrench_filter_hz": _d("Cutoff (-3 dB) in Hz of the first-order low-pass of ~/wrench_filtered; 0 = off "
                            "(no ~/wrench_filtered)", read_only=True, lo=0.0, hi=10000.0),
+    "drift_tracking": _d("Follow the device's slow uniform change after the tare (warming, drive drift) so the "
+                         "zero holds; diagnostics show the tracked change (force/drift.py)", read_only=True),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -99,6 +101,7 @@ class NodeConfig:
     autostart: bool = True
     stress_field_every: int = StreamConfig.stress_field_every
     wrench_filter_hz: float = StreamConfig.wrench_filter_hz
+    drift_tracking: bool = StreamConfig.drift_tracking
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
     stale_timeout: float = StreamConfig.stale_timeout
@@ -137,7 +140,8 @@ class NodeConfig:
     def stream(self) -> StreamConfig:
         """The frame stream's settings."""
         return StreamConfig(tare_frames=self.tare_frames, stress_field_every=self.stress_field_every,
-                            wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout)
+                            wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout,
+                            drift_tracking=self.drift_tracking)
 
     @property
     def cache_path(self) -> Path:

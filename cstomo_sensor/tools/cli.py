@@ -14,7 +14,7 @@ from importlib import import_module
 
 import numpy as np
 
-from ..errors import CstomoError
+from ..errors import ConfigError, CstomoError
 from ..force.device import DEFAULT_NOISE_DB, read_reference
 from ..force.pipeline import FrameResult, Pipeline
 from ..force.stream import FrameStream, StreamConfig
@@ -90,17 +90,21 @@ def cmd_reconstruct(a) -> int:
 def cmd_estimate(a) -> int:
 
     cfg = pipeline_config(a)
+    if not a.rate > 0:
+        raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0))  # the node's frame path
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
+                                            drift_tracking=not a.no_drift_tracking))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
-    outputs = [stream.push(f) for f in frames]  # a dropped frame (None) is a row without a force
+    period_ns = round(1e9 / a.rate)  # frames in file order, a.rate per second (the drift tracker's clock)
+    outputs = [stream.push(f, stamp_ns=(i + 1) * period_ns) for i, f in enumerate(frames)]  # None: a row without a force
     results = [o.result if o is not None else FrameResult.implausible(stream.counts.reject_reason) for o in outputs]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
@@ -169,6 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
+    e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+                   help="frames per second of the frames file, in file order: the clock of the drift tracking "
+                        "(default %(default)g)")
+    e.add_argument("--no-drift-tracking", action="store_true",
+                   help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
