@@ -135,7 +135,7 @@ class DriftTracker:
     def kelvin_text(self) -> str:
         """The tracked change as a temperature change of the rubber at :data:`RESISTIVITY_PER_K`."""
         kelvin = math.log(self.scale) / math.log1p(RESISTIVITY_PER_K) if self.scale > 0 else math.nan
-        return f"{kelvin:+.1f} K at {RESISTIVITY_PER_K:.1%}/K (or a drive drift)"
+        return f"{kelvin:+.1f} K at {RESISTIVITY_PER_K:.1%}/K, or a drive drift"
 
     def status(self) -> tuple[int, str]:
         """(0 OK, 1 WARN; a message) of the tracked change for the diagnostics."""
