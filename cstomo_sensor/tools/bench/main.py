@@ -9,6 +9,7 @@ import os
 import sys
 from pathlib import Path
 
+from .drift import drift_bench
 from .effort import calibration_effort
 from .filter import filter_bench
 from .greit import greit
@@ -32,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--filter", action="store_true", help="delay and noise reduction of ~/wrench_filtered at 60 and 40 dB")
     g.add_argument("--choose-weight", action="store_true",
                    help="the rule for the Landweber weight power p on the training-side scenes")
+    g.add_argument("--drift", action="store_true",
+                   help="the zero and the accuracy when the device changes after its tare, with and without tracking")
     g.add_argument("--scene", action="store_true", help="scene stress field and foreign-load flag (accuracy, rates, cost)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
@@ -60,6 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.scene:
         run_scene(a.out, a.cache_dir or None)
+        return 0
+    if a.drift:
+        drift_bench(a.out, a.cache_dir or None)
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
