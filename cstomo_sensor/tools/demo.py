@@ -77,7 +77,7 @@ def _interrupt(*_: object) -> None:
 
 
 def _run(a: argparse.Namespace) -> int:
-
+    started = time.monotonic()  # the summary's times count from here
     if a.load_script:  # read before the (slow) model build: a bad file is reported at once
         times, forces = read_load_script(a.load_script)
         labels = [f"script row {i + 1}" for i in range(len(times))]
@@ -91,11 +91,15 @@ def _run(a: argparse.Namespace) -> int:
               "tare_file": work / "tare.csv", "stress_field_every": 0}
     board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate),
                   "--duration", str(duration + 2.0)]  # the board outlives the watch: the node is stopped first
+    marks: dict[str, float] = {}
+    board_log = work / "board.log"  # the board's messages and final counts, shown (explained) at the end
     try:
-        with NodeWithBoard(work / "board", params, board_args) as run:
-            # the board computes its loads (its script starts when the node connects) while the model builds
-            print("[1/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
-                  flush=True)
+        with open(board_log, "w", encoding="utf-8") as err, \
+                NodeWithBoard(work / "board", params, board_args, board_err=err) as run:
+            # the board computes (or reads from the cache) its loads while the model builds; its
+            # script starts when the node connects
+            print("[1/3] simulated board: its scripted loads on an independent mesh (honest simulation; "
+                  "computed once, then read from the cache)", flush=True)
             run.start_board()
             print("[2/3] model and force estimator (built once, then loaded from the cache)", flush=True)
             t = time.perf_counter()
@@ -103,16 +107,52 @@ def _run(a: argparse.Namespace) -> int:
                            progress=lambda m: print("      " + m, flush=True))
             print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
             device = run.start()
+            marks["board ready"] = time.monotonic() - started
             print(f"[3/3] board on {device}; waiting for the node to connect", flush=True)
             run.wait_streaming()
             t0 = time.monotonic()  # the load script's t = 0
+            marks["streaming"] = t0 - started
             print("      streaming; the node tares on its first frames\n", flush=True)
-            return _watch(a, t0, duration, times, forces, labels, run.board)
+            code, summary = _watch(a, t0, duration, times, forces, labels, run.board)
+        # the node and then the board have stopped: the board's final counts are in its log
+        _print_summary(a, summary, marks, started, _lines(board_log))
+        return code
+    except BaseException:
+        for line in _lines(board_log):  # why the board failed, say: never lost
+            print(f"board-sim: {line}", file=sys.stderr)
+        raise
     finally:
-        shutil.rmtree(work, ignore_errors=True)  # the load script, the link and the demo's own tare
+        shutil.rmtree(work, ignore_errors=True)  # the load script, the link, the board's log and the demo's own tare
 
 
-def _watch(a, t0, duration, times, forces, labels, board) -> int:
+def _lines(path: Path) -> list[str]:
+    try:
+        return [ln.rstrip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return []
+
+
+def _print_summary(a, summary: dict, marks: dict, started: float, board_lines: list[str]) -> None:
+    """What the demo measured, each figure said with what it is."""
+    first = summary["first"]
+    steps = ", ".join(f"{k} at {v:.1f} s" for k, v in marks.items())
+    print(f"\nsummary (times from the start of `cstomo demo`: {steps})")
+    rows = [("first wrench", f"{first - started:.1f} s after the start" if first is not None else "none received"),
+            ("wrenches received", f"{summary['count']} on /cstomo_sensor/wrench (the node publishes one per board "
+                                  f"frame, {a.rate:g}/s, once it has tared on the first 50)")]
+    e = summary["errors"]
+    if len(e):
+        rows += [("settled lines", f"{len(e)}: the lines above whose load, not zero, had been held over 0.6 s; "
+                                   "the errors are their medians against the scripted true force"),
+                 ("median angle error", f"{np.median(e[:, 0]):.2f} deg (between the estimated and the true force)"),
+                 ("magnitude error", f"median {100 * np.median(e[:, 1]):.1f} % (| |F estimated| - |F true| | / "
+                                     f"|F true|; {a.estimator} estimator)")]
+    rows += [("simulated board" if i == 0 else "", line) for i, line in enumerate(board_lines)]
+    for name, text in rows:
+        print(f"  {name:<19} {text}")
+
+
+def _watch(a, t0, duration, times, forces, labels, board) -> tuple[int, dict]:
     # Ctrl-C and SIGTERM end the watch quietly: the summary is printed, the node and the board are
     # stopped in order by NodeWithBoard (they run in sessions of their own, so a terminal's Ctrl-C
     # reaches only this process).
@@ -127,10 +167,13 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
     executor.add_node(node)
     latest: dict = {}
     count = [0]
+    first: list[float | None] = [None]  # time.monotonic() of the first wrench
 
     def on_wrench(msg: WrenchStamped) -> None:
         f = msg.wrench.force
         latest["f"] = np.array([f.x, f.y, f.z])
+        if first[0] is None:
+            first[0] = time.monotonic()
         count[0] += 1
 
     def spin() -> None:
@@ -173,16 +216,14 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
             signal.signal(sig, handler)
     if stop.is_set():
         print(f"\nstopped at t = {time.monotonic() - t0:.1f} s", flush=True)
+    summary = {"first": first[0], "count": count[0], "errors": np.array(errors).reshape(-1, 2)}
     if errors:
-        e = np.array(errors)
-        print(f"\n{count[0]} wrenches received; settled loads: median angle error {np.median(e[:, 0]):.2f} deg, "
-              f"median magnitude error {100 * np.median(e[:, 1]):.1f} % ({a.estimator} estimator)")
-        return 0
+        return 0, summary
     if count[0]:
         print(f"\n{count[0]} wrenches received; no load held long enough (0.6 s) to summarise")
-        return 0
+        return 0, summary
     if stop.is_set():
         print("no wrench received yet")
-        return 0
+        return 0, summary
     print("\nno wrench received from the node", file=sys.stderr)
-    return 1
+    return 1, summary
