@@ -68,7 +68,7 @@ def _setup(context):
             actions.append(ExecuteProcess(cmd=sensor.board, output="screen"))
         actions.append(LifecycleNode(package="cstomo_sensor", executable="cstomo_sensor_node", name=NODE_NAME,
                                      namespace=sensor.namespace, output="screen",
-                                     parameters=[sensor.config, sensor.overrides]))
+                                     parameters=[*([sensor.config] if sensor.config else []), sensor.overrides]))
         if sensor.transform is not None:
             actions.append(Node(package="tf2_ros", executable="static_transform_publisher", name=f"{NODE_NAME}_tf",
                                 namespace=sensor.namespace, output="screen", arguments=sensor.transform.arguments()))

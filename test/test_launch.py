@@ -145,6 +145,12 @@ def test_parent_frame_adds_the_static_transform_of_the_pose(tmp_path):
         _plan(parent_frame="cstomo_socket")
     with pytest.raises(ConfigError, match="parent_frame='/world'"):
         _plan(parent_frame="/world")
+    with pytest.raises(ConfigError, match="config:=/no/such.yaml: No such file"):
+        _plan(config="/no/such.yaml")
+    from cstomo_sensor.tools.launching import launch_plan
+
+    assert launch_plan({"frame_id": "f"}).sensors[0].config == ""  # no parameter file: the node's defaults
+    assert launch_plan({}).sensors[0].frame_id == "cstomo_socket"
 
 
 def _sensor_list(tmp_path, entries: list[dict]) -> str:

@@ -163,8 +163,20 @@ def _node_default(name: str) -> object:
     return PARAMETERS[name][0]
 
 
+def _from_file(config: str, name: str) -> object | None:
+    """Parameter ``name`` of the parameter file ``config`` ('' = none), or None if it does not set it."""
+    if not config:
+        return None
+    try:
+        return config_parameter(config, name)
+    except OSError as err:
+        raise ConfigError(f"config:={config}: {err.strerror or err}") from err
+    except (yaml.YAMLError, AttributeError) as err:
+        raise ConfigError(f"config:={config}: not a ROS parameter file ({err})") from err
+
+
 def _file_or_default(config: str, name: str) -> object:
-    value = config_parameter(config, name)
+    value = _from_file(config, name)
     return _node_default(name) if value is None else value
 
 
@@ -250,7 +262,7 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
         overrides["tare_on_start"] = tare_on_start
     board = None
     if sim:
-        sensor = args.get("sensor") or config_parameter(config, "sensor") or DEFAULTS.sensor
+        sensor = args.get("sensor") or _from_file(config, "sensor") or DEFAULTS.sensor
         board, link, tare = _sim_board(work(), str(sensor), args.get("sim_load_script"))
         overrides.update(port=link, tare_file=tare)
     frame_id = _frame("frame_id", overrides.get("frame_id") or _file_or_default(config, "frame_id"))
@@ -333,7 +345,7 @@ def _entry_plan(entry: dict, where: str, config: str, work: _Work) -> SensorPlan
     namespace = entry["namespace"]
     params = entry["parameters"]
     frame_id = _frame(f"{where}frame_id", entry["frame_id"])
-    sensor = str(entry.get("sensor") or config_parameter(config, "sensor") or DEFAULTS.sensor)
+    sensor = str(entry.get("sensor") or _from_file(config, "sensor") or DEFAULTS.sensor)
     overrides = dict(params, frame_id=frame_id)
     for key in ("sensor", "calibration_file"):
         if entry.get(key):
@@ -347,7 +359,7 @@ def _entry_plan(entry: dict, where: str, config: str, work: _Work) -> SensorPlan
         board, port, tare = _sim_board(work(slug), sensor, entry.get("sim_load_script"))
     else:
         port = str(entry["port"]) if entry.get("port") else ""
-        cache = params.get("cache_dir") or config_parameter(config, "cache_dir") or default_cache_dir()
+        cache = params.get("cache_dir") or _from_file(config, "cache_dir") or default_cache_dir()
         geometry = load_sensor(sensor)
         tare = str(Path(cache) / tare_file_name(geometry.name, geometry.digest(), port or "topic", namespace))
     if port:
