@@ -1,4 +1,4 @@
-"""Force angles of REFERENCE_SENSOR.md section 4 (radians)."""
+"""Force angles of docs/physics.md#force-angles (radians)."""
 from __future__ import annotations
 
 import math

@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import struct
+import tempfile
 import zipfile
 import zlib
 from pathlib import Path
@@ -92,9 +93,8 @@ def check_writable(directory: str | os.PathLike) -> Path:
     d = Path(directory)
     try:
         d.mkdir(parents=True, exist_ok=True)
-        probe = d / f".write_probe{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
+        with tempfile.NamedTemporaryFile(dir=d, prefix=".write_probe"):  # a name of its own: two sensors
+            pass  # of one process check the same directory at once
     except OSError as err:
         raise ConfigError(f"cache directory {d} is not writable ({err.strerror or err}): set the parameter "
                           "'cache_dir' (or $CSTOMO_CACHE_DIR) to a writable directory") from err

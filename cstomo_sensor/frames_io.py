@@ -1,4 +1,4 @@
-"""File formats of REFERENCE_SENSOR.md section 6: frames, forces and load scripts (CSV)."""
+"""File formats of docs/formats.md: frames, forces and load scripts (CSV)."""
 from __future__ import annotations
 
 import contextlib
@@ -117,8 +117,8 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
                  consistency: np.ndarray | None = None, foreign_load: np.ndarray | None = None) -> None:
     """Write a forces file from (n, 3) force vectors (newtons, wrench frame).
 
-    ``valid`` (bool (n,)), when given, adds the optional ``valid`` column of REFERENCE_SENSOR.md
-    section 6: 1, or 0 for a frame rejected as implausible, whose force fields are left empty.
+    ``valid`` (bool (n,)), when given, adds the optional ``valid`` column of the forces file
+    (docs/formats.md#forces-file): 1, or 0 for a frame rejected as implausible, whose force fields are left empty.
     ``consistency`` (float (n,)) with ``foreign_load`` (bool (n,)) add the ``consistency`` and
     ``foreign_load`` columns (empty for a frame without a statistic: NaN).
     """

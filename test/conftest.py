@@ -16,7 +16,7 @@ CALLER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")  # a domain the caller chose: ev
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 
 # Mesh sizes of the test suite (metres): the model that reconstructs, and an independent finer
-# mesh that simulates the truth (REFERENCE_SENSOR.md section 7).
+# mesh that simulates the truth (docs/physics.md#honest-simulation).
 MODEL_H = 4.0e-3
 TRUTH_H = 3.0e-3
 

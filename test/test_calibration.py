@@ -1,7 +1,7 @@
 """Device calibration on known loads (cstomo_sensor.force.calibration, ``cstomo calibrate``).
 
 The device is scenes/devices/cuboid_joint_device_a.yaml (material and electrode placement inside
-REFERENCE_SENSOR.md section 8), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
+docs/physics.md#real-devices), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
 (independent 3 mm mesh, +-30 % contact impedance, 60 dB); the models are the nominal cuboid_joint's.
 Calibration loads and held-out loads are different random forces with different noise.
 
@@ -135,7 +135,17 @@ def test_the_node_refuses_to_start_with_a_damaged_calibration(ros, capfd, tmp_pa
     assert str(bad) in line and "truncated" in line, err
 
 
-def test_a_rosbag_with_jittered_stamps_calibrates_as_the_csv_files(tmp_path, device):
+HOLD = 4        # frames per held load in the bag (50 frames/s)
+MOVING = 2      # frames while the load changes to the next one
+
+
+def test_a_rosbag_with_load_changes_calibrates_as_the_csv_files(tmp_path, device):
+    """A recording as a robot makes it: the node's stamped raw frames (50 frames/s) and a reference
+    F/T sensor's wrenches (100/s, header stamps jittered by up to 2 ms, received 1-3 ms later), a load
+    held for HOLD frames, then MOVING frames while it changes (the rubber already feels the next load,
+    the reference sensor is between the two). Every held frame is paired with its own load, no frame
+    of a change is paired at all, and the calibration equals the one from the CSV files of the held
+    frames and their forces."""
     pytest.importorskip("rosbags")
     from geometry_msgs.msg import WrenchStamped
     from rclpy.serialization import serialize_message
@@ -144,44 +154,60 @@ def test_a_rosbag_with_jittered_stamps_calibrates_as_the_csv_files(tmp_path, dev
 
     from cstomo_sensor.frames_io import write_forces, write_frames
     from cstomo_sensor.ros.messages import TOPIC_TYPES, raw_voltages_msg
-    from cstomo_sensor.tools.calibrate import main
+    from cstomo_sensor.tools.calibrate import main, read_bag
 
     tare, frames, forces, *_ = device
     frames, forces = frames[:10], forces[:10]
-    # the CSV files: the reference, and the loaded frames with their forces (rows by frame number, shuffled,
-    # an extra column, one frame without a force row)
+    held = np.repeat(np.float32(frames), HOLD, axis=0)  # as the bag carries them
+    held_f = np.repeat(forces, HOLD, axis=0)
     write_frames(tmp_path / "ref.csv", tare)
-    allf = np.vstack([frames, frames[:1] * 1.01])
-    write_frames(tmp_path / "frames.csv", np.float32(allf))  # as the bag carries them
-    write_forces(tmp_path / "f.csv", forces)
-    lines = (tmp_path / "f.csv").read_text().splitlines()
-    rows = [ln + ",0.5" for ln in lines[1:]][::-1]
-    (tmp_path / "forces.csv").write_text(lines[0] + ",consistency\n" + "\n".join(rows) + "\n")
+    write_frames(tmp_path / "frames.csv", held)
+    write_forces(tmp_path / "forces.csv", held_f)
     common = ["--mesh-size", str(MODEL_H), "--estimator", "linear"]
     assert main([*common, "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--forces", str(tmp_path / "forces.csv"), "--out", str(tmp_path / "csv.yaml")]) == 0
-    # the bag: voltages at 50 Hz (bag time), wrenches with header stamps jittered by up to 4 ms, plus
-    # wrenches at other times that no frame is near
     rng = np.random.default_rng(4)
     store = get_typestore(getattr(Stores, "ROS2_KILTED", Stores.LATEST))
     t0 = 1_700_000_000 * 10**9
+    period = 20_000_000
     with Writer(tmp_path / "bag", version=9) as w:
         cv = w.add_connection("/cstomo_sensor/raw_voltages", TOPIC_TYPES["raw_voltages"], typestore=store)
         cw = w.add_connection("/ft/wrench", "geometry_msgs/msg/WrenchStamped", typestore=store)
         k = 0
-        for v, f in [(v, np.zeros(3)) for v in tare] + list(zip(frames, forces)):
-            t = t0 + k * 20_000_000
-            w.write(cv, t, serialize_message(raw_voltages_msg(v)))
-            for dt, force in ((int(rng.uniform(-4e6, 4e6)), f), (10_000_000, f * 3)):  # the second: 10 ms off
+
+        def put(v, f_start, f_end):
+            nonlocal k
+            t = t0 + k * period
+            w.write(cv, t + int(rng.uniform(1e6, 3e6)), serialize_message(raw_voltages_msg(v, t)))
+            for half in (0, 1):  # two wrenches per frame; the force moves from f_start to f_end
+                ts = t + half * period // 2 + int(rng.uniform(-2e6, 2e6))
+                f = f_start + (f_end - f_start) * half
                 m = WrenchStamped()
-                m.header.stamp.sec, m.header.stamp.nanosec = divmod(t + dt, 10**9)
-                m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = (float(x) for x in force)
-                w.write(cw, t + dt + 1000, serialize_message(m))
+                m.header.stamp.sec, m.header.stamp.nanosec = divmod(ts, 10**9)
+                m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = (float(x) for x in f)
+                w.write(cw, ts + int(rng.uniform(1e6, 3e6)), serialize_message(m))
             k += 1
+
+        for v in tare:
+            put(v, np.zeros(3), np.zeros(3))
+        loads = [np.zeros(3)] + list(forces)
+        for n, (v, f) in enumerate(zip(frames, forces)):
+            for step in range(MOVING):  # the change from the previous load: the rubber is already at v
+                a, b = loads[n] + (f - loads[n]) * step / MOVING, loads[n] + (f - loads[n]) * (step + 1) / MOVING
+                put(v, a, b)
+            for _ in range(HOLD):
+                put(v, f, f)
+    got_v, got_f, n_v, n_w = read_bag(tmp_path / "bag", "/cstomo_sensor/raw_voltages", "/ft/wrench", 0.005)
+    assert n_v == len(tare) + len(frames) * (HOLD + MOVING) and n_w == 2 * n_v
+    loaded = np.linalg.norm(got_f, axis=1) > 0
+    assert loaded.sum() == len(held)  # every held frame, and not one frame of a change
+    for v, f in zip(got_v[loaded], got_f[loaded]):  # each with its own load
+        (i,) = np.flatnonzero((np.float32(frames) == np.float32(v)).all(axis=1))
+        np.testing.assert_array_equal(f, forces[i])
     assert main([*common, "--bag", str(tmp_path / "bag"), "--wrench-topic", "/ft/wrench", "--stamp-tolerance",
-                 "0.005", "--out", str(tmp_path / "bag.yaml")]) == 0
+                 "0.005", "--reference", str(tmp_path / "ref.csv"), "--out", str(tmp_path / "bag.yaml")]) == 0
     a, b = DeviceCalibration.load(tmp_path / "csv.yaml"), DeviceCalibration.load(tmp_path / "bag.yaml")
-    assert a.fitted_on["loads"] == b.fitted_on["loads"] == 10
+    assert a.fitted_on["loads"] == b.fitted_on["loads"]
     np.testing.assert_allclose(b.force_map, a.force_map, rtol=0, atol=1e-6)
     # the CSV frames carry 10 significant digits; the correction fits changes ~1e-3 of the voltages
     np.testing.assert_allclose(b.correction, a.correction, rtol=0, atol=1e-5 * np.abs(a.correction).max())

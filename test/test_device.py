@@ -1,4 +1,4 @@
-"""The device's own reference (REFERENCE_SENSOR.md section 8): normalisation by the tare, the scale
+"""The device's own reference (docs/physics.md#real-devices): normalisation by the tare, the scale
 report, noise from the tare.
 
 Stated tolerances: voltages scaled by a constant give the unscaled forces to 1e-9 N; at 40 dB with
@@ -18,7 +18,8 @@ from cstomo_sensor.force.device import (
     reference_of,
     write_reference,
 )
-from cstomo_sensor.force.pipeline import FrameProcessor, Pipeline, PipelineConfig
+from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.stream import FrameStream
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
 
@@ -75,7 +76,7 @@ def test_tare_measures_the_noise_and_the_estimators_use_it(pipes, device):
     ref0 = device[0]
     rng = np.random.default_rng(8)
     pipe = pipes["linear"]
-    proc = FrameProcessor(pipe)
+    proc = FrameStream(pipe)
     proc.start_tare(50)
     std = np.sqrt(np.mean(ref0**2)) * 10 ** (-40 / 20)
     for v in add_noise(np.repeat(ref0[None], 50, 0), ref0, 40, rng):

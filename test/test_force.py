@@ -1,4 +1,4 @@
-"""Force estimation and stress images on honestly simulated scenes (REFERENCE_SENSOR.md s.4, s.7).
+"""Force estimation and stress images on honestly simulated scenes (docs/physics.md#loads, #honest-simulation).
 
 Stated tolerances: each estimator recovers the paper's planar cases (20 N at 30, 90, 120 deg,
 60 dB) within 5 degrees and 10 % of the magnitude; on held-out random forces (5-40 N, elevation

@@ -4,6 +4,7 @@ import pytest
 from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.cache import cache_load, cache_save
+from cstomo_sensor.errors import MeshError
 from cstomo_sensor.model.cem import CEMSystem, ForwardModel, local_stiffness
 from cstomo_sensor.model.mesh import MeshSpec, TetMesh, build_mesh, face_patch
 
@@ -148,3 +149,36 @@ def test_cache_key_changes_with_every_mesh_input(cuboid):
     assert input_hash(_mesh_inputs(moved, MeshSpec(h=4e-3))) != base
     assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4.1e-3))) != base
     assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3, refine_socket=False))) != base
+
+
+def test_meshing_leaves_nothing_in_the_working_directory(tmp_path, monkeypatch):
+    """pytetwild (fTetWild) writes ``__tracked_surface.stl`` into its working directory: a mesh built
+    from here (the disc at 5 mm: a few seconds, not shipped, an empty cache) leaves the directory
+    it was started in empty, and the mesher's temporary directory is removed."""
+    from cstomo_sensor.model.geometry import load_sensor
+
+    cwd, tmp = tmp_path / "cwd", tmp_path / "tmp"
+    cwd.mkdir()
+    tmp.mkdir()
+    monkeypatch.chdir(cwd)
+    monkeypatch.setattr("tempfile.tempdir", str(tmp))
+    mesh = build_mesh(load_sensor("disc"), MeshSpec(h=5e-3), tmp_path / "cache")
+    assert mesh.info["cache_hit"] is False and mesh.n_cells > 1000
+    assert list(cwd.iterdir()) == [] and list(tmp.iterdir()) == []
+
+
+@pytest.mark.parametrize("child,exc,match", [
+    ("import sys; print('tetwild: boom', file=sys.stderr); sys.exit(5)", MeshError, "exit status 5.*boom"),
+    ("import sys; sys.exit(3)", ModuleNotFoundError, "pytetwild"),
+])
+def test_a_failing_mesher_is_a_named_error(monkeypatch, child, exc, match):
+    """The child process that runs pytetwild: a crash is a MeshError with its last words, a missing
+    pytetwild a ModuleNotFoundError naming it (as the import in this process was)."""
+    from cstomo_sensor.model import mesh as meshmod
+
+    monkeypatch.setattr(meshmod, "_TETWILD_CHILD", child)
+    with pytest.raises(exc, match=match) as info:
+        meshmod._tetrahedralize(np.zeros((3, 3)), np.zeros((1, 3), np.int32), 1e-3, np.zeros((4, 3)),
+                                np.zeros((1, 4), np.int32), np.ones(4))
+    if exc is ModuleNotFoundError:
+        assert info.value.name == "pytetwild"

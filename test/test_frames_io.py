@@ -1,4 +1,4 @@
-"""The CSV readers of REFERENCE_SENSOR.md section 6 and the command line on bad input files: every
+"""The CSV readers of docs/formats.md and the command line on bad input files: every
 problem is a package error naming the file and the line, never a raw ValueError or a lost row; the
 tools print one line, exit 2 and leave no half-written output."""
 from __future__ import annotations
@@ -177,7 +177,7 @@ def test_atomic_write_leaves_no_half_written_file(tmp_path):
 
 
 def test_forces_file_consistency_columns(tmp_path):
-    """The optional consistency and foreign_load columns (REFERENCE_SENSOR.md section 6): written after
+    """The optional consistency and foreign_load columns (docs/formats.md#forces-file): written after
     valid, empty for a frame without a statistic, ignored by the reader."""
     from cstomo_sensor.errors import FrameError
     from cstomo_sensor.frames_io import read_forces, write_forces

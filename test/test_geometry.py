@@ -1,4 +1,4 @@
-"""Sensor geometry files: presets as in REFERENCE_SENSOR.md, and clear errors for bad input."""
+"""Sensor geometry files: presets as in docs/physics.md#geometry, and clear errors for bad input."""
 import copy
 import re
 
@@ -172,3 +172,52 @@ def test_fuzz_random_yaml_text_raises_only_package_errors(tmp_path_factory, raw)
         load_sensor(f)
     except CstomoError:
         pass
+
+
+# --- the schema: required keys, defaults (issue 19) -------------------------------------------------
+
+@pytest.mark.parametrize("key", ["tau", "E"])
+def test_a_missing_material_key_is_logged_with_the_value_used(cuboid_dict, caplog, key):
+    from cstomo_sensor.model.material import Material
+
+    d = copy.deepcopy(cuboid_dict)
+    del d["material"][key]
+    with caplog.at_level("WARNING", logger="cstomo_sensor.model.geometry"):
+        g = sensor_from_dict(d, source="s.yaml")
+    nominal = getattr(Material(), key)
+    assert getattr(g.material, key) == nominal
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and "s.yaml" in warned[0] and f"material.{key} = {nominal:g}" in warned[0], warned
+    assert "material.nu" not in warned[0]  # only the missing key is named
+
+
+def test_a_complete_sensor_file_logs_nothing(cuboid_dict, caplog):
+    with caplog.at_level("DEBUG", logger="cstomo_sensor.model.geometry"):
+        sensor_from_dict(copy.deepcopy(cuboid_dict))
+    assert not caplog.records
+
+
+@pytest.mark.parametrize("where,key", [("", "materials"), ("material", "rho"), ("body", "radius"),
+                                       ("electrodes", "count"), ("socket", "depth")])
+def test_an_unknown_key_is_refused_naming_it(cuboid_dict, where, key):
+    d = copy.deepcopy(cuboid_dict)
+    (d[where] if where else d)[key] = 1.0
+    with pytest.raises(ConfigError, match=f"unknown keys \\['{key}'\\] in {where or 'the top level'}"):
+        sensor_from_dict(d)
+
+
+def test_the_schema_names_every_key_of_the_full_preset_and_the_required_ones_are_required(cuboid_dict):
+    from cstomo_sensor.model.geometry import REQUIRED, SENSOR_SCHEMA
+
+    assert set(SENSOR_SCHEMA) == set(cuboid_dict)
+    for top, spec in SENSOR_SCHEMA.items():
+        if isinstance(spec, dict):
+            assert set(spec) == set(cuboid_dict[top]), top
+        subkeys = spec.items() if isinstance(spec, dict) else [(None, spec)]
+        for sub, default in subkeys:
+            if default is not REQUIRED:
+                continue
+            d = copy.deepcopy(cuboid_dict)
+            (d[top] if sub else d).pop(sub or top)
+            with pytest.raises(ConfigError, match=re.escape(f"missing key '{top + '.' + sub if sub else top}'")):
+                sensor_from_dict(d)

@@ -1,7 +1,7 @@
 """The house rules: the layers' import contract, no cycles, no heavy import in the core, one source of
 truth for the settings, and the lint.
 
-Layers (DESIGN.md): the core (``model``, ``inverse``, ``force``, ``board`` and the top-level helpers)
+Layers (README.md, "What is where"): the core (``model``, ``inverse``, ``force``, ``board`` and the top-level helpers)
 never imports ``ros`` or ``tools``; ``ros`` never imports ``tools``. Imports are read as text (module
 level and inside functions), so a function-level import cannot hide a crossing.
 """
@@ -159,3 +159,13 @@ def test_ruff_finds_nothing():
     out = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "."], capture_output=True, text=True,
                          cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_the_default_sensor_is_named_only_where_it_is_defined():
+    """``DEFAULT_SENSOR`` (model/geometry.py) is the one place the default sensor's name is written
+    in code; every other module imports it (docstrings and comments may name it)."""
+    from cstomo_sensor.model.geometry import DEFAULT_SENSOR
+
+    wrong = [f"{m}:{n.lineno}" for m, p in MODULES.items() if m != "cstomo_sensor.model.geometry"
+             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Constant) and n.value == DEFAULT_SENSOR]
+    assert not wrong, wrong

@@ -1,4 +1,4 @@
-"""The piezoresistive law (REFERENCE_SENSOR.md s.3) against hand-computed values and its limits."""
+"""The piezoresistive law (docs/physics.md#material-law) against hand-computed values and its limits."""
 import math
 
 import numpy as np

@@ -14,7 +14,8 @@ from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm
 from skfem.models.elasticity import lame_parameters, linear_elasticity
 
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.model.elasticity import solve, solve_patch_load, solve_socket_load, uniaxial_compression
+from cstomo_sensor.model import elastic_fem
+from cstomo_sensor.model.elasticity import FACE_TOL, MechanicsSolution, solve, solve_patch_load, solve_socket_load
 from cstomo_sensor.model.geometry import load_sensor
 from cstomo_sensor.model.material import Material
 
@@ -93,6 +94,28 @@ def force_from(gamma_deg=None, elevation_deg=None, azimuth_deg=0.0, magnitude=20
 
 
 # -- exact: uniaxial compression ------------------------------------------------------------
+def uniaxial_compression(points, tets, material: Material, pressure: float) -> MechanicsSolution:
+    """A cuboid compressed between frictionless plates: the exact check of the solver.
+
+    Rollers on the faces x = min, y = min and z = min (normal displacement zero: no friction, no
+    rigid motion), uniform pressure on z = max, through the library's P2 problem (elastic_fem). The
+    exact solution is uniform strain eps_zz = -p/E, eps_xx = eps_yy = nu p / E,
+    theta = (1 - 2 nu) p / E, which P2 reproduces.
+    """
+    p, t = elastic_fem.check_mesh(points, tets)
+    prob = elastic_fem.problem(p, t, material)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    tol = FACE_TOL * float((hi - lo).max())
+    fixed = []
+    for k in range(3):  # dofs are interleaved x, y, z at every location: component = index mod 3
+        on = prob.basis.get_dofs(lambda x, k=k: np.abs(x[k] - lo[k]) <= tol).flatten()
+        fixed.append(on[on % 3 == k])
+    fixed_all = np.unique(np.concatenate([np.ravel(a) for a in fixed]).astype(np.int64))
+    bf, fp = prob.boundary_facets()
+    fb = prob.facet_basis(bf[(np.abs(fp[2] - hi[2]) <= tol).all(axis=0)], 2)  # constant traction: order 2 is exact
+    return prob.solve_traction(fb, -float(pressure) * fb.normals, fixed_all, {"type": "uniaxial", "pressure": float(pressure)})
+
+
 def test_uniaxial_compression_is_exact():
     E, nu, p = 1.0e6, 0.45, 2.0e3
     lx, ly, lz = 0.01, 0.02, 0.015
@@ -257,7 +280,7 @@ def test_many_socket_loads_share_one_factorisation_and_solve_exactly(medium, mon
         calls.append(A.shape)
         return cem.symmetric_lu(A)
 
-    monkeypatch.setattr(elasticity, "symmetric_lu", counting_lu)
+    monkeypatch.setattr(elastic_fem, "symmetric_lu", counting_lu)
     elasticity.release()
     p, t = medium
     mesh = MeshTet(p.T, t.T)

@@ -14,7 +14,7 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from geometry_msgs.msg import WrenchStamped  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import PointCloud2, PointField  # noqa: E402
-from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension  # noqa: E402
+from std_msgs.msg import Float64  # noqa: E402
 
 from cstomo_sensor.ros.messages import CLOUD_FIELDS, OutputMessages, RawVoltagesCdr  # noqa: E402
 
@@ -165,15 +165,32 @@ def test_scene_cloud_and_consistency_equal_rclpy():
 
 
 def test_raw_voltages_equal_rclpy():
+    """The stamped raw frame (sensor_msgs/Image 32FC1, 1 x 208) from the template equals rclpy's own
+    serialisation of the message, reads back with its stamp, and NaN marks the flagged measurements."""
+    from sensor_msgs.msg import Image
+
+    from cstomo_sensor.ros.messages import frame_from_raw_msg, legacy_raw_voltages_msg
+
     rng = np.random.default_rng(5)
-    cdr = RawVoltagesCdr()
-    for _ in range(3):
+    cdr = RawVoltagesCdr("left_socket")
+    for ns in (0, 1_700_000_000_123_456_789, 2**31 * 10**9 - 1):
         v = rng.normal(size=208) * 0.1
-        ref = Float32MultiArray()
-        ref.layout.dim = [MultiArrayDimension(label="measurement", size=208, stride=208)]
-        ref.data = v.astype(np.float32).tolist()
-        data = cdr(v)
+        ref = Image()
+        ref.header.stamp = _time(ns)
+        ref.header.frame_id = "left_socket"
+        ref.height, ref.width, ref.encoding, ref.is_bigendian, ref.step = 1, 208, "32FC1", 0, 832
+        ref.data = v.astype("<f4").tobytes()
+        data = cdr(v, ns)
         _same_cdr(data, ref)
-        back = deserialize_message(data, Float32MultiArray)
-        assert back.layout.dim[0].label == "measurement" and back.layout.dim[0].size == 208
-        np.testing.assert_array_equal(np.asarray(back.data), v.astype(np.float32))
+        values, flagged, stamp = frame_from_raw_msg(deserialize_message(data, Image))
+        np.testing.assert_array_equal(values, v.astype(np.float32))
+        assert flagged is None and stamp == (ns or None)
+    flag = np.zeros(208, bool)
+    flag[[3, 100]] = True
+    values, flagged, _ = frame_from_raw_msg(deserialize_message(cdr(v, 5, flag), Image))
+    assert np.array_equal(flagged, flag) and np.isnan(values[flag]).all() and np.isfinite(values[~flag]).all()
+    legacy = legacy_raw_voltages_msg(v)  # older recordings: no stamp
+    assert legacy.layout.dim[0].label == "measurement"
+    values, flagged, stamp = frame_from_raw_msg(legacy)
+    np.testing.assert_array_equal(values, v.astype(np.float32))
+    assert flagged is None and stamp is None

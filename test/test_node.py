@@ -317,7 +317,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     assert int(v["corrupt"]) > 0 and lost <= inj["bit_flip"] + inj.get("overrun", 0) + 2, (v, inj)
     assert int(v["resyncs"]) > 0
     logs = [(m.level, m.name, m.msg) for _, m in rosout]
-    assert any(level == Log.WARN and name == "cstomo_rosout" and msg.startswith("force.pipeline: excluding")
+    assert any(level == Log.WARN and name == "cstomo_rosout" and msg.startswith("force.stream: excluding")
                for level, name, msg in logs), logs
 
     assert v["saturated_channels"] == "1" and v["dead_electrodes"] == "4"

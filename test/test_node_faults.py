@@ -52,13 +52,13 @@ class Script:
         return np.zeros(3)
 
 
-# --- the core: FrameProcessor -----------------------------------------------------------------------
+# --- the core: FrameStream -----------------------------------------------------------------------
 
 
 def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_in_step(pipe, source):
-    from cstomo_sensor.force.pipeline import FrameProcessor
+    from cstomo_sensor.force.stream import FrameStream
 
-    proc = FrameProcessor(pipe)
+    proc = FrameStream(pipe)
     pipe.set_reference(source.frames[UNLOADED].mean(axis=0))
     v = source.frames[40]
     ok = np.ones(16, bool)
@@ -87,10 +87,10 @@ def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_i
 def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     """60 dB noise passes for 2..20 frames; a 20 N load arriving during the tare is refused and the
     old reference stays; without any reference a refused or cancelled tare starts over."""
-    from cstomo_sensor.force.pipeline import TARE_MAX_SPREAD, FrameProcessor
+    from cstomo_sensor.force.stream import TARE_MAX_SPREAD, FrameStream
 
     ended = []
-    proc = FrameProcessor(pipe, on_tare=ended.append)
+    proc = FrameStream(pipe, on_tare=ended.append)
     for n in (2, 5, 20):
         proc.start_tare(n)
         for v in source.frames[:n]:
@@ -196,7 +196,7 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
 
 
 def test_tare_on_a_moving_joint_is_refused_and_changes_nothing(ros, tmp_path, source, warm_model):
-    from cstomo_sensor.force.pipeline import TARE_MAX_SPREAD
+    from cstomo_sensor.force.stream import TARE_MAX_SPREAD
 
     script = Script(source, t_load=0.0, wobble=0.4)  # 0 -> 20 N -> 0 every 0.4 s
     h, board = start(ros, tmp_path, script, rate=100.0, tare_frames=20)

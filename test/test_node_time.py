@@ -47,7 +47,7 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
         assert wait_for(lambda: len(wr) > 50, 10.0), len(wr)
         step["at"] = t_step = time.monotonic() + 0.2
         assert wait_for(lambda: time.monotonic() > t_step + 2.5, 5.0)
-        late = h.node._stats.late
+        late = h.node.stream.counts.late
     finally:
         stop.set()
         clock.join()
@@ -116,7 +116,7 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
     5 % is WARN (above LOSS_WARN = 1 % over the last 5 s), 40 % is ERROR (above LOSS_ERROR = 20 %);
     the message says how many and of what kind. Before issue 14 gaps never raised the level."""
     from cstomo_sensor.board.sim import FaultConfig
-    from cstomo_sensor.ros.node import LOSS_ERROR, LOSS_WARN
+    from cstomo_sensor.force.stream import LOSS_ERROR, LOSS_WARN
 
     assert LOSS_WARN < 0.05 < LOSS_ERROR < 0.4
     h, board = start(ros, tmp_path, source, faults=FaultConfig(drop=drop), rate=100.0, tare_on_start=True,

@@ -4,7 +4,7 @@ import pytest
 from cstomo_sensor.model.pattern import MeasurementPattern
 
 # (row, drive pair, measure pair), 1-based, transcribed from the paper's appendix B (one layer).
-# "20 6,7 8,9" is printed with a garbled row number: it is row 70 (REFERENCE_SENSOR.md s.2).
+# "20 6,7 8,9" is printed with a garbled row number: it is row 70 (docs/physics.md#measurement-order).
 APPENDIX_B = """
 1 1,2 3,4; 2 1,2 4,5; 5 1,2 7,8; 13 1,2 15,16; 14 2,3 4,5; 25 2,3 15,16; 26 2,3 16,1;
 27 3,4 1,2; 28 3,4 5,6; 39 3,4 16,1; 40 4,5 1,2; 41 4,5 2,3; 42 4,5 6,7; 52 4,5 16,1;

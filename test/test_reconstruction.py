@@ -2,10 +2,11 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from reference_landweber import landweber
 
 from cstomo_sensor.cache import input_hash
 from cstomo_sensor.errors import ConfigError, FrameError, ModelMismatchError
-from cstomo_sensor.inverse.landweber import LandweberSVD, column_weight, landweber
+from cstomo_sensor.inverse.landweber import LandweberSVD, column_weight
 from cstomo_sensor.inverse.reconstruction import ReconSpec, ReconstructionModel, model_inputs
 from cstomo_sensor.model.pattern import MeasurementPattern
 from cstomo_sensor.model.simulate import Load, add_noise

@@ -38,13 +38,12 @@ def read_bag(path):
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
 
-    from cstomo_sensor.ros.messages import TOPIC_TYPES
     from cstomo_sensor.ros.node import _msg_class
 
     out: dict[str, list] = {}
     with Reader(path) as r:
         for c, t, raw in r.messages():
-            cls = _msg_class(TOPIC_TYPES[c.topic.rsplit("/", 1)[-1]])
+            cls = _msg_class(c.msgtype)
             out.setdefault(c.topic, []).append((t, deserialize_message(bytes(raw), cls)))
     return out
 
@@ -70,7 +69,7 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
     assert s.frames_in == len(inputs) and s.corrupt == 0 and s.results == len(inputs) - TARE
     assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field", "consistency",
-                                                                         "scene_stress_field")}
+                                                                         "scene_stress_field", "wrench_filtered")}
     assert len(msgs["/cstomo_sensor/consistency"]) == s.results
     assert s.foreign_load == 0  # the bag's loads are on the socket
     rows = force_rows(msgs)
@@ -148,27 +147,68 @@ def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config
         replay(tmp_path / "out", tmp_path / "out2", config)
 
 
-def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
-    """The bag is played with its own timing by a test publisher into ~/raw_voltages_in."""
+MASKED = range(30, 36)  # frames whose channel 7 the board flagged (NaN in the recorded message)
+ZEROED = 45             # an all-zero frame: implausible
+OUTPUT_TOPICS = FORCE_TOPICS + ("wrench_filtered", "consistency", "stress_field", "scene_stress_field")
+
+
+def _edited_inputs():
+    """The committed bag's frames as the node now records them (stamped images, stamped with the bag
+    time), with measurement 7 flagged in MASKED and an all-zero frame at ZEROED."""
+    from cstomo_sensor.ros.messages import raw_voltages_msg
+
+    inputs = []
+    for t, msg in read_bag(BAG)["/cstomo_sensor/raw_voltages"]:
+        k = len(inputs)
+        data = np.asarray(msg.data, np.float32).copy()
+        if k in MASKED:
+            data[7] = np.nan
+        if k == ZEROED:
+            data[:] = 0.0
+        inputs.append((t, raw_voltages_msg(data, t)))
+    return inputs
+
+
+def _write_raw_bag(path, inputs):
+    from rclpy.serialization import serialize_message
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from cstomo_sensor.ros.messages import TOPIC_TYPES
+
+    store = get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
+    with Writer(path, version=9) as w:
+        c = w.add_connection("/cstomo_sensor/raw_voltages", TOPIC_TYPES["raw_voltages"], typestore=store)
+        for t, msg in inputs:
+            w.write(c, t, serialize_message(msg))
+
+
+def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe):
+    """The bag's frames as the node records them (stamped; a tare at the start, a flagged measurement
+    in frames 30..35, an all-zero frame) are played with their timing by a test publisher into
+    ~/raw_voltages_in, and replayed from a bag of the same messages: every topic (wrench, filtered
+    wrench, angles, magnitude, consistency, both stress fields) is identical, message by message,
+    stamps included."""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
-    from std_msgs.msg import Float32MultiArray, Float64
+    from sensor_msgs.msg import Image, PointCloud2
+    from std_msgs.msg import Float64
 
-    s, want = replayed
-    inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
+    from cstomo_sensor.ros.messages import TOPIC_TYPES
+    from cstomo_sensor.tools.replay import replay
+
+    inputs = _edited_inputs()
+    outputs = [k for k in range(len(inputs)) if k >= TARE and k != ZEROED]  # the frames that give a force
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     params = dict(PIPE, input="topic", tare_on_start=True, tare_frames=TARE, stress_field_every=EVERY,
                   qos_reliability="reliable", qos_depth=1000, tare_file=str(tmp_path / "tare.csv"), stale_timeout=2.0)
     h = Harness(ctx, params)
+    types = {"geometry_msgs/msg/WrenchStamped": WrenchStamped, "std_msgs/msg/Float64": Float64,
+             "sensor_msgs/msg/PointCloud2": PointCloud2}
     try:
-        got = {t: h.record(f"/cstomo_sensor/{t}", Float64) for t in FORCE_TOPICS[1:]}
-        got["wrench"] = h.record("/cstomo_sensor/wrench", WrenchStamped)
-        got["stress_field"] = h.record("/cstomo_sensor/stress_field", PointCloud2)
-        got["scene_stress_field"] = h.record("/cstomo_sensor/scene_stress_field", PointCloud2)
-        got["consistency"] = h.record("/cstomo_sensor/consistency", Float64)
-        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+        got = {t: h.record(f"/cstomo_sensor/{t}", types[TOPIC_TYPES[t]]) for t in OUTPUT_TOPICS}
+        pub = h.probe.create_publisher(Image, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
                         and all(h.probe.count_publishers(f"/cstomo_sensor/{t}") for t in got))
@@ -178,21 +218,28 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, replayed):
             if delay > 0:
                 time.sleep(delay)
             pub.publish(msg)
-        assert wait_for(lambda: len(got["wrench"]) >= s.results, 30.0), len(got["wrench"])
+        assert wait_for(lambda: len(got["wrench"]) >= len(outputs), 30.0), len(got["wrench"])
         time.sleep(0.2)
         assert Path(tmp_path / "tare.csv").is_file()
+        kv = {v.key: v.value for v in h.node.diagnostics().values}
     finally:
         h.close()
         rclpy.try_shutdown(context=ctx)
-    node_msgs = {f"/cstomo_sensor/{t}": [(0, m) for _, m in v] for t, v in got.items()}
-    np.testing.assert_array_equal(force_rows(node_msgs), force_rows(want))
-    clouds_node = [m.data for _, m in got["stress_field"]]
-    clouds_replay = [m.data for _, m in want["/cstomo_sensor/stress_field"]]
-    assert len(clouds_node) == len(clouds_replay) and all(a == b for a, b in zip(clouds_node, clouds_replay))
-    for t in ("scene_stress_field", "consistency"):  # the new outputs: the same, frame by frame
-        node_t = [m.data for _, m in got[t]]
-        replay_t = [m.data for _, m in want[f"/cstomo_sensor/{t}"]]
-        assert len(node_t) == len(replay_t) and all(np.array_equal(a, b) for a, b in zip(node_t, replay_t)), t
+    assert len(got["wrench"]) == len(outputs) and kv["implausible"] == "1", (len(got["wrench"]), kv)
+    _write_raw_bag(tmp_path / "stamped", inputs)
+    s = replay(tmp_path / "stamped", tmp_path / "out", config, tare_frames=TARE, stress_field_every=EVERY,
+               pipeline=pipe)
+    want = read_bag(tmp_path / "out")
+    assert s.implausible == 1 and s.results == len(outputs)
+    assert set(want) == {f"/cstomo_sensor/{t}" for t in OUTPUT_TOPICS}
+    for t in OUTPUT_TOPICS:
+        node_t = [m for _, m in got[t]]
+        replay_t = [m for _, m in want[f"/cstomo_sensor/{t}"]]
+        assert len(node_t) == len(replay_t) > 0 and node_t == replay_t, t  # every field, stamps included
+    wrench_stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in got["wrench"]]
+    assert wrench_stamps == [inputs[k][0] for k in outputs]  # the frames' own stamps, not the reception's
+    masked = [outputs.index(k) for k in MASKED]  # the flagged measurement changed the forces, not dropped them
+    assert np.isfinite(force_rows(want)[masked]).all()
 
 
 def test_replay_writes_nothing_for_implausible_frames_and_counts_them(tmp_path, config, pipe, capsys):
@@ -255,7 +302,8 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     code, io, out = run(tmp_path / "strings")
     assert code == 2 and not out.exists() and "Traceback" not in io.err
     assert io.err.strip().splitlines()[-1] == ("cstomo replay: topic /cstomo_sensor/raw_voltages: message type "
-                                               "std_msgs/msg/String, expected std_msgs/msg/Float32MultiArray")
+                                               "std_msgs/msg/String, expected sensor_msgs/msg/Image (or "
+                                               "std_msgs/msg/Float32MultiArray of older recordings)")
 
     _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 5)
     code, io, out = run(tmp_path / "garbage")
@@ -270,3 +318,26 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     code, io, out = run(tmp_path / "one_bad")
     assert code == 0 and "; 1 corrupt;" in io.out, io
     assert len(read_bag(out)["/cstomo_sensor/wrench"]) == len(raws) - TARE - 1
+
+
+def test_a_failing_replay_writes_nothing_and_repeated_errors_are_throttled(tmp_path, capsys, caplog):
+    """--forces into a missing directory or onto a directory: exit 2 with one line, no output bag and
+    nothing beside it; a bag of 20 garbage messages: one line for them (not one per message)."""
+    from cstomo_sensor.tools.replay import main
+
+    base = [str(BAG), "--mesh-size", str(PIPE["mesh_size"]), "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE)]
+    (tmp_path / "a_dir").mkdir()
+    for forces in (tmp_path / "missing" / "f.csv", tmp_path / "a_dir"):
+        out = tmp_path / "out"
+        assert main([*base, "--out", str(out), "--forces", str(forces)]) == 2
+        err = capsys.readouterr().err
+        assert err.strip().splitlines()[-1].startswith("cstomo replay: ") and "Traceback" not in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a_dir"] and not list((tmp_path / "a_dir").iterdir())
+
+    _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 20)
+    caplog.clear()
+    assert main([str(tmp_path / "garbage"), "--out", str(tmp_path / "out2"), *base[1:]]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "none of the 20 messages" in err[-1], err
+    dropped = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
+    assert len(dropped) == 1, dropped

@@ -17,11 +17,12 @@ from cstomo_sensor.force.estimate import CalibrationSpec, calibration_set
 from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
 from cstomo_sensor.model import mesh as meshmod
 from cstomo_sensor.model.mesh import MeshSpec, build_mesh
+from cstomo_sensor.model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE
 
 #: The meshes the default model, its calibration and the default simulated device need.
 DEFAULT_SPECS = [MeshSpec(h=ReconSpec.mesh_size), MeshSpec(h=CalibrationSpec.mechanics_mesh_size,
                                                               h_electrode=CalibrationSpec.mechanics_mesh_size),
-                 MeshSpec(h=3e-3), MeshSpec(h=4e-3, h_electrode=4e-3)]
+                 MeshSpec(h=TRUTH_MESH_SIZE), MeshSpec(h=MECHANICS_MESH_SIZE, h_electrode=MECHANICS_MESH_SIZE)]
 
 BUILD = """
 import json, sys, numpy as np

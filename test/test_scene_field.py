@@ -1,5 +1,5 @@
 """The scene's own stress field and the foreign-load flag (force/scene_field.py), on honest
-simulations (REFERENCE_SENSOR.md section 7: the truth's mechanics on its own 4 mm mesh, the scene
+simulations (docs/physics.md#honest-simulation: the truth's mechanics on its own 4 mm mesh, the scene
 field's on the calibration's 6 mm mesh; forward truth on an independent 3 mm mesh, mismatched).
 
 Stated levels: the scene field of the estimated force correlates with the truth's volumetric
@@ -102,6 +102,30 @@ def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
         errs.append(np.linalg.norm(sf.theta(d) - t) / np.linalg.norm(t))
     elasticity.release()
     assert max(errs) < 0.1, errs
+
+
+def test_the_calibration_and_the_scene_field_share_one_mechanics(cuboid, cuboid_model, tmp_path, monkeypatch):
+    """At a cold start the socket solves run once (socket_mechanics, cached) and serve both the
+    calibration set and the scene field, whose directions are the calibration's; a stale mechanics
+    entry is rebuilt, not used."""
+    from cstomo_sensor.cache import cache_save
+    from cstomo_sensor.force.estimate import calibration_set, socket_mechanics
+    from cstomo_sensor.force.scene_field import per_newton_fields
+
+    solve, calls = elasticity.solve_socket_load, []
+    monkeypatch.setattr(elasticity, "solve_socket_load", lambda *a: calls.append(a[3]) or solve(*a))
+    spec = CalibrationSpec(n_directions=4, magnitudes=(10.0,))
+    forces, _ = calibration_set(cuboid, cuboid_model, spec, tmp_path)
+    dirs, theta = per_newton_fields(cuboid, cuboid_model, spec, tmp_path)
+    assert len(calls) == 4 and np.array_equal(np.array(calls), dirs) and np.array_equal(forces, 10.0 * dirs)
+    mech, _, theta_v = socket_mechanics(cuboid, spec, tmp_path)
+    assert len(calls) == 4 and theta_v.shape == (4, len(mech.tets), 4)
+    sample = elasticity.point_sampler(mech.points, mech.tets, cuboid_model.centers)
+    assert np.array_equal(theta, [sample(t) for t in theta_v])
+    (entry,) = (tmp_path / "socket_mechanics").glob("*.npz")
+    cache_save(entry, "another-key", theta=np.zeros_like(theta_v))  # stale: built for other inputs
+    assert np.array_equal(socket_mechanics(cuboid, spec, tmp_path)[2], theta_v) and len(calls) == 8
+    elasticity.release()
 
 
 def test_consistency_extremes(pipe):
@@ -229,7 +253,10 @@ def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path,
     from conftest import PIPE, Harness, diag, diag_records, wait_for
     from geometry_msgs.msg import WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import Float32MultiArray, Float64
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float64
+
+    from cstomo_sensor.ros.messages import raw_voltages_msg
 
     truth = Truth(warm_model.geometry, truth_h=TRUTH_H, seed=31)
     rng = np.random.default_rng(3)
@@ -243,11 +270,11 @@ def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path,
         cons = h.record("/cstomo_sensor/consistency", Float64)
         wrench = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
-        pub = h.probe.create_publisher(Float32MultiArray, "/cstomo_sensor/raw_voltages_in",
+        pub = h.probe.create_publisher(Image, "/cstomo_sensor/raw_voltages_in",
                                        QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1, 20.0)
         for v in unloaded + side:
-            pub.publish(Float32MultiArray(data=v.astype(np.float32).tolist()))
+            pub.publish(raw_voltages_msg(v))  # no stamp: the node stamps on reception
             time.sleep(0.01)
         assert wait_for(lambda: len(cons) >= 20 and len(wrench) >= 20, 10.0), (len(cons), len(wrench))
         threshold = h.node.pipe.consistency.threshold

@@ -112,3 +112,29 @@ def test_mesh_size_is_in_metres_everywhere(capsys):
     assert cstomo(["model", "build", "--mesh-size", "4"]) == 2  # millimetres refused, with the fix named
     err = capsys.readouterr().err
     assert "--mesh-size" in err and "metres" in err and "0.004" in err
+
+
+def test_simulate_help_names_the_scene_keys_and_describes_every_option(capsys):
+    from cstomo_sensor.model.simulate import MISMATCH_KEYS, SCENE_KEYS
+    from cstomo_sensor.tools.cli import build_parser
+
+    with pytest.raises(SystemExit) as done:
+        cstomo(["simulate", "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    missing = [k for k in SCENE_KEYS + MISMATCH_KEYS + ("socket", "patches", "inclusion", "total_force")
+               if k not in text]
+    assert not missing, text
+    sim = build_parser()._subparsers._group_actions[0].choices["simulate"]
+    assert all(a.help for a in sim._actions), [a.dest for a in sim._actions if not a.help]
+
+
+@pytest.mark.parametrize("text,key", [("snr: 40\n", "'snr'"), ("mismatch: {jitter: 0.001}\n", "'mismatch.jitter'")])
+def test_a_scene_file_with_an_unknown_key_is_refused_naming_it(tmp_path, text, key):
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.model.simulate import Scene
+
+    f = tmp_path / "scene.yaml"
+    f.write_text("loads:\n  - {socket: {force: [0, 0, -10]}}\n" + text)
+    with pytest.raises(ConfigError, match=key):
+        Scene.load(f)

@@ -17,12 +17,11 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import FrameError
+from ..model.geometry import DRIVE_CURRENT_A, N_ELECTRODES
 
 PROTOCOL_VERSION = 1
 PROTOCOLS = ("binary", "text")  # the two wire modes a board may speak
 N_VALUES = 208
-N_ELECTRODES = 16
-DRIVE_CURRENT_A = 0.008
 
 _HEADER = struct.Struct("<BBH")  # version, type, payload length
 _CRC = struct.Struct("<I")
@@ -204,7 +203,7 @@ class DataFrame:
     board_time_us : int or None
         Board's monotonic clock at the measurement, microseconds; None in text mode.
     values : (208,) float64 ndarray
-        Volts, in the order of REFERENCE_SENSOR.md section 2 (float32 on the binary wire).
+        Volts, in the order of docs/physics.md#measurement-order (float32 on the binary wire).
     saturated : (208,) bool ndarray
         True where the board's voltage channel saturated for that value.
     contact_ok : (16,) bool ndarray

@@ -1,6 +1,6 @@
 """Device calibration on known loads: the model's physics as the prior, corrected by the data.
 
-A real device (REFERENCE_SENSOR.md section 8) answers a force F with ``y_dev(F)`` (normalised by its
+A real device (docs/physics.md#real-devices) answers a force F with ``y_dev(F)`` (normalised by its
 own tare) that differs from the model's ``y_model(F)``: its rubber is stiffer or softer, more or less
 piezoresistive, its electrodes sit elsewhere. The calibration models the device as::
 
@@ -204,7 +204,7 @@ class DeviceCalibration:
         A, D = tables["force_map"], tables["correction_per_newton"]
         if not 0.2 < abs(np.linalg.det(A)) ** (1 / 3) < 5:
             raise ConfigError.bad_value(f"{where}: force_map", A.round(3).tolist(), "a map near the identity "
-                                        "(a device within REFERENCE_SENSOR.md section 8)")
+                                        "(a device within docs/physics.md#real-devices)")
         return cls(str(doc["sensor"]), str(doc["model_hash"]), str(doc["estimator"]), A, D,
                    float(doc.get("prior_rel", PRIOR_REL)), doc.get("fitted_on") or {}, doc.get("cross_validation") or {},
                    str(path))

@@ -1,4 +1,4 @@
-"""The device's own reference: how it compares with the model, and its noise (REFERENCE_SENSOR.md s.8).
+"""The device's own reference: how it compares with the model, and its noise (docs/physics.md#real-devices).
 
 A real device is never the nominal sensor. Its unloaded frame (the tare) is the reference of every
 difference, and it also tells two things about the device:
@@ -11,7 +11,7 @@ difference, and it also tells two things about the device:
 - **noise**: a tare of N >= 2 frames gives the per-channel standard deviation (volts), which the
   estimators use instead of the assumed :data:`DEFAULT_NOISE_DB` (the default for a one-frame tare).
 
-Files: a reference is a frames file (section 6); several rows are several unloaded frames (mean and
+Files: a reference is a frames file (docs/formats.md#reference-and-noise-files); several rows are several unloaded frames (mean and
 spread). The node saves a tare as a one-row frames file and its noise beside it (``<tare>.noise.csv``,
 one row of volts), read back by :func:`read_reference`. The one row is the mean of N frames: a comment
 line ``# reference frames: N`` records N (the reference's own noise is the frame's / sqrt(N), which the
@@ -27,17 +27,18 @@ import numpy as np
 
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame, read_frames, write_frames
+from ..model.geometry import DEFAULT_SNR_DB
 
-#: The noise assumed without a measurement (one-frame reference): 60 dB, the default scene (s.5).
-DEFAULT_NOISE_DB = 60.0
-#: Global factors of a rubber within section 8 that need no comment (beyond: a WARN naming it).
+#: The noise assumed without a measurement (one-frame reference): 60 dB, the default scene (docs/physics.md#noise).
+DEFAULT_NOISE_DB = DEFAULT_SNR_DB
+#: Global factors of a rubber within docs/physics.md#real-devices that need no comment (beyond: a WARN naming it).
 SCALE_OK = (0.5, 2.0)
 #: The relative rms of the reference that the global factor does not explain, above which the tare
 #: report is a WARN. Measured: 1.8 % for an honestly simulated nominal device (0.2 mm jitter), 4.2 %
 #: for scenes/devices/cuboid_joint_device_a.yaml (electrodes up to 0.5 mm off, contact 2 x +-30 %);
 #: two drive pairs' rows swapped (a wiring error) give far more (test_device.py).
 UNEXPLAINED_WARN = 0.05
-#: A measured noise (std / rms of the reference) outside these SNRs is not a noise of a board (s.8:
+#: A measured noise (std / rms of the reference) outside these SNRs is not a noise of a board (docs/physics.md#real-devices:
 #: 40..70 dB): a saved noise file outside is refused.
 NOISE_DB_RANGE = (10.0, 120.0)
 #: The comment of a saved one-row reference that records how many frames it is the mean of.

@@ -3,8 +3,9 @@
 Calibration (once per sensor and reconstruction model, cached): forces on a Fibonacci set of
 directions (elevation 15..90 deg, every azimuth) and several magnitudes (5..40 N) are pushed through
 the mechanics (frictionless socket contact; one solve per direction, as the contact problem is
-positively homogeneous in the force), the material law and the forward model on the
-reconstruction's mesh, giving normalised voltage changes y (REFERENCE_SENSOR.md, reconstruction
+positively homogeneous in the force; :func:`socket_mechanics`, cached and shared with the scene
+field), the material law and the forward model on the
+reconstruction's mesh, giving normalised voltage changes y (README, *Numerical choices*, and the reconstruction
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
 - ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
@@ -19,6 +20,7 @@ Both honour the bad-channel mask (``masked``), which refits the ridge map on the
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from dataclasses import dataclass
@@ -31,14 +33,15 @@ from ..errors import ConfigError
 from ..inverse.reconstruction import ReconstructionModel
 from ..model import elasticity
 from ..model.cem import ForwardModel
-from ..model.geometry import SensorGeometry
+from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.material import conductivity_of_theta
-from ..model.mesh import MeshSpec, build_mesh
+from ..model.mesh import MeshSpec, TetMesh, build_mesh
 from .tps import ThinPlateSpline
 
 log = logging.getLogger(__name__)
 
 CALIB_FORMAT = 1
+MECHANICS_FORMAT = 1
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,7 @@ class CalibrationSpec:
     min_elevation_deg: float = 15.0
     mechanics_mesh_size: float = 6e-3
     ridge: float = 1e-3
-    noise_db: float = 60.0
+    noise_db: float = DEFAULT_SNR_DB
 
 
 def calibration_directions(n: int, min_elevation_deg: float) -> np.ndarray:
@@ -61,6 +64,48 @@ def calibration_directions(n: int, min_elevation_deg: float) -> np.ndarray:
     c = np.sqrt(1 - sin_el**2)
     d = np.column_stack([c * np.cos(az), c * np.sin(az), -sin_el])
     return np.vstack([d, [0.0, 0.0, -1.0]])
+
+
+def socket_mechanics(geometry: SensorGeometry, spec: CalibrationSpec, cache_dir=None,
+                     progress=None) -> tuple[TetMesh, np.ndarray, np.ndarray]:
+    """The calibration's mechanics, shared by the force calibration (:func:`calibration_set`) and the
+    scene field (``scene_field.per_newton_fields``): one socket solve per calibration direction on the
+    mechanics mesh, one factorisation for all of them (cached on disk, keyed by the geometry, the
+    mesh's own arrays and the directions; a stale entry is rebuilt).
+
+    Returns
+    -------
+    mesh : TetMesh
+        The mechanics mesh (``spec.mechanics_mesh_size``).
+    directions : (n, 3) ndarray
+        :func:`calibration_directions` of ``spec``.
+    theta : (n, m, 4) ndarray
+        Volumetric compression per newton along each direction at the vertices of each of the mesh's
+        m cells (``MechanicsSolution.theta_vertices``; sample it with ``elasticity.point_sampler``).
+    """
+    say = progress or (lambda m: log.info("%s", m))
+    h = spec.mechanics_mesh_size
+    mech = build_mesh(geometry, MeshSpec(h=h, h_electrode=h), cache_dir)
+    dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
+    mesh_digest = hashlib.sha256(np.ascontiguousarray(mech.points).tobytes()
+                                 + np.ascontiguousarray(mech.tets, dtype=np.int64).tobytes()).hexdigest()
+    key = input_hash({"format": MECHANICS_FORMAT, "geometry": geometry.digest(), "mesh": mesh_digest,
+                      "directions": dirs})
+    path = Path(cache_dir or default_cache_dir()) / "socket_mechanics" / f"{geometry.name}-{key}.npz"
+    hit = cache_load(path, key, names=("theta",))
+    if hit is not None:
+        return mech, dirs, hit["theta"]
+    t0 = time.perf_counter()
+    theta = np.empty((len(dirs), len(mech.tets), 4))
+    for i, d in enumerate(dirs):
+        # one factorisation of the mechanics serves every direction (elasticity module docstring)
+        theta[i] = elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices
+        if i % 10 == 0:
+            say(f"socket mechanics: direction {i + 1}/{len(dirs)}")
+    elasticity.release()
+    cache_save(path, key, theta=theta)
+    log.info("socket mechanics: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
+    return mech, dirs, theta
 
 
 def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
@@ -76,15 +121,13 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     if hit is not None:
         return hit["forces"], hit["y"]
     t0 = time.perf_counter()
+    mech, dirs, theta = socket_mechanics(geometry, spec, cache_dir, progress)
     fwd_mesh = build_mesh(geometry, MeshSpec(h=model.meta["mesh_h"]), cache_dir)
     fm = ForwardModel(geometry, fwd_mesh)
-    mech = build_mesh(geometry, MeshSpec(h=spec.mechanics_mesh_size, h_electrode=spec.mechanics_mesh_size), cache_dir)
-    dirs = calibration_directions(spec.n_directions, spec.min_elevation_deg)
     sample = elasticity.point_sampler(mech.points, mech.tets, fwd_mesh.centers)  # located once
     forces, ys = [], []
     for i, d in enumerate(dirs):
-        # one factorisation of the mechanics serves every direction (elasticity module docstring)
-        theta1 = sample(elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices)  # per N
+        theta1 = sample(theta[i])  # per N
         for m in spec.magnitudes:
             sigma, _ = conductivity_of_theta(m * theta1, geometry.material)
             v = fm.voltages(sigma)
@@ -92,7 +135,6 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
             ys.append((v - model.model_reference) / model.v_scale)
         if i % 10 == 0:
             say(f"calibrating force estimators: direction {i + 1}/{len(dirs)}")
-    elasticity.release()
     forces, ys = np.array(forces), np.array(ys)
     cache_save(path, key, forces=forces, y=ys)
     log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)

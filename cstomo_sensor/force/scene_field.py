@@ -6,7 +6,8 @@ For a socket scene (the joint) the mechanics predicts the whole stress field fro
 The frictionless contact problem is positively homogeneous in the force, so the field of a force
 F is ``|F| * theta1(F / |F|)`` with ``theta1`` the volumetric compression per newton of a
 direction. ``theta1`` is solved once per calibration direction (the estimators' 40 directions,
-:func:`~cstomo_sensor.force.estimate.calibration_directions`, on the calibration's mechanics mesh)
+:func:`~cstomo_sensor.force.estimate.calibration_directions`, on the calibration's mechanics mesh:
+the very solves of the calibration, :func:`~cstomo_sensor.force.estimate.socket_mechanics`)
 and sampled at the reconstruction's cell centres, the points the node publishes (cached on disk,
 keyed by every input). Between directions it is interpolated by a thin-plate spline of degree 1
 on the unit directions (force/tps.py: exact at the 40 directions; measured error against direct
@@ -51,8 +52,7 @@ from ..inverse.reconstruction import ReconstructionModel
 from ..model import elasticity
 from ..model.geometry import SensorGeometry
 from ..model.material import StressField, conductivity_of_theta, pressure_of_theta
-from ..model.mesh import MeshSpec, build_mesh
-from .estimate import CalibrationSpec, calibration_directions
+from .estimate import CalibrationSpec, calibration_directions, socket_mechanics
 from .tps import ThinPlateSpline
 
 log = logging.getLogger(__name__)
@@ -88,12 +88,9 @@ def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec
     if hit is not None:
         return hit["directions"], hit["theta"]
     t0 = time.perf_counter()
-    h = spec.mechanics_mesh_size
-    mech = build_mesh(geometry, MeshSpec(h=h, h_electrode=h), cache_dir)
+    mech, _, theta_v = socket_mechanics(geometry, spec, cache_dir)  # shared with the calibration
     sample = elasticity.point_sampler(mech.points, mech.tets, centers)
-    theta = np.array([sample(elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices)
-                      for d in dirs])
-    elasticity.release()
+    theta = np.array([sample(t) for t in theta_v])
     cache_save(path, key, directions=dirs, theta=theta)
     log.info("scene field: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
     return dirs, theta

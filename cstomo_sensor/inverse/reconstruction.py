@@ -37,7 +37,7 @@ from ..cache import UNREADABLE, cache_load, cache_save, default_cache_dir, input
 from ..errors import ConfigError, ModelMismatchError
 from ..frames_io import check_frame
 from ..model.cem import ForwardModel
-from ..model.geometry import SensorGeometry
+from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
 from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
@@ -66,7 +66,7 @@ class ReconSpec:
     basis_grid: tuple[int, int, int] = (24, 24, 12)
     iterations: int | None = None
     damping: float = 0.0
-    snr_db: float = 60.0
+    snr_db: float = DEFAULT_SNR_DB
     weight_power: float = 0.75
     tau: float = 0.9
 

@@ -10,7 +10,7 @@ is singular by a constant; the last electrode is grounded (U_L = 0, its row and 
 which leaves potential differences unchanged. The matrix is symmetric positive definite; it is
 factorised once (SuperLU) and the factor serves all drive patterns and the adjoint fields.
 
-Jacobian (adjoint / Geselowitz form, DESIGN.md): for the value of drive pair d measured on pair m,
+Jacobian (adjoint / Geselowitz form, docs/physics.md#jacobian): for the value of drive pair d measured on pair m,
 ``dV/dsigma_e = -(1/I) * int_e grad u_d . grad u_m`` in V per S/m, where u_m is the field of driving
 the measurement pair with the same current I (the measurement pairs are the drive pairs, so the
 adjoint fields are the drive fields themselves).
@@ -210,7 +210,7 @@ class ForwardModel:
         return ForwardSolution(f, self.pattern.voltages(f.U.T), {"factorisation": t1 - t0, "solves": t2 - t1})
 
     def voltages(self, sigma: np.ndarray | None = None) -> np.ndarray:
-        """(n_meas,) voltages in the order of REFERENCE_SENSOR.md section 2."""
+        """(n_meas,) voltages in the order of docs/physics.md#measurement-order."""
         return self.solve(sigma).voltages
 
     def jacobian(self, sigma: np.ndarray | None = None, solution: ForwardSolution | None = None) -> np.ndarray:

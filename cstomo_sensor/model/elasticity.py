@@ -1,9 +1,7 @@
-"""Linear elasticity of the rubber body under the sensor's loads (scikit-fem, quadratic tetrahedra).
-
-Small strain, isotropic, E and nu from the sensor's :class:`~cstomo_sensor.geometry.Material`.
-Displacements are continuous piecewise quadratic (``ElementVector(ElementTetP2())``) so that the
-nearly incompressible rubber (nu = 0.45) does not lock; the volumetric compression
-theta = -div(u) is then linear in each cell.
+"""Linear elasticity of the rubber body under the sensor's loads: its faces, the ball's contact in the
+socket and pressure patches, each solved on the P2 problem of :mod:`~cstomo_sensor.model.elastic_fem`
+(assembly, factorisation, solve; :class:`MechanicsSolution`, :func:`point_sampler` and :func:`release`
+are that module's, named here too). The bottom face is fixed.
 
 Input meshes are plain arrays (``points (n, 3)`` in metres, ``tets (m, 4)`` vertex indices), e.g.
 the fields of ``cstomo_sensor.mesh.TetMesh``; cells of either orientation are accepted.
@@ -11,7 +9,7 @@ Faces are found geometrically: the bottom face z = 0 (vertices within ``FACE_TOL
 top face z = height (outward normal +z), and the socket wall (boundary facets on the hemisphere of
 ``geometry.socket_radius`` around ``geometry.socket_center``, below the top face).
 
-Loads (REFERENCE_SENSOR.md section 4):
+Loads (docs/physics.md#loads):
 
 * :func:`solve_socket_load` - the ball in the socket, frictionless: traction t = -p n on the socket
   wall, n the rubber's outward normal, p = k max(0, -n . delta). k only scales delta, so the
@@ -19,40 +17,30 @@ Loads (REFERENCE_SENSOR.md section 4):
   G(a) = 1/2 int max(0, -n.a)^2 dA - F.a, whose gradient is (int t dA) - F. The integral is the
   same facet quadrature that builds the load vector, so the discrete resultant equals F to
   rounding error. A force must push into the socket (elevation atan2(-Fz, |Fxy|) > 0); the
-  reference carries elevations 15..90 deg. Below 15 deg the solve still runs (it is
+  sensor carries elevations 15..90 deg (docs/physics.md#socket-contact). Below 15 deg the solve still runs (it is
   well-posed for any elevation > 0) but the contact sits on the rim, where the result depends on
   the mesh; a warning is logged.
 * :func:`solve_patch_load` - uniform normal pressure on regions of the top face or of a side face.
 
-Solver: the condensed stiffness (symmetric positive definite) is factorised once per mesh and set
-of fixed dofs (SuperLU in symmetric mode, :func:`~cstomo_sensor.model.cem.symmetric_lu`: about 2 s
-and 250 MB on the 6 mm calibration mesh) and kept with the assembled problem in a small cache, so
-every further load on that mesh is two triangular solves (tens of ms) and exact to rounding. The
-contact needs no refactorisation: the pressure law depends only on the ball's displacement a, not
-on the rubber's, so each load is one linear solve with the same matrix. :func:`release` frees the
-factors.
-
-scikit-fem is imported only by this module; nothing else in the package imports it at import time.
+Solver: one factorisation per mesh serves every load (elastic_fem). The contact needs no
+refactorisation: the pressure law depends only on the ball's displacement a, not on the rubber's, so
+each load is one linear solve with the same matrix. Every load ends the same way: a traction at the
+facet quadrature points, its resultant, load vector and solve (``ElasticProblem.solve_traction``).
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import nnls
-from scipy.spatial import cKDTree
 
 from ..errors import ConfigError
-from .cem import symmetric_lu
+from .elastic_fem import ElasticProblem, MechanicsSolution, PointSampler, check_mesh, point_sampler, problem, release
 from .geometry import SensorGeometry
-from .material import Material
 
 log = logging.getLogger(__name__)
 
@@ -61,21 +49,20 @@ __all__ = [
     "MechanicsSolution",
     "PointSampler",
     "point_sampler",
+    "release",
     "solve",
     "solve_patch_load",
     "solve_socket_load",
-    "uniaxial_compression",
 ]
 
 FACE_TOL = 1e-4
 """Relative tolerance (x body height) for a vertex to lie on a plane face; x radius for the socket."""
 CARRIED_ELEVATION_DEG = (15.0, 90.0)
-"""Force elevations the reference sensor carries (REFERENCE_SENSOR.md s.4)."""
+"""Force elevations the sensor carries (docs/physics.md#socket-contact)."""
 NEWTON_TOL = 1e-12
 CONTACT_ACCEPT_TOL = 1e-6  # relative resultant error accepted when Newton stalls at rounding level
 """Newton stops when |int t dA - F| <= NEWTON_TOL |F| (or, when the line search stalls at
 rounding level, accepts a residual below 1e3 NEWTON_TOL |F|)."""
-_VOLUME_INTORDER = 2  # exact for the P2 stiffness (products of linear gradients)
 _SOCKET_INTORDER = 2  # p is constant per flat facet: order 2 integrates it against P2 exactly
 _PATCH_INTORDER = 4  # more quadrature points resolve the patch edges better
 #: The side faces a patch load can press (cuboid bodies): face -> (normal axis, sign). A patch's
@@ -85,266 +72,37 @@ _FACE_AXES = {"top": (0, 1), "+x": (1, 2), "-x": (1, 2), "+y": (0, 2), "-y": (0,
 
 
 # ----------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class MechanicsSolution:
-    """A solved linear-elastic state on a tetrahedral mesh.
-
-    Attributes
-    ----------
-    points : (n, 3) ndarray
-        Mesh vertices, m (body frame).
-    tets : (m, 4) int ndarray
-        Cells as given (orientation fixed internally only).
-    dofs : (N,) ndarray
-        The P2 displacement coefficients (scikit-fem ``ElementVector(ElementTetP2())`` numbering,
-        interleaved x, y, z), m.
-    displacement : (n, 3) ndarray
-        Displacement at the vertices, m.
-    theta_vertices : (m, 4) ndarray
-        Volumetric compression -div(u) of each cell at its four vertices (it is linear per cell).
-    strain_energy : float
-        1/2 u^T K u = 1/2 f . u, J.
-    resultant : (3,) ndarray
-        The discrete integral of the applied tractions, N (equals the requested force).
-    delta : (3,) ndarray or None
-        For socket loads: k delta, the ball's rigid displacement times the bed stiffness, Pa
-        (k is arbitrary, only the direction and relative size matter). None otherwise.
-    load : dict
-        The load that was applied (for records).
-    """
-
-    points: np.ndarray
-    tets: np.ndarray
-    dofs: np.ndarray
-    displacement: np.ndarray
-    theta_vertices: np.ndarray
-    strain_energy: float
-    resultant: np.ndarray
-    delta: np.ndarray | None = None
-    load: Mapping[str, Any] = field(default_factory=dict)
-
-    def cell_theta(self) -> np.ndarray:
-        """Mean volumetric compression of each cell (exact mean of the linear field).
-
-        Returns
-        -------
-        (m,) ndarray
-        """
-        return self.theta_vertices.mean(axis=1)
-
-    def theta_at(self, x: ArrayLike) -> np.ndarray:
-        """Volumetric compression at arbitrary points (see :class:`PointSampler`; to sample many
-        solutions on one mesh at the same points, build the sampler once with :func:`point_sampler`).
-
-        Parameters
-        ----------
-        x : (k, 3) array_like
-            Points, m, body frame.
-
-        Returns
-        -------
-        (k,) ndarray
-        """
-        return point_sampler(self.points, self.tets, x)(self.theta_vertices)
+def _facets(prob: ElasticProblem, geometry: SensorGeometry, which: str) -> np.ndarray:
+    """Boundary facets of a face of the sensor's body: 'bottom', 'top', a side face of
+    :data:`SIDE_FACES` or 'socket' (module docstring)."""
+    bf, fp = prob.boundary_facets()  # fp: (3, 3 vertices, nb)
+    H = geometry.height
+    tol = FACE_TOL * H
+    if which == "bottom":
+        return bf[(np.abs(fp[2]) <= tol).all(axis=0)]
+    if which == "top":
+        on = (np.abs(fp[2] - H) <= tol).all(axis=0)
+        return bf[on]
+    if which in SIDE_FACES:  # a plane side face of a cuboid: x or y at the mesh's extent
+        k, sign = SIDE_FACES[which]
+        p = prob.mesh.p
+        edge = p[k].max() if sign > 0 else p[k].min()
+        return bf[(np.abs(fp[k] - edge) <= tol).all(axis=0)]
+    if which == "socket":
+        R = geometry.socket_radius
+        if R <= 0:
+            raise ConfigError(f"geometry {geometry.name!r}: socket_radius={R!r}, expected a socket (> 0)")
+        c = geometry.socket_center
+        cen = fp.mean(axis=1)  # (3, nb)
+        r = np.linalg.norm(fp - c[:, None, None], axis=0)  # (3, nb)
+        on_sphere = (np.abs(r - R) <= max(0.05 * R, 10 * FACE_TOL * R)).all(axis=0)
+        below = cen[2] < H - tol
+        return bf[on_sphere & below]
+    raise ConfigError(f"which={which!r}: expected 'bottom', 'top', 'socket' or one of {list(SIDE_FACES)}")
 
 
-@dataclass(frozen=True)
-class PointSampler:
-    """Points located in a tetrahedral mesh: the cell holding each and its barycentric coordinates.
-
-    Each point is located among the 32 cells with the nearest centroids. A point outside the mesh
-    (e.g. a reconstruction cell centre a rounding error outside a curved face) takes the candidate
-    cell it is least outside of, at its barycentric coordinates clipped to that cell, i.e. a value
-    the field takes on the mesh; far-away points get such a value too, without an error.
-
-    Attributes
-    ----------
-    cells : (k,) int ndarray
-    weights : (k, 4) ndarray, non-negative, rows summing to 1.
-    """
-
-    cells: np.ndarray
-    weights: np.ndarray
-
-    def __call__(self, vertex_values: np.ndarray) -> np.ndarray:
-        """(k,) values at the points of a field linear per cell, given at the cells' vertices
-        (``vertex_values`` (m, 4), e.g. :attr:`MechanicsSolution.theta_vertices`)."""
-        return np.einsum("ki,ki->k", self.weights, vertex_values[self.cells])
-
-
-def point_sampler(points: ArrayLike, tets: ArrayLike, x: ArrayLike) -> PointSampler:
-    """Locate points ``x`` (k, 3) in the mesh ``points`` (n, 3), ``tets`` (m, 4) (one KD-tree)."""
-    x = np.atleast_2d(np.asarray(x, dtype=float))
-    if x.ndim != 2 or x.shape[1] != 3:
-        raise ConfigError(f"points.shape={x.shape}: expected (k, 3)")
-    v = np.asarray(points)[np.asarray(tets)]  # (m, 4, 3)
-    T = np.transpose(v[:, 1:, :] - v[:, :1, :], (0, 2, 1))  # columns v1-v0, v2-v0, v3-v0
-    inv, v0 = np.linalg.inv(T), v[:, 0, :]
-    kk = min(32, len(v))
-    _, cand = cKDTree(v.mean(axis=1)).query(x, k=kk)
-    cand = cand.reshape(len(x), kk)
-    lam123 = np.einsum("kcij,kcj->kci", inv[cand], x[:, None, :] - v0[cand])  # (k, kk, 3)
-    lam = np.concatenate([1.0 - lam123.sum(-1, keepdims=True), lam123], axis=-1)  # (k, kk, 4)
-    best = np.argmax(lam.min(axis=-1), axis=1)
-    rows = np.arange(len(x))
-    lam_b = np.clip(lam[rows, best], 0.0, None)
-    lam_b /= lam_b.sum(axis=1, keepdims=True)
-    return PointSampler(cand[rows, best], lam_b)
-
-
-# ----------------------------------------------------------------------------------------------
-def _check_mesh(points: ArrayLike, tets: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    p = np.asarray(points, dtype=float)
-    t = np.asarray(tets)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ConfigError(f"points.shape={p.shape}: expected (n, 3)")
-    if t.ndim != 2 or t.shape[1] != 4 or not np.issubdtype(t.dtype, np.integer):
-        raise ConfigError(f"tets.shape={t.shape}, dtype={t.dtype}: expected (m, 4) integers")
-    if len(t) == 0 or t.min() < 0 or t.max() >= len(p):
-        raise ConfigError(f"tets: indices must lie in [0, {len(p)}), got [{t.min()}, {t.max()}]")
-    if not np.isfinite(p).all():
-        raise ConfigError("points: contain NaN or inf")
-    return p, t.astype(np.int64)
-
-
-class _Problem:
-    """The assembled stiffness and the bases on one mesh (internal)."""
-
-    def __init__(self, points: np.ndarray, tets: np.ndarray, mat: Material) -> None:
-        from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm  # heavy: only where the elasticity is assembled
-        from skfem.models.elasticity import lame_parameters, linear_elasticity  # heavy: only where the elasticity is assembled
-
-        t = tets.copy()
-        v = points[t]
-        det = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0])
-        if (np.abs(det) <= 1e-14 * np.ptp(points, axis=0).max() ** 3).any():
-            raise ConfigError(f"tets: {(np.abs(det) <= 0).sum()} degenerate (zero-volume) cells")
-        t[det < 0, 2], t[det < 0, 3] = tets[det < 0, 3], tets[det < 0, 2]
-        self.points, self.tets_in, self.tets = points, tets, t
-        self.mesh = MeshTet(points.T.copy(), t.T.copy())
-        self.elem = ElementVector(ElementTetP2())
-        self.basis = Basis(self.mesh, self.elem, intorder=_VOLUME_INTORDER)
-        self.K = asm(linear_elasticity(*lame_parameters(mat.E, mat.nu)), self.basis)
-        self.height = float(points[:, 2].max())
-        self._lu: dict[str, tuple[Any, np.ndarray]] = {}
-
-    # -- faces ----------------------------------------------------------------------------
-    def boundary_facets(self, geometry: SensorGeometry | None, which: str) -> np.ndarray:
-        m = self.mesh
-        bf = m.boundary_facets()
-        fp = m.p[:, m.facets[:, bf]]  # (3, 3 vertices, nb)
-        H = geometry.height if geometry is not None else self.height
-        tol = FACE_TOL * H
-        if which == "bottom":
-            return bf[(np.abs(fp[2]) <= tol).all(axis=0)]
-        if which == "top":
-            on = (np.abs(fp[2] - H) <= tol).all(axis=0)
-            return bf[on]
-        if which in SIDE_FACES:  # a plane side face of a cuboid: x or y at the mesh's extent
-            k, sign = SIDE_FACES[which]
-            edge = m.p[k].max() if sign > 0 else m.p[k].min()
-            return bf[(np.abs(fp[k] - edge) <= tol).all(axis=0)]
-        if which == "socket":
-            if geometry is None:
-                raise ConfigError("boundary_facets(which='socket') needs the sensor geometry")
-            R = geometry.socket_radius
-            if R <= 0:
-                raise ConfigError(f"geometry {geometry.name!r}: socket_radius={R!r}, expected a socket (> 0)")
-            c = geometry.socket_center
-            cen = fp.mean(axis=1)  # (3, nb)
-            r = np.linalg.norm(fp - c[:, None, None], axis=0)  # (3, nb)
-            on_sphere = (np.abs(r - R) <= max(0.05 * R, 10 * FACE_TOL * R)).all(axis=0)
-            below = cen[2] < H - tol
-            return bf[on_sphere & below]
-        raise ConfigError(f"which={which!r}: expected 'bottom', 'top', 'socket' or one of {list(SIDE_FACES)}")
-
-    def facet_basis(self, facets: np.ndarray, intorder: int):
-        from skfem import FacetBasis  # heavy: only where the elasticity is assembled
-
-        return FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
-
-    def load_vector(self, fb, traction: np.ndarray) -> np.ndarray:
-        """Assemble int t . v dA for a traction given at the facet quadrature points (3, nf, nq)."""
-        from skfem import LinearForm, asm  # heavy: only where the elasticity is assembled
-
-        @LinearForm
-        def form(v, w):
-            return w.t[0] * v[0] + w.t[1] * v[1] + w.t[2] * v[2]
-
-        return asm(form, fb, t=traction)
-
-    def solve(self, f: np.ndarray, fixed: np.ndarray, load: Mapping[str, Any], resultant: np.ndarray,
-              delta: np.ndarray | None = None) -> MechanicsSolution:
-        from skfem import condense  # heavy: only where the elasticity is assembled
-
-        u = np.zeros(self.basis.N)
-        if np.any(f):
-            key = hashlib.sha1(np.ascontiguousarray(fixed, dtype=np.int64).tobytes()).hexdigest()
-            if key not in self._lu:  # set up once per set of fixed dofs, reuse for every load
-                A, _, _, I = condense(self.K, f, D=fixed)
-                self._lu = {key: (symmetric_lu(A).solve, I)}
-            solve, I = self._lu[key]
-            u[I] = solve(f[I])
-        disp = u[self.basis.nodal_dofs].T.copy()  # (n, 3)
-        theta_v = self._theta_vertices(u)
-        return MechanicsSolution(
-            points=self.points,
-            tets=self.tets_in,
-            dofs=u,
-            displacement=disp,
-            theta_vertices=theta_v,
-            strain_energy=float(0.5 * f @ u),
-            resultant=np.asarray(resultant, dtype=float),
-            delta=delta,
-            load=dict(load),
-        )
-
-    @cached_property
-    def _vertex_basis(self):
-        """The basis evaluated at the reference vertices of each cell (built once per mesh)."""
-        from skfem import Basis  # heavy: only where the elasticity is assembled
-
-        X = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-        return Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
-
-    def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
-        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
-        g = self._vertex_basis.interpolate(u).grad  # (3, 3, m, 4)
-        th = -(g[0, 0] + g[1, 1] + g[2, 2])  # (m, 4) in the order of self.tets
-        flipped = (self.tets != self.tets_in).any(axis=1)
-        th[flipped] = th[flipped][:, [0, 1, 3, 2]]
-        return th
-
-
-_CACHE: dict[str, _Problem] = {}
-_CACHE_SIZE = 2
-
-
-def _problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> _Problem:
-    """The assembled problem for a mesh and material, reused across loads (a small LRU cache).
-
-    Solving many loads on one mesh (scenes, calibration, tests) then assembles and factorises the
-    stiffness once; the key is a hash of the arrays' bytes and of (E, nu).
-    """
-    h = hashlib.sha1(points.tobytes())
-    h.update(tets.tobytes())
-    h.update(np.array([mat.E, mat.nu]).tobytes())
-    key = h.hexdigest()
-    prob = _CACHE.pop(key, None) or _Problem(points, tets, mat)
-    _CACHE[key] = prob
-    while len(_CACHE) > _CACHE_SIZE:
-        _CACHE.pop(next(iter(_CACHE)))
-    return prob
-
-
-def release() -> None:
-    """Drop the assembled problems and their factors (call after a batch of loads, e.g. the
-    calibration, so that a long-running process does not keep hundreds of MB)."""
-    _CACHE.clear()
-
-
-def _fixed_bottom(prob: _Problem, geometry: SensorGeometry) -> np.ndarray:
-    bottom = prob.boundary_facets(geometry, "bottom")
+def _fixed_bottom(prob: ElasticProblem, geometry: SensorGeometry) -> np.ndarray:
+    bottom = _facets(prob, geometry, "bottom")
     if len(bottom) == 0:
         raise ConfigError("mesh: no boundary facet on the bottom face z = 0 to fix")
     return prob.basis.get_dofs(facets=bottom).flatten()
@@ -412,7 +170,7 @@ def solve_socket_load(
 ) -> MechanicsSolution:
     """Displacement of the body under the ball's force on the socket wall, bottom face fixed.
 
-    Frictionless contact of REFERENCE_SENSOR.md s.4: t = -p n with p = k max(0, -n . delta),
+    Frictionless contact (docs/physics.md#socket-contact): t = -p n with p = k max(0, -n . delta),
     delta chosen so that the integral of t over the socket wall (the same facet quadrature that
     builds the load vector) equals ``force``; hence the discrete resultant equals the force to
     ~1e-12 relative and the moment about the socket centre is the discretisation error of the
@@ -440,14 +198,14 @@ def solve_socket_load(
     ConfigError
         Bad shapes, a force that pulls out of the socket or is not finite, no socket facets.
     """
-    p, t = _check_mesh(points, tets)
+    p, t = check_mesh(points, tets)
     F = np.asarray(force, dtype=float)
     if F.shape != (3,) or not np.isfinite(F).all():
         raise ConfigError(f"force={force!r}: expected 3 finite components in newtons")
     load = {"type": "socket", "force": F.tolist()}
-    prob = _problem(p, t, geometry.material)
+    prob = problem(p, t, geometry.material)
     fixed = _fixed_bottom(prob, geometry)
-    facets = prob.boundary_facets(geometry, "socket")
+    facets = _facets(prob, geometry, "socket")
     if len(facets) == 0:
         raise ConfigError(
             f"mesh: no boundary facet on the socket sphere (centre {geometry.socket_center.tolist()} m, "
@@ -482,10 +240,7 @@ def solve_socket_load(
         )
     a = _socket_contact(n, w, F)
     pres = np.maximum(0.0, -(a @ fb.normals.reshape(3, -1))).reshape(fb.dx.shape)  # (nf, nq)
-    traction = -pres[None] * fb.normals  # (3, nf, nq)
-    resultant = (traction * fb.dx[None]).sum(axis=(1, 2))
-    f = prob.load_vector(fb, traction)
-    return prob.solve(f, fixed, load, resultant, a)
+    return prob.solve_traction(fb, -pres[None] * fb.normals, fixed, load, a)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -541,13 +296,13 @@ def solve_patch_load(
     -------
     MechanicsSolution
     """
-    p, t = _check_mesh(points, tets)
+    p, t = check_mesh(points, tets)
     if not (isinstance(total_force, (int, float, np.floating, np.integer)) and math.isfinite(total_force)):
         raise ConfigError(f"total_force={total_force!r}: expected a finite number of newtons")
     if len(patches) == 0:
         raise ConfigError("patches=[]: expected at least one patch")
     load = {"type": "patches", "patches": [dict(q) for q in patches], "total_force": float(total_force)}
-    prob = _problem(p, t, geometry.material)
+    prob = problem(p, t, geometry.material)
     fixed = _fixed_bottom(prob, geometry)
     faces = {q.get("face", "top") if isinstance(q, Mapping) else None for q in patches}
     face = faces.pop()
@@ -556,7 +311,7 @@ def solve_patch_load(
                           f"{list(_FACE_AXES)} for every patch of a load")
     if face != "top" and geometry.shape != "cuboid":
         raise ConfigError(f"patches: face={face!r} needs a cuboid body, not a {geometry.shape}")
-    top = prob.boundary_facets(geometry, face)
+    top = _facets(prob, geometry, face)
     if len(top) == 0:
         raise ConfigError(f"mesh: no boundary facet on the {face} face")
     fb = prob.facet_basis(top, _PATCH_INTORDER)
@@ -570,50 +325,7 @@ def solve_patch_load(
         inside |= mask
     area = float(fb.dx[inside].sum())
     pres = np.where(inside, float(total_force) / area, 0.0)
-    traction = -pres[None] * fb.normals
-    resultant = (traction * fb.dx[None]).sum(axis=(1, 2))
-    f = prob.load_vector(fb, traction)
-    return prob.solve(f, fixed, load, resultant)
-
-
-def uniaxial_compression(
-    points: ArrayLike, tets: ArrayLike, material: Material, pressure: float
-) -> MechanicsSolution:
-    """A cuboid compressed between frictionless plates: the exact check of the solver.
-
-    Rollers on the faces x = min, y = min and z = min (normal displacement zero: no friction, no
-    rigid motion), uniform pressure on z = max. The exact solution is uniform strain
-    eps_zz = -p/E, eps_xx = eps_yy = nu p / E, theta = (1 - 2 nu) p / E, which P2 reproduces.
-
-    Parameters
-    ----------
-    points : (n, 3) array_like
-        Vertices of an axis-aligned cuboid, m.
-    tets : (m, 4) array_like of int
-    material : Material
-    pressure : float
-        Pa, positive in compression.
-
-    Returns
-    -------
-    MechanicsSolution
-    """
-    p, t = _check_mesh(points, tets)
-    prob = _problem(p, t, material)
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    tol = FACE_TOL * float((hi - lo).max())
-    fixed = []
-    for k in range(3):  # dofs are interleaved x, y, z at every location: component = index mod 3
-        on = prob.basis.get_dofs(lambda x, k=k: np.abs(x[k] - lo[k]) <= tol).flatten()
-        fixed.append(on[on % 3 == k])
-    fixed_all = np.unique(np.concatenate([np.ravel(a) for a in fixed]).astype(np.int64))
-    bf = prob.mesh.boundary_facets()
-    top = bf[(np.abs(prob.mesh.p[2, prob.mesh.facets[:, bf]] - hi[2]) <= tol).all(axis=0)]
-    fb = prob.facet_basis(top, _SOCKET_INTORDER)
-    traction = -float(pressure) * fb.normals
-    resultant = (traction * fb.dx[None]).sum(axis=(1, 2))
-    f = prob.load_vector(fb, traction)
-    return prob.solve(f, fixed_all, {"type": "uniaxial", "pressure": float(pressure)}, resultant)
+    return prob.solve_traction(fb, -pres[None] * fb.normals, fixed, load)
 
 
 def solve(points: ArrayLike, tets: ArrayLike, geometry: SensorGeometry, load: Mapping[str, Any]) -> MechanicsSolution:

@@ -1,15 +1,17 @@
 """Sensor geometries as data: YAML presets under ``config/sensors`` loaded into frozen dataclasses.
 
 Units are SI everywhere (metres, siemens per metre, ohm square metres, amperes, pascals).
-The body frame has z up and its origin at the centre of the bottom face (REFERENCE_SENSOR.md s.1).
+The body frame has z up and its origin at the centre of the bottom face (docs/physics.md#coordinate-frames).
 
 A new sensor is a new YAML file (see ``config/sensors/cuboid_joint.yaml`` for every key); pass its
-path wherever a sensor name is accepted.
+path wherever a sensor name is accepted. Which keys are required and which have defaults:
+:data:`SENSOR_SCHEMA`.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import os
 import re
@@ -24,8 +26,18 @@ import yaml
 from ..errors import ConfigError, require_positive
 from .material import Material
 
+log = logging.getLogger(__name__)
+
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
+# The reference sensor and board (docs/physics.md#geometry), defined here once and imported everywhere else:
+#: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name).
+DEFAULT_SENSOR = "cuboid_joint"
 N_ELECTRODES = 16  # the board drives 16 electrodes and the measurement pattern has 208 values
+#: A: the board's constant current between adjacent electrodes (a sensor file's ``drive_current``).
+DRIVE_CURRENT_A = 8.0e-3
+#: dB: the default scene's noise (docs/physics.md#noise), also the noise the estimators and the reconstruction's
+#: discrepancy rule assume when none is measured.
+DEFAULT_SNR_DB = 60.0
 #: A sensor name: it names cache files and the default tare file, so no path separator, no '..'.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 NAME_EXPECTED = "1..64 letters, digits, '_', '.' or '-', not starting with '.' (it names cache files)"
@@ -56,7 +68,7 @@ class SensorGeometry:
     electrodes: tuple[Electrode, ...]
     layers: int = 1
     socket_radius: float = 0.0
-    drive_current: float = 8.0e-3
+    drive_current: float = DRIVE_CURRENT_A
     contact_impedance: float = 1.0e-5
     material: Material = field(default_factory=Material)
 
@@ -230,7 +242,31 @@ def _read_yaml(path: Path) -> Any:
         raise ConfigError(f"sensor file {path}: malformed YAML (nested too deeply)") from None
 
 
-_TOP_KEYS = ("name", "body", "socket", "electrodes", "drive_current", "contact_impedance", "material")
+class _Required:
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+#: Marks a key of :data:`SENSOR_SCHEMA` that a sensor file must give.
+REQUIRED: Any = _Required()
+
+#: A sensor file's keys, the one place that says which are required and what the others default to.
+#: ``REQUIRED`` keys missing are a :class:`ConfigError` naming them, as is any key not listed here.
+#: ``socket`` (absent, or without ``radius``) means no socket, silently: a flat top is a sensor of its
+#: own. Each ``material.*`` key missing takes the reference rubber's value (the defaults of
+#: :class:`~.material.Material`, the paper's) and is logged as a WARNING naming the key and the value
+#: used. Not an error, so that a sensor of the reference rubber (another body or electrode layout)
+#: need not copy six numbers; not silent, because a sensor of another rubber that forgot a key would
+#: otherwise get models of the wrong rubber without a word.
+SENSOR_SCHEMA: dict[str, Any] = {
+    "name": REQUIRED,
+    "body": {"shape": REQUIRED, "size": REQUIRED},
+    "socket": {"radius": 0.0},
+    "electrodes": {"radius": REQUIRED, "layers": REQUIRED, "positions": REQUIRED},
+    "drive_current": REQUIRED,
+    "contact_impedance": REQUIRED,
+    "material": {k: f.default for k, f in Material.__dataclass_fields__.items()},
+}
 
 
 def _bad(source: str, key: str, value: object, expected: str) -> ConfigError:
@@ -264,19 +300,20 @@ def _mapping(source: str, key: str, v: object, allowed) -> dict:
 
 
 def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
-    """Build a :class:`SensorGeometry` from the YAML mapping; every missing, unknown, mistyped,
-    non-finite or out-of-range value raises :class:`ConfigError` naming its key."""
+    """Build a :class:`SensorGeometry` from the YAML mapping; every missing required, unknown,
+    mistyped, non-finite or out-of-range value raises :class:`ConfigError` naming its key; a missing
+    ``material.*`` key is a WARNING naming it and the value used (:data:`SENSOR_SCHEMA`)."""
 
     def need(m: dict, key: str, where: str) -> Any:
         if key not in m:
             raise ConfigError(f"{source}: missing key '{where}{key}'")
         return m[key]
 
-    _mapping(source, "", d, _TOP_KEYS)
+    _mapping(source, "", d, SENSOR_SCHEMA)
     name = need(d, "name", "")
     if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
         raise _bad(source, "name", name, NAME_EXPECTED)
-    body = _mapping(source, "body", need(d, "body", ""), ("shape", "size"))
+    body = _mapping(source, "body", need(d, "body", ""), SENSOR_SCHEMA["body"])
     shape = need(body, "shape", "body.")
     if shape not in ("cuboid", "cylinder"):
         raise _bad(source, "body.shape", shape, "one of 'cuboid', 'cylinder'")
@@ -286,9 +323,9 @@ def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
         raise _bad(source, "body.size", size, f"a list of {n_size} lengths for a {shape}")
     size = tuple(_number(source, f"body.size[{i}]", v) for i, v in enumerate(size))
     socket = d.get("socket")
-    socket = {} if socket is None else _mapping(source, "socket", socket, ("radius",))
-    socket_radius = _number(source, "socket.radius", socket.get("radius", 0.0))
-    el = _mapping(source, "electrodes", need(d, "electrodes", ""), ("radius", "layers", "positions"))
+    socket = {} if socket is None else _mapping(source, "socket", socket, SENSOR_SCHEMA["socket"])
+    socket_radius = _number(source, "socket.radius", socket.get("radius", SENSOR_SCHEMA["socket"]["radius"]))
+    el = _mapping(source, "electrodes", need(d, "electrodes", ""), SENSOR_SCHEMA["electrodes"])
     radius = _number(source, "electrodes.radius", need(el, "radius", "electrodes."))
     layers = need(el, "layers", "electrodes.")
     if isinstance(layers, bool) or not isinstance(layers, int):
@@ -308,9 +345,10 @@ def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
         for i, c in enumerate(centres)
     )
     mat = d.get("material")
-    mat = {} if mat is None else _mapping(source, "material", mat, tuple(Material.__dataclass_fields__))
+    nominal = SENSOR_SCHEMA["material"]
+    mat = {} if mat is None else _mapping(source, "material", mat, nominal)
     try:
-        return SensorGeometry(
+        geometry = SensorGeometry(
             name=name,
             shape=shape,
             size=size,
@@ -319,9 +357,14 @@ def sensor_from_dict(d: Any, source: str = "<dict>") -> SensorGeometry:
             socket_radius=socket_radius,
             drive_current=_number(source, "drive_current", need(d, "drive_current", "")),
             contact_impedance=_number(source, "contact_impedance", need(d, "contact_impedance", "")),
-            material=Material(**{k: _number(source, f"material.{k}", v) for k, v in mat.items()}),
+            material=Material(**{k: _number(source, f"material.{k}", mat.get(k, v)) for k, v in nominal.items()}),
         )
     except ConfigError as err:
         if str(err).startswith(f"{source}: "):
             raise
         raise ConfigError(f"{source}: {err}") from None
+    missing = [k for k in nominal if k not in mat]
+    if missing:
+        log.warning("%s: not given, the reference rubber's value used: %s", source,
+                    ", ".join(f"material.{k} = {nominal[k]:g}" for k in missing))
+    return geometry

@@ -1,6 +1,6 @@
 """The piezoresistive law of the conductive rubber and its inverse (numpy only).
 
-Paper eqs. (2), (9), (11); REFERENCE_SENSOR.md section 3. With theta = -trace(strain) the
+Paper eqs. (2), (9), (11); docs/physics.md#material-law. With theta = -trace(strain) the
 volumetric compression (positive when compressed):
 
     phi(theta)   = phi0 * exp(theta)                                  filler volume fraction

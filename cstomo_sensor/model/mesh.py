@@ -8,8 +8,9 @@ default model is the same on every machine and needs no pytetwild (pytetwild giv
 different mesh on every run). Any other geometry or size is meshed and cached as before.
 
 The surface is made with pyvista, the tetrahedra with pytetwild (both imported only when a mesh is
-actually built). One knob sets the size: ``h``, the target edge length in metres; a sizing field
-refines towards ``h_electrode`` at the electrodes (and ``h / 2`` at the socket wall).
+actually built; pytetwild runs in a child process in a temporary directory, :func:`_tetrahedralize`).
+One knob sets the size: ``h``, the target edge length in metres; a sizing field refines towards
+``h_electrode`` at the electrodes (and ``h / 2`` at the socket wall).
 
 Electrodes are named boundary data. Each electrode is the exact disc of its geometry: every boundary
 triangle that the disc touches carries the integrals of its P1 shape functions over the covered part
@@ -21,6 +22,9 @@ from __future__ import annotations
 
 import logging
 import os
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -327,6 +331,49 @@ def ship_mesh(geometry: SensorGeometry, spec: MeshSpec, mesh: TetMesh) -> Path:
     return path
 
 
+#: The child that runs pytetwild (:func:`_tetrahedralize`): inputs from in.npz, outputs to out.npz, in
+#: its working directory; exit status 3 when pytetwild is not installed.
+_TETWILD_CHILD = """
+import sys
+import numpy as np
+try:
+    import pytetwild
+except ImportError as err:
+    print(err, file=sys.stderr)
+    sys.exit(3)
+with np.load("in.npz") as a:
+    pts, tets = pytetwild.tetrahedralize(a["v"], a["f"], edge_length_abs=float(a["h"]), quiet=True, num_threads=0,
+                                         bg_vertices=a["bp"], bg_tets=a["bt"], bg_values=a["size"])
+np.savez("out.npz", points=pts, tets=tets)
+"""
+
+
+def _tetrahedralize(v: np.ndarray, f: np.ndarray, h: float, bp: np.ndarray, bt: np.ndarray, size: np.ndarray,
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """pytetwild's tetrahedra of the surface (v, f) with edge length ``h`` and the sizing field
+    (bp, bt, size), meshed in a child process whose working directory is a temporary directory,
+    removed afterwards.
+
+    fTetWild writes a debug copy of the surface, ``__tracked_surface.stl`` (about 400 kB), into the
+    working directory, unconditionally (pytetwild 0.4 has no option for its path). Changing the
+    working directory of this process instead would be seen by every thread (the node's), so the
+    mesher runs in a child: nothing is left where ``cstomo`` or the node was started, and a crash of
+    the mesher is a :class:`MeshError`, not the end of the caller. A missing pytetwild raises
+    :class:`ModuleNotFoundError` naming it, as an import here would."""
+    with tempfile.TemporaryDirectory(prefix="cstomo-mesh-") as tmp:
+        np.savez(Path(tmp) / "in.npz", v=v, f=f, h=h, bp=bp, bt=bt, size=size)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))  # this process's packages
+        run = subprocess.run([sys.executable, "-c", _TETWILD_CHILD], cwd=tmp, env=env, capture_output=True,
+                             text=True, errors="replace")
+        if run.returncode == 3:
+            raise ModuleNotFoundError(f"meshing needs pytetwild ({run.stderr.strip()})", name="pytetwild")
+        if run.returncode != 0:
+            tail = " | ".join(run.stderr.strip().splitlines()[-3:])
+            raise MeshError(f"pytetwild failed (exit status {run.returncode}): {tail or 'no message'}")
+        with np.load(Path(tmp) / "out.npz") as out:
+            return out["points"], out["tets"]
+
+
 def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir: str | os.PathLike | None = None,
                ) -> TetMesh:
     """Mesh ``geometry`` (or load it from the cache, keyed by a hash of every input).
@@ -348,14 +395,11 @@ def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir:
         mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),
                        info={"cache_hit": True, "key": key, "seconds": {"mesh": time.perf_counter() - t0}})
         return mesh
-    import pytetwild  # heavy: only when a mesh is built
-
     log.info("meshing %s with h=%.2f mm, electrodes %.2f mm (pytetwild; cached afterwards)",
              geometry.name, spec.h * 1e3, spec.he * 1e3)
     v, f = _surface(geometry, spec.h)
     bp, bt, size = _sizing_field(geometry, spec)
-    pts, tets = pytetwild.tetrahedralize(v, f, edge_length_abs=spec.h, quiet=True, num_threads=0,
-                                         bg_vertices=bp, bg_tets=bt, bg_values=size)
+    pts, tets = _tetrahedralize(v, f, spec.h, bp, bt, size)
     pts = np.ascontiguousarray(pts, dtype=np.float64)
     tets = np.ascontiguousarray(tets, dtype=np.int64)
     used = np.unique(tets)

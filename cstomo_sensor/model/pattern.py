@@ -1,4 +1,4 @@
-"""The drive and measurement order (REFERENCE_SENSOR.md section 2), generated from the pair-list rule.
+"""The drive and measurement order (docs/physics.md#measurement-order), generated from the pair-list rule.
 
 Electrodes are numbered from 1 in documents and from 0 in arrays; every array here is 0-based.
 """
@@ -10,9 +10,10 @@ from functools import cached_property
 import numpy as np
 
 from ..errors import ConfigError
+from .geometry import N_ELECTRODES
 
 
-def pair_list(n_electrodes: int = 16, layers: int = 1) -> np.ndarray:
+def pair_list(n_electrodes: int = N_ELECTRODES, layers: int = 1) -> np.ndarray:
     """Adjacent pairs, ring by ring: one layer (1,2)..(16,1); two layers (1,2)..(8,1),(9,10)..(16,9).
 
     Returns
@@ -32,7 +33,7 @@ class MeasurementPattern:
     """For each drive pair (a, b) in pair order (+I into a, out of b), every pair (m, n) in pair order
     sharing no electrode with (a, b) gives V = phi(m) - phi(n)."""
 
-    n_electrodes: int = 16
+    n_electrodes: int = N_ELECTRODES
     layers: int = 1
 
     @cached_property
@@ -80,7 +81,7 @@ class MeasurementPattern:
 
         Returns
         -------
-        (n_meas,) ndarray in the order of REFERENCE_SENSOR.md section 2.
+        (n_meas,) ndarray in the order of docs/physics.md#measurement-order.
         """
         d, m = self.rows[:, 0], self.measure
         return electrode_potentials[d, m[:, 0]] - electrode_potentials[d, m[:, 1]]

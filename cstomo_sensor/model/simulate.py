@@ -1,4 +1,4 @@
-"""Honest simulation (REFERENCE_SENSOR.md section 7) and scene files.
+"""Honest simulation (docs/physics.md#honest-simulation) and scene files.
 
 The truth is simulated on an independent tetrahedralisation finer than any model mesh, with
 electrode positions jittered by up to 0.2 mm and contact impedances varied by +-20 % per electrode
@@ -9,7 +9,7 @@ model. The reference frame is the same simulated device, unloaded.
 Scene file (YAML)::
 
     sensor: cuboid_joint          # preset or geometry file
-    snr_db: 60                    # noise (section 5); omit or null for none
+    snr_db: 60                    # noise (docs/physics.md#noise); omit or null for none
     seed: 1
     truth_mesh_size: 0.003        # m; the independent mesh
     mechanics_mesh_size: 0.004    # m
@@ -42,28 +42,40 @@ from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
 from . import elasticity
 from .cem import ForwardModel
-from .geometry import Electrode, SensorGeometry, load_sensor
+from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor
 from .material import conductivity_of_theta
 from .mesh import MeshSpec, TetMesh, build_mesh
 
 log = logging.getLogger(__name__)
 
+#: The honest simulation's defaults (docs/physics.md#honest-simulation; a scene file may set each): the truth's independent
+#: mesh and its mechanics mesh (m), and the device's mismatch: contact impedances scaled by
+#: U(1 -+ CONTACT_MISMATCH) per electrode, electrodes moved by up to ELECTRODE_JITTER m.
+TRUTH_MESH_SIZE = 3.0e-3
+MECHANICS_MESH_SIZE = 4.0e-3
+CONTACT_MISMATCH = 0.2
+ELECTRODE_JITTER = 2.0e-4
+#: A scene file's keys (docs/formats.md#scene-file; ``cstomo simulate --help``) and those of its ``mismatch``:
+#: any other key is refused, named.
+SCENE_KEYS = ("sensor", "snr_db", "seed", "truth_mesh_size", "mechanics_mesh_size", "mismatch", "frames_per_load",
+              "loads")
+MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
 
-DEFAULT_SNR_DB = 60.0  # REFERENCE_SENSOR.md section 5: the default scene's noise
 #: Version of the simulated frames' cache entries (:meth:`Truth.frames`): bump it when the physics of
 #: the simulation changes in a way its inputs do not show (mechanics, material law, forward model).
 TRUTH_FORMAT = 1
 
+
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
-    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (section 5); None = no noise."""
+    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (docs/physics.md#noise); None = no noise."""
     if snr_db is None:
         return np.array(v, dtype=float)
     std = np.sqrt(np.mean(np.asarray(reference) ** 2)) * 10 ** (-snr_db / 20)
     return v + rng.normal(0.0, std, np.shape(v))
 
 
-def mismatched(geometry: SensorGeometry, rng: np.random.Generator, z_rel: float = 0.2,
-               jitter: float = 2e-4) -> tuple[SensorGeometry, np.ndarray]:
+def mismatched(geometry: SensorGeometry, rng: np.random.Generator, z_rel: float = CONTACT_MISMATCH,
+               jitter: float = ELECTRODE_JITTER) -> tuple[SensorGeometry, np.ndarray]:
     """The geometry with each electrode moved by up to ``jitter`` m within its face, and
     per-electrode contact impedances scaled by U(1 - z_rel, 1 + z_rel)."""
     out = []
@@ -129,8 +141,9 @@ class Truth:
     first voltage, the mechanics mesh on the first mechanical load).
     """
 
-    def __init__(self, geometry: SensorGeometry, truth_h: float = 3e-3, mechanics_h: float = 4e-3,
-                 z_rel: float = 0.2, jitter: float = 2e-4, seed: int = 0, cache_dir=None) -> None:
+    def __init__(self, geometry: SensorGeometry, truth_h: float = TRUTH_MESH_SIZE,
+                 mechanics_h: float = MECHANICS_MESH_SIZE, z_rel: float = CONTACT_MISMATCH,
+                 jitter: float = ELECTRODE_JITTER, seed: int = 0, cache_dir=None) -> None:
         self.geometry = geometry
         self.truth_h, self.mechanics_h = truth_h, mechanics_h
         self.cache_dir = cache_dir
@@ -247,10 +260,10 @@ class Scene:
     loads: tuple[Load, ...]
     snr_db: float | None = DEFAULT_SNR_DB
     seed: int = 0
-    truth_mesh_size: float = 3e-3
-    mechanics_mesh_size: float = 4e-3
-    z_rel: float = 0.2
-    jitter: float = 2e-4
+    truth_mesh_size: float = TRUTH_MESH_SIZE
+    mechanics_mesh_size: float = MECHANICS_MESH_SIZE
+    z_rel: float = CONTACT_MISMATCH
+    jitter: float = ELECTRODE_JITTER
     frames_per_load: int = 1
 
     @classmethod
@@ -259,17 +272,25 @@ class Scene:
         if not p.is_file():
             raise ConfigError(f"scene file {str(p)!r}: not found")
         d = yaml.safe_load(p.read_text()) or {}
+        if not isinstance(d, dict):
+            raise ConfigError(f"{p}: expected a mapping of the keys {list(SCENE_KEYS)}")
         if "loads" not in d:
             raise ConfigError(f"{p}: missing key 'loads'")
         mm = d.get("mismatch") or {}
-        sensor = str(d.get("sensor", "cuboid_joint"))
+        for where, m, keys in (("", d, SCENE_KEYS), ("mismatch.", mm, MISMATCH_KEYS)):
+            unknown = sorted(str(k) for k in m if k not in keys) if isinstance(m, dict) else []
+            if unknown:
+                raise ConfigError(f"{p}: unknown keys {[where + k for k in unknown]}; expected some of "
+                                  f"{[where + k for k in keys]}")
+        sensor = str(d.get("sensor", DEFAULT_SENSOR))
         if not Path(sensor).is_absolute() and Path(sensor).suffix in (".yaml", ".yml"):
             sensor = str(p.parent / sensor)
         return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d["loads"]),
                    snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
-                   truth_mesh_size=float(d.get("truth_mesh_size", 3e-3)),
-                   mechanics_mesh_size=float(d.get("mechanics_mesh_size", 4e-3)),
-                   z_rel=float(mm.get("contact_impedance", 0.2)), jitter=float(mm.get("electrode_jitter", 2e-4)),
+                   truth_mesh_size=float(d.get("truth_mesh_size", TRUTH_MESH_SIZE)),
+                   mechanics_mesh_size=float(d.get("mechanics_mesh_size", MECHANICS_MESH_SIZE)),
+                   z_rel=float(mm.get("contact_impedance", CONTACT_MISMATCH)),
+                   jitter=float(mm.get("electrode_jitter", ELECTRODE_JITTER)),
                    frames_per_load=int(d.get("frames_per_load", 1)))
 
     def truth(self, cache_dir=None) -> Truth:
@@ -292,7 +313,7 @@ def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def simulate_scene_files(scene_path, out_dir, cache_dir=None) -> None:
-    """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (section 6)."""
+    """``cstomo simulate``: write reference.csv, frames.csv and truth.csv (docs/formats.md)."""
     scene = Scene.load(scene_path)
     ref, frames, forces = simulate(scene, cache_dir)
     out = Path(out_dir)
@@ -321,7 +342,7 @@ class VoltageSource:
         self._ref, self._frames = truth.frames(list(loads))
 
     @classmethod
-    def from_args(cls, sensor: str = "cuboid_joint", scene: str | None = None, load_script: str | None = None,
+    def from_args(cls, sensor: str = DEFAULT_SENSOR, scene: str | None = None, load_script: str | None = None,
                   snr_db: float | None = None, seed: int = 0, cache_dir=None,
                   hold: float = 1.0) -> VoltageSource:
         """From a load script (``time,fx,fy,fz``) or a scene (each load held ``hold`` seconds); ``snr_db``

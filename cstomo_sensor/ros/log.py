@@ -1,7 +1,7 @@
 """The library's log records on ``/rosout``: a :class:`logging.Handler` that hands every record of
 the ``cstomo_sensor`` logger tree to a node's ROS logger, levels kept.
 
-The core logs with :func:`logging.getLogger` (DESIGN.md habit 9) and knows nothing of ROS; while a
+The core logs with :func:`logging.getLogger` (one logger per module) and knows nothing of ROS; while a
 node runs, :func:`attach` joins the two, so the driver's reconnects, the tare and the core's warnings
 reach ``/rosout`` (and the console) under the node's logger, the message prefixed with the module
 (``board.driver: ... connected``).

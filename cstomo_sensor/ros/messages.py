@@ -1,9 +1,9 @@
 """What the node publishes, built in one place for the live node and for ``cstomo replay``.
 
-Both :mod:`cstomo_sensor.ros.node` and :mod:`cstomo_sensor.tools.replay` feed frames of 208 volts
-through a :class:`~cstomo_sensor.force.pipeline.FrameProcessor` (tare, bad-channel mask, pipeline)
-and turn its results into messages with :class:`OutputMessages`; so the same frames give the same
-numbers in the same message types, live or replayed.
+Both :mod:`cstomo_sensor.ros.node` and :mod:`cstomo_sensor.tools.replay` push frames of 208 volts
+through a :class:`~cstomo_sensor.force.stream.FrameStream` and turn what it emits into messages with
+:class:`OutputMessages`; so the same frames give the same numbers in the same message types, live or
+replayed.
 
 Imports the ROS message packages (``std_msgs``, ``geometry_msgs``, ``sensor_msgs``) but not rclpy's
 node machinery, so replay works without a running ROS graph.
@@ -15,49 +15,89 @@ import struct
 import numpy as np
 from geometry_msgs.msg import WrenchStamped
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import Image, PointCloud2, PointField
 from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension
 
 from ..board.wire import N_VALUES as N_MEAS
-from ..errors import ConfigError
+from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame
 
-#: Output topics relative to the node (``~/<name>``), in the order :meth:`OutputMessages.build` fills.
-FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
-STRESS_TOPIC = "stress_field"
-SCENE_TOPIC = "scene_stress_field"  # the mechanics' field of the estimated force (socket sensors; scene_field.py)
-CONSISTENCY_TOPIC = "consistency"  # the frame's statistic against the socket load model (scene_field.py)
 RAW_TOPIC = "raw_voltages"
-FILTERED_TOPIC = "wrench_filtered"  # the node's low-passed wrench (force/filter.py); replay does not write it
-#: Message type of every output topic, as rosbag2 names it.
+#: Message type of every topic, as rosbag2 names it: the stream's outputs (force/stream.py OUTPUTS,
+#: the one list of what the node publishes and replay writes) and the raw frames.
 TOPIC_TYPES = {
     "wrench": "geometry_msgs/msg/WrenchStamped",
+    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
     "force_magnitude": "std_msgs/msg/Float64",
     "force_elevation": "std_msgs/msg/Float64",
     "force_azimuth": "std_msgs/msg/Float64",
+    "consistency": "std_msgs/msg/Float64",
     "stress_field": "sensor_msgs/msg/PointCloud2",
     "scene_stress_field": "sensor_msgs/msg/PointCloud2",
-    "consistency": "std_msgs/msg/Float64",
-    "raw_voltages": "std_msgs/msg/Float32MultiArray",
-    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
+    RAW_TOPIC: "sensor_msgs/msg/Image",
 }
+#: The raw frames' type before they carried a stamp: still read by replay and calibrate (old bags).
+LEGACY_RAW_TYPE = "std_msgs/msg/Float32MultiArray"
+#: The raw frame as an image: one row of 208 float32 volts (little endian).
+RAW_ENCODING = "32FC1"
 #: PointCloud2 fields of ``~/stress_field`` (float32 each, in this order).
 CLOUD_FIELDS = ("x", "y", "z", "conductivity_change", "volumetric_compression", "pressure")
 # little-endian CDR pieces: header stamp (int32 sec, uint32 nanosec), a 3-vector, a float64
 _STAMP, _VEC3, _F64 = struct.Struct("<iI"), struct.Struct("<3d"), struct.Struct("<d")
 
 
-def raw_voltages_msg(values: np.ndarray) -> Float32MultiArray:
-    """``~/raw_voltages``: the 208 volts as float32, one dimension labelled ``measurement``."""
+def raw_voltages_msg(values: np.ndarray, stamp_ns: int = 0, frame_id: str = "cstomo_socket") -> Image:
+    """``~/raw_voltages``: the 208 volts of one frame as a stamped one-row image (``32FC1``, width 208),
+    stamped with the time the frame was measured: a message every ROS tool records and plays, that
+    keeps the board's time in a bag (a Float32MultiArray has no header). NaN marks a measurement
+    the board flagged (:func:`frame_from_raw_msg`)."""
+    msg = Image()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, N_MEAS
+    msg.encoding = RAW_ENCODING
+    msg.is_bigendian = 0
+    msg.step = 4 * N_MEAS
+    msg.data = np.asarray(values, dtype="<f4").tobytes()
+    return msg
+
+
+def legacy_raw_voltages_msg(values: np.ndarray) -> Float32MultiArray:
+    """The raw frame as older versions published it (no stamp): one dimension labelled ``measurement``."""
     msg = Float32MultiArray()
     msg.layout.dim = [MultiArrayDimension(label="measurement", size=N_MEAS, stride=N_MEAS)]
     msg.data = np.asarray(values, dtype=np.float32)
     return msg
 
 
-def values_from_raw_msg(msg: Float32MultiArray) -> np.ndarray:
-    """The (208,) float64 volts of a ``raw_voltages`` message; :class:`FrameError` if malformed."""
-    return check_frame(np.asarray(msg.data, dtype=np.float64), N_MEAS, "raw_voltages message")
+def values_from_raw_msg(msg: Image | Float32MultiArray) -> np.ndarray:
+    """The (208,) float64 volts of a raw frame message; :class:`FrameError` if malformed or if the
+    board flagged a measurement (NaN: :func:`frame_from_raw_msg` reads those)."""
+    return check_frame(_raw_values(msg), N_MEAS, "raw_voltages message")
+
+
+def _raw_values(msg: Image | Float32MultiArray) -> np.ndarray:
+    if isinstance(msg, Float32MultiArray):
+        return np.asarray(msg.data, dtype=np.float64)
+    if msg.encoding != RAW_ENCODING or msg.height != 1 or msg.is_bigendian or len(msg.data) != 4 * msg.width:
+        raise FrameError(f"raw_voltages image: encoding {msg.encoding!r}, {msg.height} x {msg.width}, "
+                         f"{len(msg.data)} bytes; expected {RAW_ENCODING!r}, 1 x {N_MEAS}, little endian")
+    return np.frombuffer(bytes(msg.data), dtype="<f4").astype(np.float64)
+
+
+def frame_from_raw_msg(msg: Image | Float32MultiArray) -> tuple[np.ndarray, np.ndarray | None, int | None]:
+    """(volts (208,), flagged (208,) bool or None, stamp ns or None) of a raw frame message: NaN marks
+    a measurement the board flagged (saturated, or on an electrode whose contact failed), as the node
+    records them; the stamp is the image's header stamp (None for a legacy Float32MultiArray, or a
+    zero stamp). :class:`FrameError` if malformed (wrong length or encoding, infinite values)."""
+    v = _raw_values(msg)
+    stamp = None
+    if isinstance(msg, Image):
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec or None
+    flagged = np.isnan(v)
+    if not flagged.any() or v.shape != (N_MEAS,):
+        return check_frame(v, N_MEAS, "raw_voltages message"), None, stamp
+    return check_frame(v, N_MEAS, "raw_voltages message", used=~flagged), flagged, stamp
 
 
 class OutputMessages:
@@ -68,7 +108,7 @@ class OutputMessages:
     centers : (n_cells, 3) ndarray
         Cell centres in the wrench frame (metres), the points of the stress cloud.
     frame_id : str
-        ``header.frame_id`` of the wrench and the cloud (the wrench frame, REFERENCE_SENSOR.md 1).
+        ``header.frame_id`` of the wrench and the cloud (the wrench frame, docs/physics.md#coordinate-frames).
 
     Notes
     -----
@@ -137,35 +177,44 @@ class OutputMessages:
         tpl[self._cloud_at:self._cloud_at + buf.nbytes] = buf.tobytes()
         return bytes(tpl)
 
-    def build(self, result: object, stamp_ns: int) -> dict[str, bytes]:
-        """CDR messages of one :class:`~cstomo_sensor.pipeline.FrameResult`, keyed by topic name
-        (relative to the node); ``consistency`` when the result has the statistic, ``stress_field``
-        and ``scene_stress_field`` only when the result carries those fields (same layout)."""
-        out = {
-            "wrench": self.wrench(result.force, stamp_ns),
+    def build(self, result: object, stamp_ns: int, filtered=None) -> dict[str, bytes]:
+        """CDR messages of one :class:`~cstomo_sensor.force.pipeline.FrameResult` at ``stamp_ns``, keyed
+        by topic name (relative to the node), in the order of the stream's outputs:
+        ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given, ``consistency`` when the
+        result has the statistic, ``stress_field`` and ``scene_stress_field`` only when the result
+        carries those fields (same layout)."""
+        out = {"wrench": self.wrench(result.force, stamp_ns)}
+        if filtered is not None:
+            out["wrench_filtered"] = self.wrench(filtered, stamp_ns)
+        out.update({
             "force_magnitude": self.float64(result.magnitude),
             "force_elevation": self.float64(result.elevation),
             "force_azimuth": self.float64(result.azimuth),
-        }
+        })
         c = getattr(result, "consistency", float("nan"))
         if c == c:  # not NaN
-            out[CONSISTENCY_TOPIC] = self.float64(c)
+            out["consistency"] = self.float64(c)
         if getattr(result, "field", None) is not None:
-            out[STRESS_TOPIC] = self.stress_field(result.field, stamp_ns)
+            out["stress_field"] = self.stress_field(result.field, stamp_ns)
         if getattr(result, "scene_field", None) is not None:
-            out[SCENE_TOPIC] = self.stress_field(result.scene_field, stamp_ns)
+            out["scene_stress_field"] = self.stress_field(result.scene_field, stamp_ns)
         return out
 
 
 class RawVoltagesCdr:
-    """``~/raw_voltages`` as CDR bytes (the same message as :func:`raw_voltages_msg`), from a
-    template of rclpy's serialisation; the 208 float32 values are the message's last bytes."""
+    """``~/raw_voltages`` as CDR bytes (the same message as :func:`raw_voltages_msg`), from a template
+    of rclpy's serialisation: per frame the stamp (right after the 4-byte encapsulation header) and
+    the 208 float32 values (the message's last bytes) are written into it."""
 
-    def __init__(self) -> None:
-        self._tpl = bytearray(serialize_message(raw_voltages_msg(np.zeros(N_MEAS))))
+    def __init__(self, frame_id: str = "cstomo_socket") -> None:
+        self._tpl = bytearray(serialize_message(raw_voltages_msg(np.zeros(N_MEAS), 0, frame_id)))
         self._at = len(self._tpl) - 4 * N_MEAS
         self._view = np.frombuffer(self._tpl, dtype="<f4", count=N_MEAS, offset=self._at)
 
-    def __call__(self, values: np.ndarray) -> bytes:
+    def __call__(self, values: np.ndarray, stamp_ns: int = 0, flagged: np.ndarray | None = None) -> bytes:
+        """The message of ``values`` (208,) volts at ``stamp_ns``, NaN where ``flagged``."""
+        _STAMP.pack_into(self._tpl, 4, *divmod(int(stamp_ns), 1_000_000_000))
         self._view[:] = values
+        if flagged is not None:
+            self._view[flagged] = np.nan
         return bytes(self._tpl)

@@ -15,6 +15,7 @@ from ..cache import default_cache_dir
 from ..errors import ConfigError
 from ..force.device import tare_file_name
 from ..force.pipeline import PipelineConfig
+from ..force.stream import StreamConfig
 from ..model.geometry import SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE
 
@@ -64,6 +65,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
                                   lo=0, hi=1_000_000),
     "wrench_filter_hz": _d("Cutoff (-3 dB) in Hz of the first-order low-pass of ~/wrench_filtered; 0 = off "
                            "(no ~/wrench_filtered)", read_only=True, lo=0.0, hi=10000.0),
+    "drift_tracking": _d("Follow the device's slow uniform change after the tare (warming, drive drift) so the "
+                         "zero holds; diagnostics show the tracked change (force/drift.py)", read_only=True),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -91,16 +94,17 @@ class NodeConfig:
     baudrate: int = 921600
     protocol: str = PROTOCOLS[0]
     rate_hz: float = 0.0
-    tare_frames: int = 50
+    tare_frames: int = StreamConfig.tare_frames
     tare_file: str = ""
     tare_on_start: bool = False
     frame_id: str = "cstomo_socket"
     autostart: bool = True
-    stress_field_every: int = 10
-    wrench_filter_hz: float = 20.0
+    stress_field_every: int = StreamConfig.stress_field_every
+    wrench_filter_hz: float = StreamConfig.wrench_filter_hz
+    drift_tracking: bool = StreamConfig.drift_tracking
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
-    stale_timeout: float = 0.5
+    stale_timeout: float = StreamConfig.stale_timeout
     clock_window: float = 10.0
 
     def __post_init__(self) -> None:
@@ -131,6 +135,13 @@ class NodeConfig:
             raise ConfigError(f"parameter '{err.key}'={err.value!r}: expected {err.expected}") from err
         names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
         return cls(pipeline=pipe, **{n: get(n) for n in names})
+
+    @property
+    def stream(self) -> StreamConfig:
+        """The frame stream's settings."""
+        return StreamConfig(tare_frames=self.tare_frames, stress_field_every=self.stress_field_every,
+                            wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout,
+                            drift_tracking=self.drift_tracking)
 
     @property
     def cache_path(self) -> Path:

@@ -8,7 +8,7 @@ import sys
 
 from ..board.sim import FaultConfig, SimulatedBoard
 from ..errors import CstomoError
-from ..model.geometry import load_sensor
+from ..model.geometry import DEFAULT_SNR_DB, load_sensor
 from ..model.simulate import VoltageSource
 
 
@@ -23,7 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--protocol", default="binary", help="binary (default) or text")
     p.add_argument("--link", help="symlink kept pointing at the current pty")
     p.add_argument("--snr", type=float, default=None,
-                   help="signal-to-noise ratio in dB (default: the scene's snr_db; 60 for a load script)")
+                   help=f"signal-to-noise ratio in dB (default: the scene's snr_db; {DEFAULT_SNR_DB:g} for a load script)")
     p.add_argument("--seed", type=int, default=0)
     g = p.add_argument_group("faults")
     g.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability per frame")

@@ -1,6 +1,6 @@
 """``cstomo calibrate``: fit a device calibration on known loads (see cstomo_sensor.force.calibration).
 
-From files (REFERENCE_SENSOR.md section 6)::
+From files (formats: docs/formats.md)::
 
     cstomo calibrate --sensor S --reference REF.csv --frames FRAMES.csv --forces FORCES.csv --out DEVICE.yaml
 
@@ -9,10 +9,12 @@ extra columns are ignored). From a rosbag2 recording::
 
     cstomo calibrate --bag DIR --voltages-topic /cstomo_sensor/raw_voltages --wrench-topic /ft/wrench --out DEVICE.yaml
 
-``raw_voltages`` (std_msgs/Float32MultiArray, as the node publishes them; stamped by the bag's
-receive time) paired with the reference sensor's geometry_msgs/WrenchStamped (its header stamp; the
-force already in the sensor's wrench frame) nearest in time, within ``--stamp-tolerance`` (default
-0.02 s; frames without one are not used). The reference: ``--reference``, else the paired frames under
+``raw_voltages`` (sensor_msgs/Image, as the node publishes them: stamped with the time each frame was
+measured; a legacy Float32MultiArray recording is stamped by the bag's receive time) paired with the
+reference sensor's geometry_msgs/WrenchStamped (its header stamp; the force already in the sensor's
+wrench frame) nearest in time, within ``--stamp-tolerance`` (default 0.02 s), and only on the same
+load plateau (the reference force steady within 0.3 N for 3 wrenches or more): frames without one,
+or taken while the load changed, are not used. The recipe: docs/calibration.md. The reference: ``--reference``, else the paired frames under
 less than ``--unloaded-below`` N. Writes DEVICE.yaml and, beside it, DEVICE.cv.csv, the cross-validated
 accuracy before and after calibration, which it also prints.
 """
@@ -34,6 +36,11 @@ from .common import add_pipeline_args, pipeline_config
 
 STAMP_TOLERANCE = 0.02  # s
 UNLOADED_BELOW = 0.5  # N
+#: A load plateau of the reference wrench: its force stays within this many newtons (a reference
+#: F/T sensor's noise is ~0.05 N; a hand-held or weight-stacked load settles within 0.2 N), for at
+#: least this many wrenches.
+PLATEAU_TOLERANCE = 0.3  # N
+PLATEAU_MIN_SAMPLES = 3
 
 
 def pair_by_stamp(t_frames: np.ndarray, t_wrench: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -48,14 +55,58 @@ def pair_by_stamp(t_frames: np.ndarray, t_wrench: np.ndarray, tolerance: float) 
     return np.flatnonzero(ok), order[pick[ok]]
 
 
+def plateaus(t_wrench: np.ndarray, forces: np.ndarray, tolerance: float = PLATEAU_TOLERANCE,
+             min_samples: int = PLATEAU_MIN_SAMPLES) -> np.ndarray:
+    """The plateau of each reference wrench (in stamp order): runs of wrenches whose force stays within
+    ``tolerance`` N of the run's first one, of at least ``min_samples`` wrenches, numbered from 0;
+    -1 for a wrench of a load change (a run too short: the load was moving)."""
+    order = np.argsort(t_wrench)
+    f = forces[order]
+    label = np.full(len(f), -1)
+    start, n = 0, 0
+    for i in range(1, len(f) + 1):
+        if i == len(f) or np.linalg.norm(f[i] - f[start]) > tolerance:
+            if i - start >= min_samples:
+                label[start:i] = n
+                n += 1
+            start = i
+    out = np.empty_like(label)
+    out[order] = label
+    return out
+
+
+def pair_on_plateaus(t_frames: np.ndarray, t_wrench: np.ndarray, forces: np.ndarray, tolerance: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(frame indices, wrench indices): each frame with the nearest wrench within ``tolerance`` s, kept
+    only when the frame's stamp lies inside that wrench's plateau, half a wrench period in from its
+    first and its last wrench (the load may change anywhere between two wrenches): a frame is never
+    paired across a load change, nor with a load that was moving."""
+    i, j = pair_by_stamp(t_frames, t_wrench, tolerance)
+    label = plateaus(t_wrench, forces)
+    ok = label[j] >= 0
+    n = label.max() + 1 if len(label) else 0
+    first = np.full(n, np.inf)
+    last = np.full(n, -np.inf)
+    np.minimum.at(first, label[label >= 0], t_wrench[label >= 0])
+    np.maximum.at(last, label[label >= 0], t_wrench[label >= 0])
+    lab = np.where(ok, label[j], 0)
+    guard = 0.5 * float(np.median(np.diff(np.sort(t_wrench)))) if len(t_wrench) > 1 else 0.0
+    ok &= (t_frames[i] >= first[lab] + guard) & (t_frames[i] <= last[lab] - guard)
+    return i[ok], j[ok]
+
+
 def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance: float = STAMP_TOLERANCE):
-    """(frames (n, 208), forces (n, 3), frames read, wrenches read) of a rosbag2 recording."""
+    """(frames (n, 208), forces (n, 3), frames read, wrenches read) of a rosbag2 recording: frames
+    paired with the reference wrench on the same load plateau (:func:`pair_on_plateaus`), by the
+    frame's own stamp (the node's stamped raw frames; the bag's receive time for a legacy
+    Float32MultiArray recording) and the wrench's header stamp."""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
+    from sensor_msgs.msg import Image
     from std_msgs.msg import Float32MultiArray
 
-    from ..ros.messages import values_from_raw_msg
+    from ..ros.messages import LEGACY_RAW_TYPE, frame_from_raw_msg
 
     frames, tf, forces, tw = [], [], [], []
     with Reader(path) as reader:
@@ -64,10 +115,15 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
             if t not in topics:
                 raise ConfigError(f"topic {t!r}: not in the bag {path}; it holds {sorted(topics)}")
         conns = [c for c in reader.connections if c.topic in (voltages_topic, wrench_topic)]
+        legacy = any(c.msgtype == LEGACY_RAW_TYPE for c in conns if c.topic == voltages_topic)
         for conn, t_ns, raw in reader.messages(connections=conns):
             if conn.topic == voltages_topic:
-                frames.append(values_from_raw_msg(deserialize_message(bytes(raw), Float32MultiArray)))
-                tf.append(t_ns * 1e-9)
+                values, flagged, stamp = frame_from_raw_msg(
+                    deserialize_message(bytes(raw), Float32MultiArray if legacy else Image))
+                if flagged is not None:
+                    continue  # a measurement the board flagged: not a calibration frame
+                frames.append(values)
+                tf.append((stamp or t_ns) * 1e-9)
             else:
                 m = deserialize_message(bytes(raw), WrenchStamped)
                 forces.append((m.wrench.force.x, m.wrench.force.y, m.wrench.force.z))
@@ -75,7 +131,7 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
     if not frames or not forces:
         raise ConfigError(f"bag {path}: {len(frames)} messages on {voltages_topic}, {len(forces)} on {wrench_topic}; "
                           "expected both")
-    i, j = pair_by_stamp(np.array(tf), np.array(tw), tolerance)
+    i, j = pair_on_plateaus(np.array(tf), np.array(tw), np.array(forces), tolerance)
     return np.array(frames)[i], np.array(forces)[j], len(frames), len(forces)
 
 

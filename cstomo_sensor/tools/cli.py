@@ -14,15 +14,16 @@ from importlib import import_module
 
 import numpy as np
 
-from ..errors import CstomoError
+from ..errors import ConfigError, CstomoError
 from ..force.device import DEFAULT_NOISE_DB, read_reference
-from ..force.pipeline import Pipeline
+from ..force.pipeline import FrameResult, Pipeline
+from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
 from ..inverse.reconstruction import build_model
 from ..model.cem import ForwardModel
-from ..model.geometry import load_sensor
+from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
-from ..model.simulate import simulate_scene_files
+from ..model.simulate import Scene, simulate_scene_files
 from .common import add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -89,20 +90,26 @@ def cmd_reconstruct(a) -> int:
 def cmd_estimate(a) -> int:
 
     cfg = pipeline_config(a)
+    if not a.rate > 0:
+        raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
-    report = pipe.set_reference(ref, noise, n_ref)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
+                                            drift_tracking=not a.no_drift_tracking))
+    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
-          f"{'WARNING: ' if report.warn else ''}{report.message}", file=sys.stderr)
+          f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
-    results = [pipe.process(f, with_field=False) for f in frames]
+    period_ns = round(1e9 / a.rate)  # frames in file order, a.rate per second (the drift tracker's clock)
+    outputs = [stream.push(f, stamp_ns=(i + 1) * period_ns) for i, f in enumerate(frames)]  # None: a row without a force
+    results = [o.result if o is not None else FrameResult.implausible(stream.counts.reject_reason) for o in outputs]
     forces = np.array([r.force for r in results])
     valid = np.array([r.valid for r in results])
-    # the optional valid column (REFERENCE_SENSOR.md section 6) is written when a frame was
-    # rejected as implausible; without it, every row holds a force
+    # the optional valid column (docs/formats.md#forces-file) is written when a frame was rejected as
+    # implausible; without it, every row holds a force
     write_forces(a.out, forces, valid=None if valid.all() else valid,
                  consistency=np.array([r.consistency for r in results]),
                  foreign_load=np.array([r.foreign_load for r in results]))
@@ -122,6 +129,33 @@ def cmd_simulate(a) -> int:
     return 0
 
 
+#: ``cstomo simulate --help``: the scene file's keys (the table: docs/formats.md#scene-file),
+#: with the defaults of :class:`~cstomo_sensor.model.simulate.Scene`.
+SIMULATE_HELP = f"""\
+Frames of an honestly simulated device (docs/physics.md#honest-simulation): the truth on an independent
+mesh, electrodes and contact impedances mismatched (seeded), white noise. Writes, under --out,
+reference.csv (the unloaded frame), frames.csv (frames_per_load frames per load, in order) and
+truth.csv (each frame's force in N, wrench frame; 0 for loads that are not socket or patch forces).
+
+scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` required, other keys refused):
+  sensor               preset name or sensor YAML path (relative: to the scene file)
+                       (default {DEFAULT_SENSOR})
+  snr_db               noise, dB below the reference's rms; null for none (default {Scene.snr_db:g})
+  seed                 seed of the mismatch and of the noise (default {Scene.seed})
+  truth_mesh_size      m, the truth's independent mesh (default {Scene.truth_mesh_size:g})
+  mechanics_mesh_size  m, the mesh of the mechanics of a force (default {Scene.mechanics_mesh_size:g})
+  mismatch             contact_impedance: +- fraction per electrode (default {Scene.z_rel:g});
+                       electrode_jitter: m, at most, within the face (default {Scene.jitter:g})
+  frames_per_load      noisy frames per load (default {Scene.frames_per_load})
+  loads                a list; each item is one of
+      socket: {{force: [fx, fy, fz]}}  or  {{magnitude: N, elevation_deg: D, azimuth_deg: D (default 0)}}
+      patches: [{{shape: square, size: m | shape: circle, radius: m, center: [u, v] m (default [0, 0]),
+                 face: top (default), +x, -x, +y or -y}}], total_force: N (uniform normal pressure;
+                 center in the face's own coordinates: (x, y) on top, (y, z) on +-x, (x, z) on +-y)
+      inclusion: {{center: [x, y, z] m, radius: m, contrast: relative conductivity change}} (no mechanics)
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
     p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
@@ -139,13 +173,22 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
+    e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+                   help="frames per second of the frames file, in file order: the clock of the drift tracking "
+                        "(default %(default)g)")
+    e.add_argument("--no-drift-tracking", action="store_true",
+                   help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
-    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file")
-    s.add_argument("--scene", required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--cache-dir", default="")
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--scene", required=True, metavar="FILE",
+                   help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
+    s.add_argument("--out", required=True, metavar="DIR",
+                   help="output directory, created if missing: reference.csv, frames.csv, truth.csv")
+    s.add_argument("--cache-dir", default="", metavar="DIR",
+                   help="cache of meshes and models (default: the user's cache, $CSTOMO_CACHE_DIR)")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")

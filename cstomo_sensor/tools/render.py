@@ -25,7 +25,7 @@ from ..angles import planar_angle
 from ..errors import ConfigError, CstomoError, ModelMismatchError
 from ..force.pipeline import Pipeline, PipelineConfig
 from ..inverse.reconstruction import voxel_basis
-from ..model.geometry import load_sensor
+from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.material import pressure_of_theta
 from ..model.mesh import MeshSpec, build_mesh, electrode_patches
 from ..model.simulate import Scene, add_noise
@@ -154,7 +154,7 @@ def render_voltages(ref: np.ndarray, frames: np.ndarray, labels: list[str], out:
     a.set_title("the 208 voltages")
     b.set_title("loaded minus unloaded")
     for ax in (a, b):
-        ax.set_xlabel("measurement (section 2 order)")
+        ax.set_xlabel("measurement (docs/physics.md order)")
         ax.set_ylabel("mV")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -221,7 +221,7 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
 def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="cstomo render", description=__doc__.splitlines()[0])
-    p.add_argument("--sensor", default="cuboid_joint", help="preset name or geometry YAML path")
+    p.add_argument("--sensor", default=DEFAULT_SENSOR, help="preset name or geometry YAML path (default %(default)s)")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
     p.add_argument("--scene", default=None, help=f"scene file (default {DEFAULT_SCENE.name})")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")

@@ -1,18 +1,25 @@
-"""``cstomo replay``: run a recorded rosbag2 of raw voltages through the node's frame path offline.
+"""``cstomo replay``: run a recorded rosbag2 of raw voltages through the node's frame stream offline.
 
-Reads every message of the topic ending in ``raw_voltages`` (std_msgs/Float32MultiArray, sqlite3 or
-mcap storage) with the ``rosbags`` library and writes a new bag with the node's output topics
-(``wrench``, ``force_magnitude``, ``force_elevation``, ``force_azimuth`` and, if asked,
-``stress_field``) under the same namespace as the input topic, with the same message types and
-the same numbers the live node publishes: both go through
-:class:`~cstomo_sensor.force.pipeline.FrameProcessor` and :class:`~cstomo_sensor.ros.messages.OutputMessages`.
+Reads every message of the topic ending in ``raw_voltages`` (sensor_msgs/Image 32FC1 as the node
+publishes it, or the std_msgs/Float32MultiArray of older recordings; sqlite3 or mcap storage; NaN
+marks a measurement the board flagged) with the ``rosbags``
+library and writes a new bag with the node's output topics under the same namespace as the input
+topic, with the same message types and the same numbers the live node publishes: both push the
+frames through a :class:`~cstomo_sensor.force.stream.FrameStream` and build the messages with
+:class:`~cstomo_sensor.ros.messages.OutputMessages`; the topics are the stream's outputs for the
+settings given (``wrench_filtered`` with a filter, the stress fields with ``--stress-field-every``).
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
 (the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise) is the
-reference; without it, the first ``tare_frames`` frames of the bag
-are averaged into the reference and give no output, exactly as the node in topic mode with
-``tare_on_start: true``. Stamps: each output carries the bag's receive time of its input frame,
-as the topic-mode node stamps with the host time on reception.
+reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); without it,
+the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
+exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
+frame's own stamp (the time it was measured), as the node stamps it; a legacy frame without one, the
+bag's receive time. The filtered wrench runs on those stamps.
+
+Nothing is left behind when the command fails: the bag is written in a temporary directory beside
+``--out`` and moved into place (its files named after ``--out``) only when it and the forces file are
+complete.
 """
 from __future__ import annotations
 
@@ -21,28 +28,21 @@ import logging
 import os
 import shutil
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from rclpy._rclpy_pybind11 import RMWError
 from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, CstomoError, FrameError
-from ..force.device import read_reference
-from ..force.pipeline import FrameProcessor, Pipeline, PipelineConfig
+from ..force.pipeline import Pipeline, PipelineConfig
+from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import write_forces
-from ..ros.messages import (
-    CONSISTENCY_TOPIC,
-    FORCE_TOPICS,
-    RAW_TOPIC,
-    SCENE_TOPIC,
-    STRESS_TOPIC,
-    TOPIC_TYPES,
-    OutputMessages,
-    values_from_raw_msg,
-)
+from ..ros.messages import LEGACY_RAW_TYPE, RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
 from .common import add_pipeline_args, pipeline_config
 
 log = logging.getLogger(__name__)
@@ -85,13 +85,16 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
             raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
         topic = raw[0]
     types = sorted({c.msgtype for c in connections if c.topic == topic})
-    if types != [TOPIC_TYPES[RAW_TOPIC]]:
-        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]}")
+    if len(types) != 1 or types[0] not in (TOPIC_TYPES[RAW_TOPIC], LEGACY_RAW_TYPE):
+        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]} "
+                          f"(or {LEGACY_RAW_TYPE} of older recordings)")
     return topic
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
-           tare_frames: int = 50, stress_field_every: int = 0, frame_id: str = "cstomo_socket",
+           tare_frames: int = StreamConfig.tare_frames, stress_field_every: int = 0,
+           wrench_filter_hz: float = StreamConfig.wrench_filter_hz, drift_tracking: bool = StreamConfig.drift_tracking,
+           frame_id: str = "cstomo_socket",
            topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
            forces_file: str | Path | None = None) -> ReplaySummary:
     """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
@@ -103,13 +106,17 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     reference : path or None
         Frames file whose mean is the reference (several rows: their spread is the noise); None tares on the first ``tare_frames`` frames.
     stress_field_every : int
-        Write ``stress_field`` for every N-th result (the first included); 0 = never.
+        Write ``stress_field`` (and ``scene_stress_field``) for every N-th result (the first included); 0 = never.
+    wrench_filter_hz : float
+        Cutoff of ``wrench_filtered`` (the node's ``wrench_filter_hz``); 0 = no filtered wrench.
+    drift_tracking : bool
+        Follow the device's slow change after the tare, as the node's ``drift_tracking``.
     pipeline : Pipeline or None
         An already built pipeline for ``config`` (its reference and mask are reset here).
     storage : {'sqlite3', 'mcap'}
         Storage plugin of the output bag.
     forces_file : path or None
-        Also write the results as a forces file (REFERENCE_SENSOR.md section 6) with the ``valid``,
+        Also write the results as a forces file (docs/formats.md#forces-file) with the ``valid``,
         ``consistency`` and ``foreign_load`` columns, one row per processed frame.
     """
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # optional: the [full] extra
@@ -119,68 +126,66 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     out_bag = Path(out_bag)
     if out_bag.exists():
         raise ConfigError(f"output bag {out_bag}: exists; expected a new directory")
+    if not out_bag.parent.is_dir():
+        raise ConfigError(f"output bag {out_bag}: its directory {out_bag.parent} does not exist")
+    if forces_file is not None and not Path(forces_file).parent.is_dir():
+        raise ConfigError(f"forces file {forces_file}: its directory {Path(forces_file).parent} does not exist")
+    stream_cfg = StreamConfig(tare_frames=tare_frames, stress_field_every=stress_field_every,
+                              wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking)
     with Reader(in_bag) as reader:  # the inputs are checked before any model is loaded
         raw_topic = find_raw_topic(reader.connections, topic)
-    ref = read_reference(reference) if reference is not None else None
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
     pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
-    proc = FrameProcessor(pipe, stress_field_every=stress_field_every)
-    if ref is not None:
-        report = pipe.set_reference(*ref)
-        (log.warning if report.warn else log.info)("reference %s (%d frames): %s", reference, ref[2], report.message)
+    stream = FrameStream(pipe, stream_cfg)
+    if reference is not None:
+        stream.use_reference(reference)
     else:
-        proc.start_tare(tare_frames)
+        stream.start_tare()
     out = OutputMessages(pipe.centers, frame_id)
     store = _typestore()
-    n_in = n_out = corrupt = 0
-    with Reader(in_bag) as reader:
-        prefix = raw_topic[: -len(RAW_TOPIC)]
-        names = list(FORCE_TOPICS) + [CONSISTENCY_TOPIC] + ([STRESS_TOPIC] if stress_field_every else []) \
-            + ([SCENE_TOPIC] if stress_field_every and pipe.scene_field is not None else [])
-        rows = []  # the forces file's results
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        partial = out_bag.with_name(f".{out_bag.name}.partial{os.getpid()}")  # renamed when complete
-        shutil.rmtree(partial, ignore_errors=True)
-        try:
-            with Writer(partial, version=9, storage_plugin=plugin) as writer:
-                conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
-                inputs = [c for c in reader.connections if c.topic == raw_topic]
-                for _conn, t_ns, raw in reader.messages(connections=inputs):
-                    n_in += 1
-                    try:
-                        msg = deserialize_message(bytes(raw), Float32MultiArray)
-                    except RMWError as err:  # not CDR of the type: a corrupt frame, as the node drops one
-                        corrupt += 1
-                        log.warning("frame %d at %d ns dropped: not a %s (%s)", n_in - 1, t_ns,
-                                    TOPIC_TYPES[RAW_TOPIC], str(err).split(",")[0])
-                        continue
-                    try:
-                        result = proc.process(values_from_raw_msg(msg))
-                    except FrameError as err:
-                        corrupt += 1
-                        log.warning("frame %d at %d ns dropped: %s", n_in - 1, t_ns, err)
-                        continue
-                    if result is not None:
-                        rows.append(result)
-                    if result is None or not result.valid:
-                        continue
-                    n_out += 1
-                    for name, data in out.build(result, t_ns).items():  # CDR bytes
-                        writer.write(conns[name], t_ns, data)
-            if n_in and corrupt == n_in:
-                raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
-                                  "no output written")
-            os.replace(partial, out_bag)
-            if forces_file is not None:
-                write_forces(forces_file, np.array([r.force for r in rows]).reshape(-1, 3),
-                             valid=np.array([r.valid for r in rows], bool),
-                             consistency=np.array([r.consistency for r in rows]),
-                             foreign_load=np.array([r.foreign_load for r in rows], bool))
-        finally:
-            shutil.rmtree(partial, ignore_errors=True)
-    if proc.taring:
+    n_in = n_out = 0
+    rows = []  # the forces file's results
+    prefix = raw_topic[: -len(RAW_TOPIC)]
+    names = stream.outputs
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    work = Path(tempfile.mkdtemp(prefix=f".{out_bag.name}.partial", dir=out_bag.parent))  # moved when complete
+    partial = work / out_bag.name  # the bag's files are named after its directory
+    try:
+        with Reader(in_bag) as reader, Writer(partial, version=9, storage_plugin=plugin) as writer:
+            conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
+            inputs = [c for c in reader.connections if c.topic == raw_topic]
+            cls = Image if inputs[0].msgtype == TOPIC_TYPES[RAW_TOPIC] else Float32MultiArray
+            for _conn, t_ns, raw in reader.messages(connections=inputs):
+                n_in += 1
+                try:
+                    values, flagged, stamp_ns = frame_from_raw_msg(deserialize_message(bytes(raw), cls))
+                except (RMWError, FrameError) as err:  # not a frame: dropped and counted, as the node does
+                    stream.drop(FrameError(f"frame {n_in - 1} at {t_ns} ns: {str(err).split(',')[0]}"), corrupt=True)
+                    continue
+                output = stream.push(values, flagged, None, stamp_ns or t_ns)
+                if output is None:
+                    continue
+                rows.append(output.result)
+                if not output.result.valid:
+                    continue  # implausible: no message, as the node publishes none
+                n_out += 1
+                for name, data in out.build(output.result, output.stamp_ns, output.filtered).items():  # CDR bytes
+                    writer.write(conns[name], t_ns, data)  # at the input's bag time, stamped as the node stamps
+        corrupt = stream.counts.corrupt + stream.counts.rejected
+        if n_in and corrupt == n_in:
+            raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
+                              "no output written")
+        if forces_file is not None:
+            write_forces(forces_file, np.array([r.force for r in rows]).reshape(-1, 3),
+                         valid=np.array([r.valid for r in rows], bool),
+                         consistency=np.array([r.consistency for r in rows]),
+                         foreign_load=np.array([r.foreign_load for r in rows], bool))
+        os.replace(partial, out_bag)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    if stream.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
-    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), proc.implausible,
+    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), stream.implausible,
                          sum(r.foreign_load for r in rows))
 
 
@@ -191,8 +196,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
     add_pipeline_args(p)
     p.add_argument("--reference", help="frames file used as the reference (else: tare on the first frames)")
-    p.add_argument("--tare-frames", type=int, default=50, help="frames averaged by the tare (default 50)")
-    p.add_argument("--stress-field-every", type=int, default=0, help="write stress_field every N results")
+    p.add_argument("--tare-frames", type=int, default=StreamConfig.tare_frames,
+                   help="frames averaged by the tare (default %(default)s)")
+    p.add_argument("--stress-field-every", type=int, default=0,
+                   help="write stress_field and scene_stress_field every N results (default 0: never)")
+    p.add_argument("--wrench-filter-hz", type=float, default=StreamConfig.wrench_filter_hz, metavar="HZ",
+                   help="cutoff of wrench_filtered, as the node's parameter (default %(default)g; 0: none)")
+    p.add_argument("--no-drift-tracking", action="store_true",
+                   help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
     p.add_argument("--frame-id", default="cstomo_socket")
     p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
     p.add_argument("--forces", help="also write a forces file (CSV) with the consistency and foreign_load columns")
@@ -208,8 +219,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
-                   stress_field_every=args.stress_field_every, frame_id=args.frame_id, topic=args.topic,
-                   storage=args.storage, forces_file=args.forces, progress=lambda m: print(f"model: {m}", file=sys.stderr))
+                   stress_field_every=args.stress_field_every, wrench_filter_hz=args.wrench_filter_hz,
+                   drift_tracking=not args.no_drift_tracking,
+                   frame_id=args.frame_id, topic=args.topic, storage=args.storage, forces_file=args.forces,
+                   progress=lambda m: print(f"model: {m}", file=sys.stderr))
     except (CstomoError, OSError, ReaderError, WriterError) as err:
         print(f"cstomo replay: {err}", file=sys.stderr)
         return 2

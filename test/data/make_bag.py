@@ -5,7 +5,9 @@
 A simulated device (cstomo_sensor.model.simulate.VoltageSource: honest simulation, independent mesh,
 mismatched electrodes, 60 dB noise) follows a load script: unloaded, then four socket forces, then
 unloaded again; 50 frames per second for 4 s, recorded as the node records them
-(std_msgs/Float32MultiArray on /cstomo_sensor/raw_voltages, built by cstomo_sensor.ros.messages).
+(std_msgs/Float32MultiArray on /cstomo_sensor/raw_voltages, as the node recorded them before its raw
+frames carried a stamp: the bag tests replay's reading of older recordings; built by
+cstomo_sensor.ros.messages.legacy_raw_voltages_msg).
 """
 from __future__ import annotations
 
@@ -39,7 +41,7 @@ def main() -> int:
 
     from cstomo_sensor.frames_io import write_forces
     from cstomo_sensor.model.simulate import VoltageSource
-    from cstomo_sensor.ros.messages import TOPIC_TYPES, raw_voltages_msg
+    from cstomo_sensor.ros.messages import LEGACY_RAW_TYPE, legacy_raw_voltages_msg
 
     with tempfile.TemporaryDirectory() as tmp:
         script = Path(tmp) / "load.csv"
@@ -52,9 +54,9 @@ def main() -> int:
         shutil.rmtree(BAG)
     store = get_typestore(getattr(Stores, "ROS2_KILTED", Stores.LATEST))
     with Writer(BAG, version=9) as w:
-        conn = w.add_connection(TOPIC, TOPIC_TYPES["raw_voltages"], typestore=store)
+        conn = w.add_connection(TOPIC, LEGACY_RAW_TYPE, typestore=store)
         for t, v in zip(times, frames):
-            w.write(conn, T0_NS + int(round(t * 1e9)), serialize_message(raw_voltages_msg(v)))
+            w.write(conn, T0_NS + int(round(t * 1e9)), serialize_message(legacy_raw_voltages_msg(v)))
     write_forces(TRUTH, np.array([src.truth(t) for t in times]))
     size = sum(f.stat().st_size for f in BAG.rglob("*") if f.is_file())
     print(f"{len(frames)} frames -> {BAG} ({size / 1024:.0f} kB); truth -> {TRUTH}")

@@ -1,7 +1,7 @@
 """``cstomo bench --calibration-effort``: the user's trade of calibration effort for accuracy.
 
 A simulated non-nominal device (a scene file; default ``scenes/cuboid_device_a_60db.yaml``: material
-and electrode placement inside REFERENCE_SENSOR.md section 8, honest simulation) is tared (50 frames),
+and electrode placement inside docs/physics.md#real-devices, honest simulation) is tared (50 frames),
 calibrated on the first N of 40 random known loads (N = 0, 3, 5, 10, 20, 40; each load held for
 ``FRAMES_PER_LOAD`` frames), and judged on held-out loads of the same device (new forces, new noise),
 for both estimators at 60 and 40 dB. Writes calibration_effort.csv, .md and calibration_effort.png.

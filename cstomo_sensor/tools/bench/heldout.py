@@ -20,7 +20,7 @@ TARE_FRAMES = 50
 
 def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibration: str = "") -> list[dict]:
     """Both estimators on ``n`` held-out random socket forces at 60 and 40 dB (one noise draw each),
-    elevations under 32 deg reported separately (REFERENCE_SENSOR.md s.4); writes heldout.csv.
+    elevations under 32 deg reported separately (docs/physics.md#socket-contact); writes heldout.csv.
     ``calibration``: a device calibration file applied to both (fitted on this held-out device)."""
 
     scenes = SceneSet(n, cache_dir, say)

@@ -11,7 +11,7 @@ import numpy as np
 from ...force.estimate import build_estimator
 from ...force.pipeline import Pipeline
 from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
-from ...model.geometry import load_sensor
+from ...model.geometry import DEFAULT_SENSOR, load_sensor
 
 #: The image before issue 13: plain Landweber, k by the discrepancy rule at tau = 1.1.
 PLAIN = {"weight_power": 0.0, "tau": 1.1}
@@ -21,8 +21,8 @@ PLAIN = {"weight_power": 0.0, "tau": 1.1}
 class Setting:
     name: str
     varied: str
-    mesh_size: float = 4.0e-3  # m
-    grid: tuple = (8, 8, 4)
+    mesh_size: float = ReconSpec.mesh_size  # m
+    grid: tuple = ReconSpec.grid
     basis_grid: tuple = ReconSpec.basis_grid  # the unknowns' grid (averaged onto ``grid``)
     iterations: str | int = "auto"  # "auto", "few", "many" or a count
     damping: float = 0.0
@@ -58,7 +58,7 @@ class Builder:
     def __init__(self, cache_dir, say=print) -> None:
 
         self.cache_dir = cache_dir or None
-        self.geometry = load_sensor("cuboid_joint")
+        self.geometry = load_sensor(DEFAULT_SENSOR)
         self.say = say
         self._models: dict = {}
         self._est: dict = {}

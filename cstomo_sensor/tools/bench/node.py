@@ -99,7 +99,7 @@ class _Recorder:
     def on_diag(self, msg) -> None:
         now = time.monotonic()
         for s in msg.status:
-            if s.name.startswith("cstomo_sensor"):
+            if s.name.startswith("/cstomo_sensor:"):  # the node's full name (namespace included)
                 with self.lock:
                     self.diags.append((now, {kv.key: kv.value for kv in s.values}))
 

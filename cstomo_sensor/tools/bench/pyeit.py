@@ -6,7 +6,7 @@ can and cannot do for ``cuboid_joint``:
 - it takes a 3D tetrahedral mesh (``PyEITMesh(node, element)``, tetrahedra must be positively
   oriented in its convention: we reorder them), so it runs on our own forward mesh;
 - it takes a custom protocol (``PyEITProtocol(ex_mat, meas_mat, keep_ba)``): our 16 drive pairs
-  and 13 measurement pairs per drive, in the 208-value order of REFERENCE_SENSOR.md section 2;
+  and 13 measurement pairs per drive, in the 208-value order of docs/physics.md#measurement-order;
 - it has point electrodes only (one mesh node per electrode; "CEM is under development" in its
   ``Forward.solve``): no disc area, no contact impedance. We use the boundary node nearest each
   electrode's centre. Its currents are unit: we scale by the drive current;
@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from ...inverse.reconstruction import ReconSpec, model_of_mesh, voxel_basis
 from ...model.cem import ForwardModel
-from ...model.geometry import load_sensor
+from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.mesh import MeshSpec, build_mesh
 from .models import PLAIN
 from .scenes import NOISE_SEED, SceneSet, image_errors
@@ -128,7 +128,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    g = load_sensor("cuboid_joint")
+    g = load_sensor(DEFAULT_SENSOR)
     sigma0 = g.material.sigma0
     I = g.drive_current
     mesh = build_mesh(g, MeshSpec(h=MESH_SIZE), cache_dir)

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ...model.geometry import DEFAULT_SENSOR
+
 
 def pareto(times: np.ndarray, errs: np.ndarray) -> np.ndarray:
     """Boolean mask of the settings no other setting beats on both time and error."""
@@ -101,7 +103,7 @@ def plot_tradeoff(rows: list[dict], path: Path) -> None:
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="upper right", fontsize=7)
-    fig.suptitle("cuboid_joint: accuracy against speed (held-out honest scenes, 60 dB)")
+    fig.suptitle(f"{DEFAULT_SENSOR}: accuracy against speed (held-out honest scenes, 60 dB)")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

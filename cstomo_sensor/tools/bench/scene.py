@@ -21,7 +21,7 @@ from ...force.scene_field import Consistency, change_noise, mismatch_allowance
 from ...model import elasticity
 from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh
-from ...model.simulate import Load, Scene, Truth, add_noise, simulate
+from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Scene, Truth, add_noise, simulate
 from .report import write_csv
 from .scenes import TRUTH_SEED, random_forces
 
@@ -95,7 +95,7 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
     # 3. the flag: the held-out device, a tare of 20 frames, 3 frames per socket load; the statistic's
     # noise is the change's, the frame's and the tare's (as Pipeline._update_consistency forms it)
     n_tare = 20
-    dev = Truth(pipe.geometry, truth_h=3e-3, mechanics_h=4e-3, seed=TRUTH_SEED, cache_dir=cache_dir)
+    dev = Truth(pipe.geometry, truth_h=TRUTH_MESH_SIZE, mechanics_h=MECHANICS_MESH_SIZE, seed=TRUTH_SEED, cache_dir=cache_dir)
     socket = [Load("socket", force=tuple(f)) for f in random_forces(n_loads // 3 + 1)]
     clean = {"socket": [dev.voltages(ld) for ld in socket], "side": [dev.voltages(SIDE)],
              "top + socket": [dev.voltages((ld, TOP)) for ld in socket]}

@@ -9,9 +9,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...angles import angle_between, force_from_angles
-from ...model.geometry import load_sensor
+from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.material import conductivity_of_theta
-from ...model.simulate import Load, Truth
+from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
 
 TRUTH_SEED = 9001  # the simulated device of the held-out scenes; no calibration or test uses it
 FORCE_SEED = 20261121
@@ -44,8 +44,8 @@ class SceneSet:
     def __init__(self, n_scenes: int, cache_dir=None, say=print, truth_seed: int = TRUTH_SEED,
                  force_seed: int = FORCE_SEED) -> None:
 
-        self.geometry = load_sensor("cuboid_joint")
-        self.truth = Truth(self.geometry, truth_h=3e-3, mechanics_h=4e-3, seed=truth_seed, cache_dir=cache_dir)
+        self.geometry = load_sensor(DEFAULT_SENSOR)
+        self.truth = Truth(self.geometry, truth_h=TRUTH_MESH_SIZE, mechanics_h=MECHANICS_MESH_SIZE, seed=truth_seed, cache_dir=cache_dir)
         t = time.perf_counter()
         self.ref_clean = self.truth.reference
         self.forces = random_forces(n_scenes, force_seed)

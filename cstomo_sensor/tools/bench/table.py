@@ -1,9 +1,9 @@
 """``cstomo bench``: speed and accuracy of every knob, measured on the same honest scenes.
 
-One table (DESIGN.md, "Speed and accuracy are one table"). The held-out scenes are simulated once
+One table (docs/benchmark.md). The held-out scenes are simulated once
 per run and kept in memory: a :class:`~cstomo_sensor.simulate.Truth` on an independent 3 mm mesh
 with a seed no calibration uses (:data:`TRUTH_SEED`), random socket forces (magnitude 5-40 N,
-elevation 20-90 deg, any azimuth; seeded), 60 dB noise (REFERENCE_SENSOR.md sections 5, 7).
+elevation 20-90 deg, any azimuth; seeded), 60 dB noise (docs/physics.md#noise, #honest-simulation).
 Frames are rounded to the precision of the frames file (``%.9e``), so ``cstomo estimate`` on the
 written ``frames.csv`` gives exactly the numbers of the table's default row.
 
@@ -32,7 +32,7 @@ masked with ``set_bad_channels`` (and, for contrast, unmasked).
 
 Outputs in ``--out``: ``table.csv``, ``stability.csv``, ``tradeoff.png``, the markdown table on
 stdout and in ``table.md``, and the default scenes as ``reference.csv``, ``frames.csv``,
-``truth.csv`` (section 6 formats).
+``truth.csv`` (docs/formats.md).
 """
 from __future__ import annotations
 

@@ -1,0 +1,148 @@
+"""The zero that holds: tracking the device's slow change after its tare (docs/physics.md#device-changes).
+
+After a tare the device keeps changing: the rubber warms (its resistivity rises by 0.2..1.5 % per K,
+the same sign everywhere), the board's current source drifts. Both scale every voltage of a frame
+(nearly) alike, ``V = s (V_ref + dV_load)``, and a change of ``s`` by 1 % reads as 18 N at zero load
+when the change is normalised by the tare alone. :class:`DriftTracker` estimates ``s`` over time and
+the pipeline normalises by it: ``y = (V / s - V_ref) / y_scale``.
+
+What separates these slow changes from a load (one frame alone only in part: the normalised change
+of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's):
+
+- **shape at rest**: a frame that ``delta r`` alone explains (the whitened residual of the best
+  ``delta`` below :data:`REST_BOUND` per channel) is a frame without load; it measures ``delta``
+  with the full direction ``r`` (a noise of about 1e-5 per frame).
+- **shape under load**: otherwise, only the part of ``r`` outside the span of the socket loads'
+  changes (the top :data:`LOAD_RANK` directions of the estimator's whitened calibration set) is
+  used, with its variance inflated :data:`LOAD_INFLATION` times: what a load does is not taken
+  for a change of the device (the calibration set's loads leak at most 5e-4 per frame into it).
+- **time**: ``s`` is a random walk of :data:`RATE` per square-root second (a joint warming by 15 K
+  in 30 minutes at 1.5 %/K changes it by 1.3e-4 per second); a scalar Kalman filter weighs each
+  frame's measurement against it. Loads move in tenths of seconds; the device in minutes.
+
+What it cannot separate, said plainly:
+
+- a change that is not a uniform scaling: a temperature gradient across the block, the contact
+  impedances (a uniform resistivity change with the contacts unchanged is a scaling plus a contact
+  change: at 10 % its remainder reads about 0.4 N), single electrodes' contacts. That remainder stays
+  in the change, reads as a small force and raises the consistency statistic;
+- a load held still below about 1 N (the rest bound) is taken for rest: the part of it along ``r``
+  goes into ``s`` (it reads low while held and slightly negative for a moment after it is removed);
+- a change faster than :data:`RATE` under a long load (it is followed at the next rest).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Directions of the calibration set's whitened changes that a load may move: the measurement of
+#: the scale under load uses only the part of ``r`` outside them.
+LOAD_RANK = 10
+#: The variance of that measurement under load is this many times its noise (a real device's load
+#: response is not the model's: what leaks is weighed down).
+LOAD_INFLATION = 10.0
+#: Random walk of the scale, per square-root second.
+RATE = 2e-4
+#: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
+DEFAULT_PERIOD = 0.01
+#: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
+#: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
+#: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
+#: load gives several times the bound.
+REST_BOUND = 1.5
+#: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
+#: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
+RETARE_ADVISED = 0.05
+VALIDATED = 0.10
+#: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
+#: to express the tracked change in kelvin.
+RESISTIVITY_PER_K = 0.008
+
+
+class DriftTracker:
+    """The uniform scale ``s`` of the device's voltages since its tare (module docstring).
+
+    Parameters
+    ----------
+    r : (n_meas,) ndarray
+        The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
+    y : (n, n_meas) ndarray
+        The estimator's calibration set (socket loads' normalised changes).
+    noise : (n_meas,) ndarray
+        Per-channel noise std of a change (y units).
+    keep : (n_meas,) bool ndarray
+        Channels in use.
+    """
+
+    def __init__(self, r: np.ndarray, y: np.ndarray, noise: np.ndarray, keep: np.ndarray) -> None:
+        self._args = (r, y, noise, keep)
+        w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
+        rw = np.asarray(r, float) * w
+        _, _, vt = np.linalg.svd(np.asarray(y) * w, full_matrices=False)
+        U = vt[:LOAD_RANK]
+        u = rw - (U @ rw) @ U  # the part of r that no load moves
+        self._w, self._rw, self._rr = w, rw, float(rw @ rw)
+        self._h = float(u @ u) / LOAD_INFLATION
+        self._g = u / LOAD_INFLATION  # applied to the whitened change
+        self._rest = REST_BOUND * float(np.count_nonzero(keep))
+        self._yw = np.empty_like(w)
+        self.scale = 1.0
+        self.variance = 0.0
+        self.rest_frames = 0  # frames measured as at rest (all time)
+        self._t: float | None = None
+
+    def with_mask(self, keep: np.ndarray) -> DriftTracker:
+        """The same tracker (its state kept) over the channels ``keep``."""
+        r, y, noise, _ = self._args
+        new = DriftTracker(r, y, noise, keep)
+        new.scale, new.variance, new.rest_frames, new._t = self.scale, self.variance, self.rest_frames, self._t
+        return new
+
+    @property
+    def change(self) -> float:
+        """The tracked relative change of the voltages since the tare (``s - 1``)."""
+        return self.scale - 1.0
+
+    def observe(self, y: np.ndarray, t: float | None = None) -> bool:
+        """Update the scale with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
+        :data:`DEFAULT_PERIOD` after the previous frame), formed with the current scale; returns True
+        if the frame was taken as at rest."""
+        dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
+        if t is not None:
+            self._t = t
+        p = self.variance + RATE * RATE * dt
+        yw = np.multiply(y, self._w, out=self._yw)
+        ry = float(self._rw @ yw)
+        rest = float(yw @ yw) - ry * ry / self._rr < self._rest
+        if rest:  # the information and its vector of this frame's measurement of the change
+            info, vec = self._rr, ry
+            self.rest_frames += 1
+        else:
+            info, vec = self._h, float(self._g @ yw)
+        delta = p * vec / (1.0 + p * info)
+        if math.isfinite(delta):
+            self.scale *= 1.0 + delta
+            p /= 1.0 + p * info
+        self.variance = p
+        return rest
+
+    def reset(self) -> None:
+        """A new reference (a tare): no change since."""
+        self.scale, self.variance, self._t = 1.0, 0.0, None
+
+    @property
+    def kelvin_text(self) -> str:
+        """The tracked change as a temperature change of the rubber at :data:`RESISTIVITY_PER_K`."""
+        kelvin = math.log(self.scale) / math.log1p(RESISTIVITY_PER_K) if self.scale > 0 else math.nan
+        return f"{kelvin:+.1f} K at {RESISTIVITY_PER_K:.1%}/K, or a drive drift"
+
+    def status(self) -> tuple[int, str]:
+        """(0 OK, 1 WARN; a message) of the tracked change for the diagnostics."""
+        c = self.change
+        text = f"{c:+.2%} since the tare (about {self.kelvin_text})"
+        if abs(c) > VALIDATED:
+            return 1, f"device changed {text}: beyond the {VALIDATED:.0%} the zero tracking is validated for; re-tare"
+        if abs(c) > RETARE_ADVISED:
+            return 0, f"device changed {text}: a re-tare is advised when the joint is free"
+        return 0, ""

@@ -1,0 +1,745 @@
+"""The frame stream of one sensor: everything that happens to its frames between the board and the
+outputs and needs state from frame to frame. No ROS, no serial.
+
+The node (``ros/node.py``), ``cstomo replay`` and ``cstomo estimate`` all push their frames through a
+:class:`FrameStream` and only turn what it emits into messages or rows, so they cannot disagree. It
+owns, per sensor:
+
+- the reference and the tare transaction with its rules (:data:`TARE_MAX_SPREAD`, a saved tare that
+  is not of this sensor: :func:`tare_problem`), the saved tare file, and the masks of flagged channels;
+- the per-frame core (:class:`~.pipeline.Pipeline`: plausibility gate, estimator, consistency, fields);
+- the filtered wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps);
+- the zero that holds: the device's slow change since the tare (:class:`~.drift.DriftTracker`,
+  ``drift_tracking``), followed frame by frame and applied by the pipeline;
+- the accounting: frames, late frames, dropped frames and why, implausible and foreign-load frames,
+  the processing time, and the losses over the last :data:`LOSS_WINDOW` s;
+- the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`): the node's
+  publishers, replay's topics and the node's ``--help`` all come from it.
+
+Why a module of ``force/`` and not a layer of its own: it needs nothing but the force layer (the
+pipeline, the filter, the device's reference files), and the board's and ROS's layers above it use it.
+
+Frames are pushed with a stamp (ns, the time the frame was measured on the caller's clock: the
+filter runs on it) and an age (ns, how long ago it was measured on the monotonic clock: older than
+``stale_timeout`` is late). A frame the stream cannot use (wrong length, NaN in a used channel, every
+channel excluded, an unexpected error) is dropped and counted, and logged at most every
+:data:`LOG_EVERY` s, never raised to the caller.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
+from ..frames_io import check_frame
+from ..model.pattern import MeasurementPattern
+from .device import DEFAULT_NOISE_DB, read_reference, write_reference
+from .drift import DriftTracker
+from .filter import LowPass
+from .pipeline import FrameResult, Pipeline
+from .scene_field import change_noise
+
+log = logging.getLogger(__name__)
+
+#: Diagnostic levels (the values of diagnostic_msgs/DiagnosticStatus).
+OK, WARN, ERROR = 0, 1, 2
+
+#: Every output a stream can produce, in publishing order: name -> what it holds. The node publishes
+#: each as ``~/<name>``, replay writes each as a topic, ``cstomo_sensor_node --help`` lists them.
+OUTPUTS: dict[str, str] = {
+    "wrench": "geometry_msgs/WrenchStamped: the force on the socket (N) in frame_id, zero torque",
+    "wrench_filtered": "the wrench through a first-order low-pass (wrench_filter_hz; none when 0)",
+    "force_magnitude": "std_msgs/Float64: |F| (N)",
+    "force_elevation": "std_msgs/Float64: the force's elevation (rad)",
+    "force_azimuth": "std_msgs/Float64: the force's azimuth (rad)",
+    "consistency": "std_msgs/Float64: how well the frame fits a load on the socket (above its limit: "
+                   "a foreign load)",
+    "stress_field": "sensor_msgs/PointCloud2: the EIT image (conductivity change, compression, pressure) "
+                    "every stress_field_every frames (none when 0)",
+    "scene_stress_field": "sensor_msgs/PointCloud2: the mechanics' field of the estimated force, with "
+                          "stress_field (socket sensors)",
+}
+
+#: Largest tare spread accepted: max over the used channels of std / rms(reference) of the tare
+#: frames. 60 dB noise (std 0.1 % of rms) gives 0.15..0.35 % over 208 channels (2..50 frames); a
+#: 20 N socket load moves a channel by up to 5.7 % of rms, so one arriving in the middle 80 % of
+#: a tare gives 1.7 % or more.
+TARE_MAX_SPREAD = 0.01
+#: On a noisy board the limit is this many times the median channel's spread instead, when larger: a
+#: 40 dB board (docs/physics.md#real-devices) has a std of 1 % of rms on every channel, and a load
+#: arriving during the tare still shows as channels far noisier than the typical one (use >= 10 tare
+#: frames there).
+TARE_NOISE_FACTOR = 3.0
+#: A saved tare whose rms lies outside these multiples of the model reference's rms is not a frame of
+#: this sensor: voltages scale with the rubber's resistivity, 0.2..5 times nominal
+#: (docs/physics.md#real-devices).
+TARE_RMS_RATIO = (0.2, 5.0)
+#: Seconds over which lost and dropped frames are judged, and the fractions of the frames sent in
+#: that time above which the status is WARN and ERROR.
+LOSS_WINDOW = 5.0
+LOSS_WARN = 0.01
+LOSS_ERROR = 0.2
+#: A repeated per-frame message (a dropped frame, a corrupt input) is logged at most once per this
+#: many seconds, with the count of the ones left out.
+LOG_EVERY = 5.0
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Every setting of the frame stream: the one source of their defaults (the node's parameters
+    and the command line take theirs from here)."""
+
+    tare_frames: int = 50
+    tare_max_spread: float = TARE_MAX_SPREAD
+    stress_field_every: int = 10  # attach the fields to every N-th processed frame (the first included); 0 never
+    wrench_filter_hz: float = 20.0  # 0 = no filtered wrench
+    stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
+    drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
+            raise ConfigError.bad_value("tare_frames", self.tare_frames, ">= 1")
+        if not self.tare_max_spread > 0:
+            raise ConfigError.bad_value("tare_max_spread", self.tare_max_spread, "> 0 (a fraction of the reference rms)")
+        if not self.stress_field_every >= 0:
+            raise ConfigError.bad_value("stress_field_every", self.stress_field_every, ">= 0 (0 = off)")
+        if not (math.isfinite(self.wrench_filter_hz) and self.wrench_filter_hz >= 0):
+            raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
+        if not self.stale_timeout > 0:
+            raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
+
+
+def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
+    """The outputs a stream with ``config`` produces (a subset of :data:`OUTPUTS`, in its order);
+    ``scene_field``: the pipeline has the mechanics' field (a socket sensor)."""
+    off = set()
+    if not config.wrench_filter_hz:
+        off.add("wrench_filtered")
+    if not config.stress_field_every:
+        off |= {"stress_field", "scene_stress_field"}
+    if not scene_field:
+        off.add("scene_stress_field")
+    return tuple(n for n in OUTPUTS if n not in off)
+
+
+def tare_problem(ref: np.ndarray, model_reference: np.ndarray) -> str:
+    """Why the saved tare ``ref`` (n_meas,) is implausible for a model whose reference is
+    ``model_reference``; '' if it is plausible."""
+    if not np.all(np.isfinite(ref)):
+        return "it holds non-finite values"
+    if not np.any(ref):
+        return "all its values are zero"
+    ratio = float(np.sqrt(np.mean(ref**2)) / np.sqrt(np.mean(model_reference**2)))
+    lo, hi = TARE_RMS_RATIO
+    if not lo <= ratio <= hi:
+        return (f"its rms is {ratio:.3g} times the model reference's, outside {lo:g}..{hi:g} (a rubber "
+                "within the real-device ranges of docs/physics.md); a tare of another sensor or board?")
+    return ""
+
+
+@dataclass(frozen=True)
+class Excluded:
+    """Channels excluded from the reconstruction by the latest frame's status flags."""
+
+    saturated: int = 0
+    dead_electrodes: tuple[int, ...] = ()
+    channels: int = 0
+
+
+@dataclass(frozen=True)
+class TareOutcome:
+    """How a tare ended: ``reference`` (208,) if accepted, else None and ``reason`` says why.
+
+    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare);
+    ``noise`` (208,) volts the per-channel std of the frames (None for a one-frame tare); ``note``
+    says why an accepted tare was not saved ('' when saved or when the stream has no file).
+    """
+
+    reference: np.ndarray | None
+    frames: int
+    spread: float
+    reason: str = ""
+    noise: np.ndarray | None = None
+    note: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.reference is not None
+
+
+@dataclass
+class Output:
+    """What one processed frame emits: the result, the filtered force (None without the filter) and
+    the frame's stamp (ns)."""
+
+    result: FrameResult
+    filtered: tuple[float, float, float] | None
+    stamp_ns: int
+
+
+class _Counts:
+    """The stream's counters (guarded by the stream's ``counts_lock``); ``period_*`` are reset by
+    :meth:`FrameStream.health`."""
+
+    def __init__(self) -> None:
+        self.frames = 0          # frames pushed (all time)
+        self.period_frames = 0
+        self.corrupt = 0         # input messages that were no frame (counted by the caller: drop(corrupt=True))
+        self.rejected = 0        # frames dropped by the frame path, all causes
+        self.all_excluded = 0    # ... of which every measurement was excluded by the board's flags
+        self.errors = 0          # ... of which an unexpected exception (a bug) was the cause
+        self.reject_reason = ""  # why the latest frame was dropped; '' once a frame goes through
+        self.period_reason = ""
+        self.late = 0            # frames older than stale_timeout (dropped)
+        self.proc_sum = 0.0
+        self.proc_max = 0.0
+        self.proc_n = 0
+        self.residual = math.nan
+        self.consistency = math.nan
+        self.foreign = 0
+        self.period_foreign = 0
+        self.last_frame: float | None = None  # time.monotonic() of the latest frame
+
+
+class _Throttle:
+    """Log a repeated message at most once per :data:`LOG_EVERY` s, with how many were left out."""
+
+    def __init__(self) -> None:
+        self._last = -math.inf
+        self._skipped = 0
+
+    def __call__(self, level: int, msg: str) -> None:
+        now = time.monotonic()
+        if now - self._last < LOG_EVERY:
+            self._skipped += 1
+            return
+        more = f" (and {self._skipped} more in the last {now - self._last:.0f} s)" if self._skipped else ""
+        self._last, self._skipped = now, 0
+        log.log(level, "%s%s", msg, more)
+
+
+class FrameStream:
+    """The frame stream of one sensor (module docstring).
+
+    Parameters
+    ----------
+    pipe : Pipeline
+        The per-frame core (its reference and mask are set here).
+    config : StreamConfig
+    on_tare : callable or None
+        Called with the :class:`TareOutcome` when a tare ends, accepted or refused.
+    tare_file : path or None
+        Where an accepted tare is saved (frames file and its noise beside it), and read back by
+        :meth:`init_reference`; None: not saved.
+    tare_comment : str
+        The first comment line of a saved tare (sensor, geometry digest).
+
+    Tare semantics (the same everywhere): while a tare is pending (at start without a usable saved
+    tare, ``tare_on_start``, :meth:`tare`, or replay without a reference), the next ``tare_frames``
+    usable frames are averaged into the reference and give no output. A tare is refused (the old
+    reference and the saved file stay) when its frames are not steady: the largest per-channel
+    standard deviation over the channels not excluded during the tare, relative to the rms of the
+    averaged reference, is above ``tare_max_spread`` (or :data:`TARE_NOISE_FACTOR` x the median
+    channel's, when larger: a noisy board); or when the average is not finite. Without any
+    reference a tare is always pending: a refused or cancelled one starts over.
+    """
+
+    def __init__(self, pipe: Pipeline, config: StreamConfig = StreamConfig(),
+                 on_tare: Callable[[TareOutcome], None] | None = None,
+                 tare_file: str | Path | None = None, tare_comment: str = "") -> None:
+        self.pipe = pipe
+        self.config = config
+        self.on_tare = on_tare
+        self.tare_file = Path(tare_file) if tare_file else None
+        self.tare_comment = tare_comment
+        self.outputs = output_set(config, pipe.scene_field is not None)
+        self.lock = threading.Lock()  # one frame at a time; a tare is started and ended under it
+        self.counts_lock = threading.Lock()
+        self.counts = _Counts()
+        self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
+        self.drift: DriftTracker | None = None  # made with each reference (drift_tracking)
+        n_el = len(pipe.geometry.electrodes)
+        pattern = MeasurementPattern(n_el, pipe.geometry.layers)
+        self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
+        self._mask = pipe.bad_channels.copy()  # always the pipeline's own mask
+        self._all_good = np.ones(n_el, bool)
+        self.excluded = Excluded(channels=int(self._mask.sum()))
+        self.processed = 0
+        self.implausible = 0  # frames the plausibility gate rejected (all time)
+        self.implausible_reason = ""
+        self._implausible_run = 0
+        self._tare_x0 = np.zeros(pipe.n_meas)   # first tare frame (sums are taken around it)
+        self._tare_s1 = np.zeros(pipe.n_meas)
+        self._tare_s2 = np.zeros(pipe.n_meas)
+        self._tare_d = np.zeros(pipe.n_meas)
+        self._tare_mask = np.zeros(pipe.n_meas, bool)
+        self._tare_left = self._tare_n = 0
+        self._tare_done = threading.Event()
+        self._tare_ended: TareOutcome | None = None
+        self.reference_source = "none"
+        self.tare_taken = ""    # when the reference in use was tared
+        self.tare_refused = ""  # the latest refused tare: when and why
+        self._t_start = self._last_health = time.monotonic()
+        self._loss_history: deque = deque()
+        self._last_rejected = self._last_implausible = 0
+        self._drop_log = _Throttle()
+
+    def with_config(self, **changes) -> None:
+        """Change settings that may change while running (``stale_timeout``)."""
+        self.config = replace(self.config, **changes)
+        if self.filter is not None:
+            self.filter.max_gap = self.config.stale_timeout
+
+    # --- reference -------------------------------------------------------------------------------
+
+    def use_reference(self, path: str | Path, what: str = "reference") -> str:
+        """Use the reference file ``path`` (mean of its rows, or a saved tare with its noise and frame
+        count): :meth:`set_reference` of what :func:`~.device.read_reference` reads."""
+        return self.set_reference(*read_reference(path, self.pipe.n_meas), source=f"{what} {path}")
+
+    def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str) -> str:
+        """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
+        (None: assumed), if it is a plausible frame of this sensor (:func:`tare_problem`); returns the
+        tare report's message. Raises :class:`ConfigError` naming ``source`` and what is wrong."""
+        why = tare_problem(ref, self.pipe.model_reference)
+        if why:
+            raise ConfigError(f"{source} not used: {why}")
+        report = self.pipe.set_reference(ref, noise, n_frames)
+        self._new_drift()
+        self.reference_source = source
+        noise_what = "measured" if noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB"
+        (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
+                                                   noise_what, report.message)
+        return report.message
+
+    def init_reference(self, tare_on_start: bool) -> str:
+        """The saved tare (``tare_file``) if usable, else a tare on the first frames (``tare_on_start``
+        always tares): no force is ever computed against the model's own reference frame, which is
+        not the device's (a phantom force of several newtons at zero load). Returns '' when the saved
+        tare is used, else why a tare is pending."""
+        self.tare_taken = self.tare_refused = ""
+        path = self.tare_file
+        why = "tare_on_start is true"
+        if not tare_on_start:
+            why = f"no saved tare of this device at {path}"
+            if path is not None and path.is_file():
+                try:
+                    saved = read_reference(path, self.pipe.n_meas)
+                except (CstomoError, OSError) as err:
+                    why = f"saved tare {path} unusable ({err})"
+                else:
+                    try:
+                        self.set_reference(*saved, source=f"saved tare {path}")
+                        return ""
+                    except ConfigError as err:
+                        why = str(err)
+        self.start_tare()
+        self.reference_source = "tare pending"
+        return why
+
+    def start_tare(self, n_frames: int | None = None) -> None:
+        """Average the next ``n_frames`` (default ``tare_frames``) frames into the reference."""
+        n = self.config.tare_frames if n_frames is None else n_frames
+        if isinstance(n, bool) or n < 1:
+            raise ConfigError.bad_value("tare_frames", n, ">= 1")
+        self._tare_left = self._tare_n = int(n)
+
+    def cancel_tare(self) -> int:
+        """Drop a pending tare (the reference stays as it is); returns the frames it had taken.
+
+        Without any reference the tare stays pending (see the class docstring)."""
+        taken = self._tare_n - self._tare_left if self._tare_left else 0
+        self._tare_left = 0 if self.pipe.reference is not None else self._tare_n
+        return taken
+
+    def tare(self, timeout: float) -> tuple[TareOutcome | None, int]:
+        """A tare transaction: start a tare on the next frames and wait up to ``timeout`` s for it to
+        end (accepted or refused); if it has not ended by then it is cancelled (decided under the
+        frame lock: a tare cannot end while it is cancelled). Returns (the outcome or None if
+        cancelled, the frames it had taken)."""
+        with self.lock:
+            self._tare_done.clear()
+            self._tare_ended = None
+            self.start_tare()
+        self._tare_done.wait(timeout)
+        with self.lock:
+            ended, self._tare_ended = self._tare_ended, None
+            taken = self.cancel_tare() if ended is None else ended.frames
+        return ended, taken
+
+    @property
+    def taring(self) -> bool:
+        return self._tare_left > 0
+
+    @property
+    def ready(self) -> bool:
+        """A reference is set and no tare is pending: frames give results."""
+        return not self.taring and self.pipe.reference is not None
+
+    def _add_tare_frame(self, v: np.ndarray, mask: np.ndarray) -> TareOutcome | None:
+        if self._tare_left == self._tare_n:  # the first frame
+            self._tare_x0[:] = v
+            self._tare_s1[:] = 0.0
+            self._tare_s2[:] = 0.0
+            self._tare_mask[:] = mask
+        self._tare_mask |= mask
+        np.subtract(v, self._tare_x0, out=self._tare_d)
+        self._tare_s1 += self._tare_d
+        self._tare_s2 += self._tare_d**2
+        self._tare_left -= 1
+        if self._tare_left:
+            return None
+        n = self._tare_n
+        ref = self._tare_x0 + self._tare_s1 / n
+        spread = 0.0
+        noise = None
+        used = ~self._tare_mask
+        rms = float(np.sqrt(np.mean(ref[used] ** 2))) if used.any() else 0.0
+        if n > 1 and rms > 0:
+            var = np.maximum(self._tare_s2 - self._tare_s1**2 / n, 0.0) / (n - 1)
+            spread = float(np.sqrt(var[used].max()) / rms)
+            noise = np.sqrt(var)
+            noise[~used | ~np.isfinite(noise)] = float(np.median(noise[used]))  # excluded: no data
+        if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
+            return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
+                                                "channel; check the board's contacts and cable")
+        limit = self.config.tare_max_spread
+        if noise is not None:
+            limit = max(limit, TARE_NOISE_FACTOR * float(np.median(noise[used])) / rms)
+        if spread > limit:
+            worst = int(np.argmax(np.where(used, var, -1.0))) + 1
+            return TareOutcome(None, n, spread, f"tare refused: frames not steady (spread {spread:.2%} of the "
+                                                f"reference rms at measurement {worst}, limit "
+                                                f"{limit:.2%}); keep the sensor still and unloaded "
+                                                "during the tare")
+        return TareOutcome(ref.copy(), n, spread, noise=noise)
+
+    def _end_tare(self, outcome: TareOutcome) -> None:
+        when = time.strftime("%H:%M:%S")
+        if outcome.ok:
+            report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
+            self._new_drift()
+            self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
+                              f"{outcome.frames} frames, spread {outcome.spread:.2%}"
+            log.info("tare taken at %s (noise %s)", self.tare_taken,
+                     "measured" if outcome.noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB")
+            (log.warning if report.warn else log.info)("tare: %s", report.message)
+            outcome = replace(outcome, note=self._save(outcome))
+            if self.filter is not None:
+                self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
+        else:
+            self.tare_refused = f"{when}: {outcome.reason}"
+            if self.pipe.reference is None:
+                log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, outcome.frames)
+                self.start_tare(outcome.frames)
+            else:
+                log.warning("%s; the previous reference stays", outcome.reason)
+        self._tare_ended = outcome
+        self._tare_done.set()
+        if self.on_tare is not None:
+            self.on_tare(outcome)
+
+    def _save(self, outcome: TareOutcome) -> str:
+        """Write an accepted tare to ``tare_file`` (atomically) with its noise beside it; returns ''
+        or why it was not saved."""
+        path = self.tare_file
+        self.reference_source = "tare"
+        if path is None:
+            return ""
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_reference(path, outcome.reference, outcome.noise, frames=outcome.frames,
+                            comment=f"{self.tare_comment}: mean of {outcome.frames} frames, "
+                                    f"{time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+        except OSError as err:
+            note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
+            log.error("%s", note)
+            return note
+        self.reference_source = f"tare saved to {path}"
+        log.info("tare saved to %s", path)
+        return ""
+
+    def _new_drift(self) -> None:
+        """A drift tracker for the reference just set (none without ``drift_tracking``)."""
+        pipe = self.pipe
+        if not self.config.drift_tracking or pipe.reference is None:
+            self.drift = None
+            return
+        est = pipe.estimator
+        self.drift = DriftTracker(pipe.reference / pipe._y_scale, np.asarray(est.y),
+                                  change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
+        pipe.scale = 1.0
+
+    # --- per frame -------------------------------------------------------------------------------
+
+    def _mask_of(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None):
+        """(mask, saturated count, dead electrodes) of a frame's flags; raises
+        :class:`NoUsableChannelsError` when they exclude every measurement."""
+        contact = self._all_good if contact_ok is None else np.asarray(contact_ok, bool)
+        dead = ~contact
+        mask = self._electrode_rows[dead].any(axis=0) if dead.any() else np.zeros_like(self._mask)
+        n_sat = 0
+        if saturated is not None:
+            saturated = np.asarray(saturated, bool)
+            n_sat = int(np.count_nonzero(saturated))
+            mask |= saturated
+        if mask.all():
+            raise NoUsableChannelsError(
+                f"every measurement excluded ({n_sat} saturated values, {int(dead.sum())} of {dead.size} "
+                "electrode contacts failed): frame dropped; check the sensor's cable, contacts and drive current")
+        return mask, n_sat, dead
+
+    def flagged(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> np.ndarray | None:
+        """The measurements a frame's flags exclude (saturated, every row of a dead electrode), or None
+        when nothing is flagged (the common case)."""
+        if (saturated is None or not np.count_nonzero(saturated)) and (
+                contact_ok is None or np.count_nonzero(contact_ok) == len(contact_ok)):
+            return None
+        try:
+            return self._mask_of(saturated, contact_ok)[0]
+        except NoUsableChannelsError:
+            return np.ones(self.pipe.n_meas, bool)
+
+    def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
+        """Exclude saturated values and every row of a dead electrode; True if the mask changed.
+
+        Raises :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every
+        measurement: such a frame carries no data and must be dropped.
+        """
+        if not self.excluded.channels and (saturated is None or not np.count_nonzero(saturated)) and (
+                contact_ok is None or np.count_nonzero(contact_ok) == len(contact_ok)):
+            return False  # the common case, per frame: nothing flagged and nothing excluded
+        mask, n_sat, dead = self._mask_of(saturated, contact_ok)
+        if np.array_equal(mask, self._mask):
+            return False
+        self.pipe.set_bad_channels(mask.copy())  # raises before changing anything if refused
+        self._mask = mask
+        if self.drift is not None:
+            self.drift = self.drift.with_mask(~mask)
+        self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
+                                 channels=int(mask.sum()))
+        if mask.any():
+            log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
+                        self.excluded.channels, self.excluded.saturated, self.excluded.dead_electrodes)
+        return True
+
+    def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
+                contact_ok: np.ndarray | None = None, t: float | None = None) -> FrameResult | None:
+        """The :class:`FrameResult` of one frame, or None while the frame goes into a pending tare (or
+        no reference exists yet). Raises :class:`FrameError` for a frame that must be dropped (it then
+        counts for nothing, not even for a pending tare). An implausible result (``valid`` False) is
+        counted in ``implausible``; a run of them is logged once when it starts and once when it ends.
+        A valid frame updates the drift tracker (``t``: its time in seconds; None: 10 ms after the
+        previous one). :meth:`push` is this with the accounting, the filter and the stamps."""
+        if self._tare_left:
+            mask = self._mask_of(saturated, contact_ok)[0]
+            v = check_frame(values, self.pipe.n_meas, "tare frame", used=~mask)
+            outcome = self._add_tare_frame(v, mask)
+            if outcome is not None:
+                self._end_tare(outcome)
+            return None
+        if self.pipe.reference is None:
+            return None
+        self.update_mask(saturated, contact_ok)
+        every = self.config.stress_field_every
+        with_field = every > 0 and self.processed % every == 0
+        self.processed += 1
+        result = self.pipe.process(values, with_field=with_field)
+        if not result.valid:
+            self.implausible += 1
+            self.implausible_reason = result.reason
+            if not self._implausible_run:
+                log.warning("implausible frames (no force output): %s", result.reason)
+            self._implausible_run += 1
+        elif self._implausible_run:
+            log.warning("plausible frames again after %d implausible ones", self._implausible_run)
+            self._implausible_run = 0
+        drift = self.drift
+        if drift is not None and self.pipe.change_plausible:  # an estimate beyond max_force may be drift
+            drift.observe(self.pipe.last_y, t)
+            self.pipe.scale = drift.scale
+        return result
+
+    def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
+             stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> Output | None:
+        """One frame measured ``age_ns`` ago (monotonic clock), stamped ``stamp_ns``: counted, dropped if
+        late, then processed (``process`` False: only counted, e.g. an inactive node that is not
+        taring). Returns the :class:`Output` of a result (an implausible one too: ``result.valid``
+        False, no filtered force), else None (a tare frame, no reference, late, or dropped: counted,
+        never raised)."""
+        t0 = time.perf_counter()
+        c = self.counts
+        with self.counts_lock:
+            c.frames += 1
+            c.period_frames += 1
+            c.last_frame = time.monotonic()
+            late = age_ns > self.config.stale_timeout * 1e9
+            c.late += late
+        if late or not process:
+            return None
+        try:
+            with self.lock:
+                result = self.process(values, saturated, contact_ok, stamp_ns * 1e-9 if stamp_ns else None)
+                filtered = None
+                if result is not None and result.valid and self.filter is not None:
+                    filtered = self.filter(result.force, stamp_ns * 1e-9)
+        except Exception as err:  # noqa: BLE001 - the frame boundary: counted, logged, reported
+            self.drop(err)
+            return None
+        with self.counts_lock:
+            c.reject_reason = ""  # frames go through again
+            if result is None:
+                return None
+            if not result.valid:
+                return Output(result, None, int(stamp_ns))
+            dt = time.perf_counter() - t0
+            c.proc_sum += dt
+            c.proc_n += 1
+            c.proc_max = max(c.proc_max, dt)
+            if not math.isnan(result.residual):
+                c.residual = result.residual
+            c.consistency = result.consistency
+            c.foreign += result.foreign_load
+            c.period_foreign += result.foreign_load
+        return Output(result, filtered, int(stamp_ns))
+
+    def drop(self, err: BaseException, corrupt: bool = False) -> None:
+        """Count and log (throttled) a frame that could not be used: ``corrupt`` for an input message
+        that is no frame at all (the caller's decoding failed), else a frame the frame path dropped
+        (a :class:`FrameError`, or an unexpected error: a bug, logged with its trace)."""
+        c = self.counts
+        if corrupt:
+            with self.counts_lock:
+                c.corrupt += 1
+            self._drop_log(logging.WARNING, f"dropped input frame: {err}")
+            return
+        bug = not isinstance(err, FrameError)
+        reason = f"{type(err).__name__}: {err}" if bug else str(err)
+        with self.counts_lock:
+            c.rejected += 1
+            c.all_excluded += isinstance(err, NoUsableChannelsError)
+            c.errors += bug
+            c.reject_reason = c.period_reason = reason
+        if bug:
+            self._drop_log(logging.ERROR, "frame dropped on an unexpected error (a bug: please report it with "
+                                          f"this trace):\n{''.join(traceback.format_exception(err))}")
+        else:
+            self._drop_log(logging.WARNING, f"dropped frame: {reason}")
+
+    def reset_filter(self) -> None:
+        """Restart the filtered wrench from the next frame (the board reconnected)."""
+        if self.filter is not None:
+            with self.lock:
+                self.filter.reset()
+
+    # --- health ----------------------------------------------------------------------------------
+
+    def health(self, now: float, board_losses: dict[str, int] | None = None) -> tuple[int, list[str], dict]:
+        """The stream's level (:data:`OK`, :data:`WARN`, :data:`ERROR`), problems and figures since the
+        last call (resets the per-period figures). ``board_losses``: the board driver's running totals
+        of lost frames by kind (corrupt, gaps, duplicates, reordered, overflow), None without a board."""
+        c = self.counts
+        period = max(now - self._last_health, 1e-9)
+        self._last_health = now
+        with self.counts_lock:
+            rate = c.period_frames / period
+            proc_mean = c.proc_sum / c.proc_n if c.proc_n else math.nan
+            proc_max = c.proc_max if c.proc_n else math.nan
+            c.period_frames, c.proc_sum, c.proc_max, c.proc_n = 0, 0.0, 0.0, 0
+            period_reason, c.period_reason = c.period_reason, ""
+            period_foreign, c.period_foreign = c.period_foreign, 0
+            frames, late, rejected, corrupt = c.frames, c.late, c.rejected, c.corrupt
+            kv = {"frames": frames, "frame_rate_hz": f"{rate:.1f}", "late_dropped": late}
+            kv_rejected = {"frames_rejected": rejected, "frames_all_excluded": c.all_excluded,
+                           "frame_errors": c.errors, "reject_reason": c.reject_reason}
+            consistency, foreign, residual = c.consistency, c.foreign, c.residual
+        level, msgs = OK, []
+        losses = {"corrupt": corrupt, "late": late}
+        if board_losses is not None:
+            losses.update(board_losses, corrupt=corrupt + board_losses.get("corrupt", 0))
+        kv["corrupt"] = losses["corrupt"]
+        loss_level, loss_msg = self._loss_level(now, frames, losses)
+        if loss_msg:
+            level = max(level, loss_level)
+            msgs.append(loss_msg)
+        kv.update(kv_rejected)
+        if rejected > self._last_rejected:
+            level = max(level, WARN)
+            msgs.append(f"{rejected - self._last_rejected} frames rejected ({period_reason})")
+        self._last_rejected = rejected
+        ex = self.excluded
+        kv.update(saturated_channels=ex.saturated, dead_electrodes=",".join(str(e + 1) for e in ex.dead_electrodes),
+                  excluded_channels=ex.channels)
+        if ex.channels:
+            level = max(level, WARN)
+            msgs.append(f"{ex.channels} channels excluded (saturated {ex.saturated}, dead electrodes "
+                        f"{[e + 1 for e in ex.dead_electrodes]})")
+        imp = self.implausible
+        new_imp = imp - self._last_implausible if imp >= self._last_implausible else imp
+        self._last_implausible = imp
+        kv.update(implausible=imp, implausible_reason=self.implausible_reason)
+        if new_imp:
+            level = max(level, WARN)
+            msgs.append(f"{new_imp} implausible frames not published ({self.implausible_reason})")
+        kv.update(consistency=f"{consistency:.4g}", foreign_load_frames=foreign)
+        if period_foreign:
+            level = max(level, WARN)
+            msgs.append(f"foreign load: {period_foreign} frames not explained by a load on the socket (consistency "
+                        f"{consistency:.3g}, limit {self.pipe.consistency.threshold:g}); something else presses the "
+                        "sensor or an electrode changed; forces still published")
+        kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
+                  processing_time_max_ms=f"{proc_max * 1e3:.3f}")
+        kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused)
+        pipe = self.pipe
+        if self.taring and pipe.reference is None:
+            level = max(level, WARN)
+            msgs.append("no reference yet: taring on the first frames (the joint must be unloaded); no force "
+                        "published until then" + (f"; last tare refused at {self.tare_refused}" if self.tare_refused else ""))
+        report = pipe.scale_report
+        if report is not None:
+            kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
+                      noise="measured by the tare" if pipe.noise_measured else f"assumed {DEFAULT_NOISE_DB:g} dB")
+            if report.warn:
+                level = max(level, WARN)
+                msgs.append(report.message)
+        cal = pipe.calibration
+        kv.update(calibration=cal.path if cal else "none (nominal model)", calibration_accuracy=cal.accuracy if cal else "")
+        drift = self.drift
+        if drift is not None:
+            d_level, d_msg = drift.status()
+            kv.update(drift_change=f"{drift.change:+.3%}", drift_kelvin=drift.kelvin_text, drift_rest_frames=drift.rest_frames)
+            if d_msg:
+                level = max(level, d_level)
+                msgs.append(d_msg)
+        else:
+            kv.update(drift_change="not tracked (drift_tracking false)")
+        return level, msgs, kv
+
+    def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:
+        """The level and message of the frames lost or dropped over the last :data:`LOSS_WINDOW` s
+        (``losses``: running totals by kind); WARN above :data:`LOSS_WARN`, ERROR above
+        :data:`LOSS_ERROR` of the frames the board sent meanwhile."""
+        hist = self._loss_history
+        if not hist:
+            hist.append((self._t_start, 0, {}))
+        hist.append((now, frames, dict(losses)))
+        while len(hist) > 2 and now - hist[1][0] >= LOSS_WINDOW:
+            hist.popleft()
+        t0, f0, old = hist[0]
+        d = {k: v - old.get(k, 0) for k, v in losses.items()}
+        lost = sum(d.values())
+        sent = frames - f0 + lost - d["late"]  # late frames were received (and counted in frames)
+        if lost <= 0 or sent <= 0 or lost <= LOSS_WARN * sent:
+            return OK, ""
+        level = ERROR if lost > LOSS_ERROR * sent else WARN
+        parts = ", ".join(f"{k} {v}" for k, v in d.items() if v)
+        return level, f"{lost} of {sent} frames lost or dropped in the last {now - t0:.0f} s ({parts})"

@@ -1,0 +1,137 @@
+"""The zero that holds (force/drift.py): a device whose resistivity changes uniformly after its tare
+(it warmed or cooled; section "Device changes" of docs/physics.md), simulated honestly on the truth's
+own mesh with its contacts unchanged (so the change is a scaling plus a contact change, not the
+tracker's model), reads the same force as without the change.
+
+Zero-load reading: the norm of the mean force over 2 s of unloaded frames after the change (what a
+controller sees through the filter: the bias; the frames' own noise is not drift)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import PIPE
+
+from cstomo_sensor.angles import angle_between, force_from_angles
+from cstomo_sensor.model.simulate import Load, Truth, add_noise
+
+ZERO_AIM = 0.2  # N, issue 20: up to +-10 % uniform resistivity change
+RATE = 100.0    # frames per second
+
+
+@pytest.fixture(scope="module")
+def device(warm_model):
+    """(reference, {change: unloaded frame}, loads (n, 3), {change: loaded frames (n, 208)}), noise-free."""
+    truth = Truth(warm_model.geometry, seed=31)
+    rng = np.random.default_rng(5)
+    forces = np.array([force_from_angles(m, np.radians(e), np.radians(a)) for m, e, a in
+                       zip(rng.uniform(5, 30, 6), rng.uniform(20, 85, 6), rng.uniform(-180, 180, 6))])
+    sigma = [truth.conductivity(Load("socket", force=tuple(f))) for f in forces]
+    s0 = truth.forward.sigma0
+    changes = (-0.10, -0.01, 0.0, 0.01, 0.10)
+    unloaded = {a: truth.forward.voltages(s0 / (1 + a)) for a in changes}
+    loaded = {a: np.array([truth.forward.voltages(s / (1 + a)) for s in sigma]) for a in (-0.01, 0.0, 0.01)}
+    return unloaded[0.0], unloaded, forces, loaded
+
+
+def _stream(pipe, ref, tracking, rng):
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking))
+    tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    return stream
+
+
+def _zero_reading(pipe, device, change, tracking):
+    """The bias at zero load after the device changed by ``change`` over 5 s (a fast warming)."""
+    ref, unloaded, *_ = device
+    rng = np.random.default_rng(7)
+    stream = _stream(pipe, ref, tracking, rng)
+    forces = []
+    for k in range(int(7 * RATE)):
+        a = change * min(k / (5 * RATE), 1.0)  # linear in the change between the solved states
+        v = ref + (unloaded[change] - ref) * (a / change if change else 0.0)
+        out = stream.push(add_noise(v, ref, 60, rng), stamp_ns=int(1e9 * (1 + k / RATE)))
+        if k >= 5 * RATE:
+            forces.append(out.result.force if out is not None and out.result.valid else np.full(3, np.nan))
+    return float(np.linalg.norm(np.mean(forces, axis=0))), stream
+
+
+@pytest.mark.parametrize("change", [-0.01, 0.01])
+def test_a_one_percent_change_reads_no_force(warm_model, device, change):
+    untracked, _ = _zero_reading(warm_model, device, change, tracking=False)
+    tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
+    assert untracked > 10.0  # without tracking: 18 N per percent, as the issue found
+    assert tracked <= ZERO_AIM, (change, tracked)
+    assert stream.drift.change == pytest.approx(change, abs=5e-4)
+    assert stream.drift.rest_frames > 0.9 * 7 * RATE  # unloaded frames are seen as rest
+
+
+@pytest.mark.parametrize("change", [-0.10, 0.10])
+@pytest.mark.xfail(strict=True, reason="measured 0.4-0.5 N (linear): a uniform resistivity change with the contacts unchanged "
+                                       "is a scaling plus a contact change; the tracker follows the scaling only")
+def test_a_ten_percent_change_reads_within_the_aim(warm_model, device, change):
+    tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
+    assert stream.drift.change == pytest.approx(change, abs=2e-3)
+    assert tracked <= ZERO_AIM, (change, tracked)
+
+
+def test_a_ten_percent_change_is_tracked_and_warned(warm_model, device):
+    """What holds at 10 %: the scale is followed, the zero stays within 0.6 N (1/300 of what it was),
+    the diagnostics say the change in % and kelvin and advise a re-tare."""
+    for change in (-0.10, 0.10):
+        tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
+        assert stream.drift.change == pytest.approx(change, abs=2e-3) and tracked <= 0.6, (change, tracked)
+        level, msgs, kv = stream.health(1e9)
+        assert kv["drift_change"] == f"{stream.drift.change:+.3%}" and "K at" in kv["drift_kelvin"]
+        assert any("re-tare" in m for m in msgs), msgs
+
+
+def test_loads_read_the_same_through_a_change(warm_model, device):
+    """Loads held 0.3 s with rests between them, the device 1 % changed: the angle and magnitude errors
+    with tracking are those without any change (within 1.25x / 1.5x, the issue's aims for a warm-up)."""
+    ref, unloaded, forces, loaded = device
+
+    def errors(change, tracking):
+        rng = np.random.default_rng(11)
+        stream = _stream(warm_model, ref, tracking, rng)
+        ang, mag, k = [], [], 0
+        for _ in range(3):
+            for i, f in enumerate(forces):
+                for frame in [unloaded[change]] * 50 + [loaded[change][i]] * 30:
+                    out = stream.push(add_noise(frame, ref, 60, rng), stamp_ns=int(1e9 * (1 + k / RATE)))
+                    k += 1
+                    if frame is not unloaded[change] and out is not None and out.result.valid:
+                        ang.append(np.degrees(angle_between(out.result.force, f)))
+                        mag.append(abs(np.linalg.norm(out.result.force) / np.linalg.norm(f) - 1))
+        return np.median(ang), np.median(mag)
+
+    base_ang, base_mag = errors(0.0, tracking=False)
+    for change in (-0.01, 0.01):
+        ang, mag = errors(change, tracking=True)
+        assert ang <= 1.25 * base_ang and mag <= 1.5 * base_mag, (change, ang, mag, base_ang, base_mag)
+    ang0, mag0 = errors(0.0, tracking=True)  # tracking costs nothing when nothing drifts
+    assert ang0 <= 1.1 * base_ang and mag0 <= 1.25 * base_mag, (ang0, mag0, base_ang, base_mag)
+
+
+def test_an_all_zero_frame_does_not_move_the_scale(warm_model, device):
+    """A failing board's frame is implausible and never taken for a change of the device."""
+    ref, *_ = device
+    rng = np.random.default_rng(3)
+    stream = _stream(warm_model, ref, True, rng)
+    for k in range(20):
+        stream.push(add_noise(ref, ref, 60, rng), stamp_ns=int(1e9 * (1 + k / RATE)))
+    stream.push(np.zeros(208), stamp_ns=int(1e9 * 1.3))
+    stream.push(ref * 10, stamp_ns=int(1e9 * 1.31))
+    assert abs(stream.drift.change) < 1e-4 and stream.implausible == 2
+
+
+def test_the_node_parameter_and_the_command_line_turn_it_off(warm_model):
+    from cstomo_sensor.force.stream import StreamConfig
+    from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
+    from cstomo_sensor.tools.common import add_pipeline_args  # noqa: F401 - the flags' module imports
+
+    assert PARAMETERS["drift_tracking"][0] is StreamConfig.drift_tracking is True
+    cfg = NodeConfig.from_parameters(lambda n: {**{k: v[0] for k, v in PARAMETERS.items()}, "drift_tracking": False,
+                                                "grid": PIPE["grid"]}[n])
+    assert cfg.stream.drift_tracking is False

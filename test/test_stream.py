@@ -1,0 +1,151 @@
+"""The frame stream's one list of outputs (force/stream.py OUTPUTS) against what the node publishes,
+what replay writes and what ``cstomo_sensor_node --help`` says; and two sensors in two namespaces
+with distinct diagnostics names."""
+from __future__ import annotations
+
+import re
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import PIPE, wait_for
+
+rclpy = pytest.importorskip("rclpy")
+
+BAG = Path(__file__).resolve().parent / "data" / "raw_voltages_bag"
+#: Settings that change the output set: the defaults, no stress field, no filter, neither.
+CASES = [dict(), dict(stress_field_every=0), dict(wrench_filter_hz=0.0), dict(stress_field_every=0, wrench_filter_hz=0.0)]
+
+
+def _nodes(namespaces_params: list[tuple[str, dict]]):
+    """Start CstomoSensorNodes (topic input) in their namespaces on one executor; returns
+    (context, nodes, stop)."""
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from cstomo_sensor.ros.node import CstomoSensorNode
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    nodes = [CstomoSensorNode("cstomo_sensor", namespace=ns, context=ctx,
+                              parameter_overrides=[Parameter(k, value=v) for k, v in p.items()])
+             for ns, p in namespaces_params]
+    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+    for n in nodes:
+        ex.add_node(n)
+    t = threading.Thread(target=ex.spin, daemon=True)
+    t.start()
+
+    def stop():
+        ex.shutdown(timeout_sec=2.0)
+        t.join(5.0)
+        for n in nodes:
+            n._release()
+            n.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+    return ctx, nodes, stop
+
+
+def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
+    from cstomo_sensor.force.stream import OUTPUTS, StreamConfig, output_set
+    from cstomo_sensor.ros.messages import RAW_TOPIC, TOPIC_TYPES
+
+    assert set(TOPIC_TYPES) == set(OUTPUTS) | {RAW_TOPIC}  # every output has its message type, nothing else
+    specs = [(f"/case{i}", dict(PIPE, input="topic", tare_file=str(tmp_path / f"tare{i}.csv"), **c))
+             for i, c in enumerate(CASES)]
+    _, nodes, stop = _nodes(specs)
+    try:
+        assert wait_for(lambda: all(n._state_machine.current_state[1] == "active" for n in nodes), 20.0)
+        for (ns, c), node in zip(specs, nodes):
+            pubs = {name for name, _ in node.get_publisher_names_and_types_by_node("cstomo_sensor", ns)}
+            own = {p for p in pubs if p.startswith(f"{ns}/cstomo_sensor/") and not p.endswith("/transition_event")}
+            want = output_set(StreamConfig(**{k: v for k, v in c.items() if k in ("stress_field_every", "wrench_filter_hz")}),
+                              scene_field=True)
+            assert own == {f"{ns}/cstomo_sensor/{t}" for t in want}, (ns, sorted(own))
+            assert node.stream.outputs == want
+    finally:
+        stop()
+    assert output_set(StreamConfig(), scene_field=True) == tuple(OUTPUTS)  # the defaults publish every output
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
+    pytest.importorskip("rosbags")
+    from cstomo_sensor.force.pipeline import PipelineConfig
+    from cstomo_sensor.force.stream import StreamConfig, output_set
+    from cstomo_sensor.tools.replay import replay
+
+    cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
+    every = case.get("stress_field_every", StreamConfig.stress_field_every)
+    hz = case.get("wrench_filter_hz", StreamConfig.wrench_filter_hz)
+    s = replay(BAG, tmp_path / "out", cfg, tare_frames=10, stress_field_every=every, wrench_filter_hz=hz,
+               pipeline=warm_model)
+    want = output_set(StreamConfig(stress_field_every=every, wrench_filter_hz=hz), scene_field=True)
+    assert s.output_topics == tuple(f"/cstomo_sensor/{t}" for t in want)
+    from rosbags.rosbag2 import Reader
+
+    with Reader(tmp_path / "out") as r:
+        assert {c.topic for c in r.connections} == set(s.output_topics)
+        assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["metadata.yaml", "out.db3"]  # its own name
+    assert not [p for p in tmp_path.iterdir() if p.name != "out"]  # no partial left beside it
+
+
+def test_help_lists_exactly_the_stream_outputs():
+    from cstomo_sensor.force.stream import OUTPUTS
+    from cstomo_sensor.ros.node import usage
+
+    text = usage()
+    listed = set(re.findall(r"^\s+~/(\w+)\s", text, flags=re.M))
+    assert listed == set(OUTPUTS) | {"raw_voltages", "tare", "raw_voltages_in"}, listed
+
+
+def test_two_sensors_in_two_namespaces_have_distinct_diagnostics_names(tmp_path, warm_model):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.node import Node
+
+    specs = [(ns, dict(PIPE, input="topic", tare_file=str(tmp_path / f"{ns.strip('/')}.csv")))
+             for ns in ("/left_knee", "/right_knee")]
+    ctx, nodes, stop = _nodes(specs)
+    probe = Node("probe", context=ctx)
+    seen: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def cb(msg):
+        with lock:
+            for s in msg.status:
+                seen[s.name] = seen.get(s.name, 0) + 1
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(probe)
+    t = threading.Thread(target=ex.spin, daemon=True)
+    t.start()
+    try:
+        assert wait_for(lambda: len(seen) >= 2 and min(seen.values()) >= 2, 20.0), seen
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        t.join(5.0)
+        probe.destroy_node()
+        stop()
+    assert set(seen) == {"/left_knee/cstomo_sensor: sensor", "/right_knee/cstomo_sensor: sensor"}, seen
+
+
+def test_a_dropped_frame_never_raises_and_repeats_are_logged_once(warm_model, caplog):
+    """The stream's boundary: frames of the wrong length and an unexpected error are counted and
+    logged at most once per LOG_EVERY s, never raised to the caller."""
+    from cstomo_sensor.force.stream import FrameStream
+
+    stream = FrameStream(warm_model)
+    stream.set_reference(warm_model.model_reference, None, 1, "test")
+    with caplog.at_level("WARNING", logger="cstomo_sensor.force.stream"):
+        for _ in range(20):
+            assert stream.push(np.ones(207)) is None
+        assert stream.push(np.array(["x"] * 208, dtype=object)) is None  # not numbers: an unexpected error
+    assert stream.counts.rejected == 21 and stream.counts.errors <= 1
+    assert len([r for r in caplog.records if "dropped frame" in r.getMessage()]) == 1
+    out = stream.push(warm_model.model_reference * 1.0001)
+    assert out is not None and out.result.valid and stream.counts.reject_reason == ""
