@@ -15,7 +15,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
-        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.rules")),
+        ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.rules") + glob("config/*.rviz")),
         ("share/" + package_name + "/config/sensors", glob("config/sensors/*.yaml")),
         ("share/" + package_name + "/scenes", glob("scenes/*.yaml")),
     ],

@@ -1,5 +1,8 @@
-"""One exception tree for the package; each error also inherits the matching builtin."""
+"""One exception tree for the package; each error also inherits the matching builtin. And what
+installs each optional module (:func:`install_hint`), for the errors that name a missing one."""
 from __future__ import annotations
+
+import sys
 
 
 class CstomoError(Exception):
@@ -50,3 +53,35 @@ def require_positive(name: str, value: object) -> None:
         ok = False
     if not ok:
         raise ConfigError(f"{name}={value!r}: expected a positive finite number")
+
+
+#: The optional modules the package imports only where it needs them: import name -> (pip package,
+#: rosdep key or None). The one place that says what installs each (package.xml lists the keys,
+#: README.md the pip line of the others).
+OPTIONAL_MODULES: dict[str, tuple[str, str | None]] = {
+    "skfem": ("scikit-fem", None),           # linear elasticity (model building)
+    "pytetwild": ("pytetwild", None),        # meshing a geometry that has no shipped or cached mesh
+    "pyvista": ("pyvista", "python3-pyvista-pip"),   # surfaces for meshing, pictures
+    "vtk": ("vtk", "python3-pyvista-pip"),   # pyvista's own dependency
+    "rosbags": ("rosbags", "python3-rosbags-pip"),   # replay, calibration from a bag
+    "matplotlib": ("matplotlib", "python3-matplotlib"),  # pictures, benchmark figures
+    "pyeit": ("pyeit", None),                # the benchmark's comparison only
+}
+
+
+def install_hint(module: str | None) -> str:
+    """The command that installs the missing module ``module`` (an import name, e.g. ``skfem`` or
+    ``skfem.helpers``) in the running interpreter's kind of install: a virtual environment gets
+    its own pip; a system Python (a colcon install on a robot) the user's site, with the rosdep key
+    when there is one."""
+    top = (module or "").split(".")[0]
+    pip_name, key = OPTIONAL_MODULES.get(top, (top, None))
+    if not pip_name:
+        return "install the Python package that provides it"
+    if sys.prefix != sys.base_prefix:  # a virtual environment
+        return f"install it with: {sys.executable} -m pip install {pip_name}"
+    cmd = f"python3 -m pip install --user --break-system-packages {pip_name}"
+    if key:
+        return (f"install it with: rosdep install --from-paths src --ignore-src -y (key {key}; "
+                f"PIP_BREAK_SYSTEM_PACKAGES=1 on Ubuntu 24.04), or {cmd}")
+    return f"install it with: {cmd} (pip package {pip_name}; no rosdep key)"

@@ -1,14 +1,22 @@
-"""Launch cstomo_sensor_node, optionally with a simulated board.
+"""Launch cstomo_sensor_node, optionally with a simulated board, its static transform and RViz2.
 
     ros2 launch cstomo_sensor cstomo_sensor.launch.py port:=/dev/cstomo
-    ros2 launch cstomo_sensor cstomo_sensor.launch.py sim:=true        # board-sim on a pty, node on its link
-    ros2 launch cstomo_sensor cstomo_sensor.launch.py config:=my.yaml namespace:=left_knee
+    ros2 launch cstomo_sensor cstomo_sensor.launch.py sim:=true rviz:=true     # board-sim on a pty, node, RViz
+    ros2 launch cstomo_sensor cstomo_sensor.launch.py port:=/dev/cstomo namespace:=left_knee \
+        frame_id:=left_knee_socket parent_frame:=left_shank z:=0.12 yaw:=1.5708
+    ros2 launch cstomo_sensor cstomo_sensor.launch.py sensors:=config/sensors_example.yaml   # several sensors
 
 The node's parameters come from ``config`` (keyed ``/**/cstomo_sensor``: any namespace); ``port``,
-``sensor`` and ``estimator`` override it only when given (their default, empty, keeps the file's
-value). ``sim``, ``sim_load_script``, ``config`` and ``namespace`` are for the launch itself. With
-``sim:=true`` the simulated board, its link and the node's tare file live in a temporary directory of
-this launch, removed when it ends. Arguments are plain strings: nothing in them is evaluated.
+``sensor``, ``estimator``, ``frame_id``, ``calibration_file`` and ``tare_on_start`` override it only
+when given (their default, empty, keeps the file's value). The others are for the launch itself:
+``parent_frame`` and the pose ``x y z roll pitch yaw`` (metres, radians) start tf2_ros's
+static_transform_publisher from that frame to the node's frame_id; ``sensors`` names a YAML list of
+sensors instead of the one of the arguments (docs/robot.md); ``rviz:=true`` starts RViz2 on
+``rviz_config`` rewritten for the launched sensors' topics. What is started is decided by
+:func:`cstomo_sensor.tools.launching.launch_plan` (tested without launch); this file only turns the
+plan into actions. With ``sim:=true`` the simulated board, its link and the node's tare file live in
+a temporary directory of this launch, removed when it ends. Arguments are plain strings: nothing in
+them is evaluated.
 """
 import os
 import shutil
@@ -17,39 +25,62 @@ from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, RegisterEventHandler
 from launch.event_handlers import OnShutdown
 from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import LifecycleNode
+from launch_ros.actions import LifecycleNode, Node
 
-from cstomo_sensor.tools.common import launch_plan
+from cstomo_sensor.tools.launching import NODE_NAME, launch_plan
 from launch import LaunchDescription
 
-ARGUMENTS = {  # name: (default, description)
+ARGUMENTS = {  # name: (default, description); None: a file of the installed package (_DEFAULT_FILES)
     "port": ("", "serial URL of the board (default: the config file's port)"),
-    "config": (None, "parameter file of the node"),
+    "config": (None, "parameter file of the node(s)"),
     "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
     "sensor": ("", "sensor preset or YAML path (default: the config file's)"),
     "estimator": ("", "force estimator: linear or model (default: the config file's)"),
+    "frame_id": ("", "frame of the wrench and the stress cloud (default: the config file's, cstomo_socket)"),
+    "calibration_file": ("", "device calibration from `cstomo calibrate` (default: the config file's)"),
+    "tare_on_start": ("", "true: tare on the first frames at start; false: the saved tare (default: the file's)"),
     "namespace": ("", "namespace of the node's topics"),
     "sim_load_script": ("", "with sim: load script CSV for the simulated board (default: built in)"),
+    "parent_frame": ("", "frame the sensor is fixed to: also publish the static transform to frame_id"),
+    "x": ("", "with parent_frame: the socket centre's x in parent_frame, metres (default 0)"),
+    "y": ("", "with parent_frame: y, metres (default 0)"),
+    "z": ("", "with parent_frame: z, metres (default 0)"),
+    "roll": ("", "with parent_frame: rotation about x, radians (default 0)"),
+    "pitch": ("", "with parent_frame: rotation about y, radians (default 0)"),
+    "yaw": ("", "with parent_frame: rotation about z, radians (default 0)"),
+    "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above"),
+    "rviz": ("false", "true: also start RViz2 showing the wrench and the stress cloud"),
+    "rviz_config": (None, "RViz2 configuration whose /cstomo_sensor/... displays are repeated per sensor"),
+    "rviz_fixed_frame": ("", "RViz fixed frame (default: the first sensor's parent_frame, else its frame_id)"),
 }
+_DEFAULT_FILES = {"config": "cstomo_sensor.yaml", "rviz_config": "cstomo_sensor.rviz"}  # in share/.../config
 
 
 def _setup(context):
-    """The board (with ``sim``) and the node, from the arguments' values as plain strings."""
-    args = {name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}
-    overrides, board_cmd, work = launch_plan(args)
+    """The actions of the plan of the arguments' values (plain strings)."""
+    plan = launch_plan({name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS})
     actions = []
-    if work is not None:
+    if plan.work is not None:
+        work = plan.work
         actions.append(RegisterEventHandler(OnShutdown(on_shutdown=lambda *_: shutil.rmtree(work, ignore_errors=True))))
-        actions.append(ExecuteProcess(cmd=board_cmd, output="screen"))
-    actions.append(LifecycleNode(package="cstomo_sensor", executable="cstomo_sensor_node", name="cstomo_sensor",
-                                 namespace=args["namespace"], output="screen",
-                                 parameters=[args["config"], overrides]))
+    for sensor in plan.sensors:
+        if sensor.board is not None:
+            actions.append(ExecuteProcess(cmd=sensor.board, output="screen"))
+        actions.append(LifecycleNode(package="cstomo_sensor", executable="cstomo_sensor_node", name=NODE_NAME,
+                                     namespace=sensor.namespace, output="screen",
+                                     parameters=[*([sensor.config] if sensor.config else []), sensor.overrides]))
+        if sensor.transform is not None:
+            actions.append(Node(package="tf2_ros", executable="static_transform_publisher", name=f"{NODE_NAME}_tf",
+                                namespace=sensor.namespace, output="screen", arguments=sensor.transform.arguments()))
+    if plan.rviz is not None:
+        actions.append(Node(package="rviz2", executable="rviz2", name="rviz2", output="screen", arguments=plan.rviz))
     return actions
 
 
 def generate_launch_description() -> LaunchDescription:
-    config = os.path.join(get_package_share_directory("cstomo_sensor"), "config", "cstomo_sensor.yaml")
+    share = os.path.join(get_package_share_directory("cstomo_sensor"), "config")
     return LaunchDescription(
-        [DeclareLaunchArgument(name, default_value=config if default is None else default, description=desc)
+        [DeclareLaunchArgument(name, description=desc,
+                               default_value=os.path.join(share, _DEFAULT_FILES[name]) if default is None else default)
          for name, (default, desc) in ARGUMENTS.items()]
         + [OpaqueFunction(function=_setup)])

@@ -285,7 +285,9 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
                 "--link", str(link), "--snr", "40", "--saturate-channel", "3"]
         assert board_sim.main(argv) == 0
         frames = drain(driver, quiet=0.2)
-    assert capsys.readouterr().out.splitlines()[0] == f"device: {link}"
+    captured = capsys.readouterr()
+    assert captured.out.splitlines()[0] == f"device: {link}"
+    assert captured.err.splitlines()[-1].startswith("sent ") and "frames whole and unharmed" in captured.err
     assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": "x.csv", "snr_db": 40.0, "seed": 0}
     assert len(frames) > 10 and all(f.saturated[3] for f in frames)
     assert not link.exists()
@@ -311,3 +313,20 @@ def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
     slow_seqs = seqs[seqs.index(0, 1):]  # after the fast board's frames 0..n
     assert 1 <= st.reconnects <= 2 and st.period == pytest.approx(1.0, rel=0.05), st
     assert slow_seqs == list(range(len(slow_seqs))) and len(slow_seqs) >= 6, seqs
+
+
+def test_the_boards_counts_are_said_in_words():
+    """``cstomo board-sim``'s last lines (and ``cstomo demo``'s summary): every count with what it is."""
+    from cstomo_sensor.board.sim import INJECTED_MEANING, SimStats
+
+    st = SimStats(sent=98, next_seq=100, generation_first_seq=(0,), injected={"overrun": 1, "drop": 1})
+    lines = st.describe()
+    assert lines[0] == "sent 98 frames whole and unharmed"
+    assert lines[1].startswith("1 drop: frames measured but not sent") and "injected" in lines[1]
+    assert lines[2].startswith("1 overrun: ") and "nothing read it" in lines[2] and "not an injected fault" in lines[2]
+    import re
+
+    import cstomo_sensor.board.sim as sim
+
+    counted = set(re.findall(r'_injected\["(\w+)"\]', open(sim.__file__, encoding="utf-8").read()))
+    assert counted == set(INJECTED_MEANING), counted ^ set(INJECTED_MEANING)  # every count the board keeps

@@ -67,3 +67,31 @@ def test_an_entry_holding_non_finite_floats_is_refused(tmp_path, caplog, value):
     with caplog.at_level(logging.WARNING, logger="cstomo_sensor.cache"):
         assert cache_load(p, KEY) is None
     assert "non-finite" in caplog.text and "'R'" in caplog.text, caplog.text
+
+
+def test_the_simulated_devices_frames_are_cached_keyed_by_every_input(tmp_path):
+    """``Truth.frames`` (the simulated board's scripted loads): a second device with the same inputs
+    reads the first one's frames (bit-identical, without building its forward model); another seed,
+    another load list or another load order is another entry."""
+    from cstomo_sensor.model.geometry import load_sensor
+    from cstomo_sensor.model.simulate import Load, Truth
+
+    geometry = load_sensor("cuboid_joint")
+    loads = [Load("none"), Load("inclusion", inclusion=(0.0, 0.0, 0.01, 0.004, 0.5))]
+    first = Truth(geometry, seed=5, cache_dir=tmp_path)
+    ref, frames = first.frames(loads)
+    assert frames.shape == (2, ref.size) and not np.allclose(frames[1], frames[0])
+    np.testing.assert_array_equal(frames[0], first.voltages(loads[0]))
+    again = Truth(geometry, seed=5, cache_dir=tmp_path)
+    ref2, frames2 = again.frames(loads)
+    np.testing.assert_array_equal(ref2, ref)
+    np.testing.assert_array_equal(frames2, frames)
+    assert "forward" not in again.__dict__  # read, not recomputed
+    entries = lambda: sorted((tmp_path / "truth").glob("*.npz"))  # noqa: E731
+    assert len(entries()) == 1
+    other = Truth(geometry, seed=6, cache_dir=tmp_path)  # another device: electrodes and contacts
+    _, frames3 = other.frames(loads)
+    assert "forward" in other.__dict__ and not np.array_equal(frames3, frames)
+    Truth(geometry, seed=5, cache_dir=tmp_path).frames(loads[::-1])
+    Truth(geometry, seed=5, cache_dir=tmp_path).frames(loads[:1])
+    assert len(entries()) == 4

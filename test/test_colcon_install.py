@@ -36,7 +36,8 @@ def install(tmp_path_factory):
     prefix = ws / "install" / "cstomo_sensor"
     for f in ("share/ament_index/resource_index/packages/cstomo_sensor", "share/cstomo_sensor/package.xml",
               "share/cstomo_sensor/launch/cstomo_sensor.launch.py", "share/cstomo_sensor/config/cstomo_sensor.yaml",
-              "share/cstomo_sensor/config/sensors/cuboid_joint.yaml", "lib/cstomo_sensor/cstomo",
+              "share/cstomo_sensor/config/sensors/cuboid_joint.yaml", "share/cstomo_sensor/config/cstomo_sensor.rviz",
+              "share/cstomo_sensor/config/sensors_example.yaml", "lib/cstomo_sensor/cstomo",
               "lib/cstomo_sensor/cstomo_sensor_node"):
         assert (prefix / f).is_file(), f
     # source it as a robot engineer does, and take the environment it leaves
@@ -98,8 +99,9 @@ def test_installed_board_sim_and_node_deliver_a_wrench(install, tmp_path):
 
 def test_launch_plan_of_the_install_starts_the_installed_board(install):
     prefix, env = install
-    code = ("from cstomo_sensor.tools.common import launch_plan; import shutil; "
-            "o, cmd, work = launch_plan({'sim': 'true', 'config': sys.argv[1]}); print(cmd[0]); shutil.rmtree(work)")
+    code = ("from cstomo_sensor.tools.launching import launch_plan; import shutil; "
+            "plan = launch_plan({'sim': 'true', 'config': sys.argv[1]}); print(plan.sensors[0].board[0]); "
+            "shutil.rmtree(plan.work)")
     r = subprocess.run([sys.executable, "-c", "import sys; " + code,
                         str(prefix / "share" / "cstomo_sensor" / "config" / "cstomo_sensor.yaml")],
                        env=env, capture_output=True, text=True, timeout=60, cwd="/")

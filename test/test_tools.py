@@ -30,9 +30,18 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     assert "Traceback" not in text
     lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and " N " in ln]
     assert lines, text
-    summary = next(ln for ln in out.stdout.splitlines() if "settled loads" in ln)
+    summary = next(ln for ln in out.stdout.splitlines() if "median angle error" in ln)
     angle = float(summary.split("median angle error")[1].split("deg")[0])
     assert angle < 5.0, summary  # 20 N straight down, honest simulation at 60 dB
+    # the summary says what each figure is, the simulated board's counts included
+    tail = out.stdout[out.stdout.index("\nsummary"):]
+    first = next(ln for ln in tail.splitlines() if "first wrench" in ln)
+    assert float(first.split()[2]) < 200, first
+    assert "settled lines" in tail and "against the scripted true force" in tail, tail
+    board = tail[tail.index("simulated board"):]
+    assert "sent" in board and "frames whole and unharmed" in board and "injected {" not in text, board
+    if "overrun" in board:
+        assert "nothing read it" in board, board
 
 
 def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):

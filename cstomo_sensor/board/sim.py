@@ -143,6 +143,28 @@ class SimStats:
     injected: dict
     generation_opened: tuple[float, ...] = ()
 
+    def describe(self) -> list[str]:
+        """The summary in words, one line per count (``cstomo board-sim`` prints it at its end)."""
+        lines = [f"sent {self.sent} frames whole and unharmed"]
+        for name, n in sorted(self.injected.items()):
+            lines.append(f"{n} {name}: {INJECTED_MEANING.get(name, 'an injected fault')}")
+        return lines
+
+
+#: What each count of :attr:`SimStats.injected` is, in words.
+INJECTED_MEANING = {
+    "bit_flip": "frames sent with one bit flipped (injected; the host's CRC check drops them)",
+    "drop": "frames measured but not sent (injected; the host sees a gap in seq)",
+    "truncate": "frames cut short (injected)",
+    "garbage": "bursts of random bytes before a frame (injected)",
+    "nan": "frames with one value NaN (injected)",
+    "stall": "stalls: neither sending nor listening (injected)",
+    "disconnect": "disconnects: the pty closed and a new one appeared (injected)",
+    "overrun": "frames not written whole: the pty was full because nothing read it (a host that "
+               "stopped before the board, as `cstomo demo` stops the node first at its end, or stalled); "
+               "not an injected fault",
+}
+
 
 class SimulatedBoard:
     """A board on a pseudo-terminal, ready when constructed; :meth:`run` or :meth:`start` it.

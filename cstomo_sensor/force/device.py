@@ -84,6 +84,20 @@ class ScaleReport:
         return s + ("; " + "; ".join(notes) if notes else "")
 
 
+def tare_file_name(sensor_name: str, geometry_digest: str, device: str, namespace: str = "") -> str:
+    """The default tare file's name in the cache directory, ``tare_<name>-<digest>-<device>.csv``:
+    keyed by the whole geometry (its digest) and the board (``device``: its port, or ``topic`` for
+    topic input), so two sensor files with one name, or a simulated board and the real one, never
+    share a tare. With ``namespace`` (a sensor of a launch's list, tools/launching.py) it leads:
+    ``tare_<namespace>-<name>-...``, so two sensors of one robot never share one either."""
+    ns, dev = _slug(namespace), _slug(device)
+    return "tare_" + (f"{ns}-" if ns else "") + f"{sensor_name}-{geometry_digest[:8]}-{dev[-48:]}.csv"
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")
+
+
 def reference_of(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """(mean (n_meas,), per-channel std (n_meas,) or None for one frame) of unloaded frames."""
     f = np.atleast_2d(np.asarray(frames, float))

@@ -25,8 +25,10 @@ Scene file (YAML)::
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -35,6 +37,7 @@ import numpy as np
 import yaml
 
 from ..angles import force_from_angles
+from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
 from . import elasticity
@@ -57,6 +60,10 @@ ELECTRODE_JITTER = 2.0e-4
 SCENE_KEYS = ("sensor", "snr_db", "seed", "truth_mesh_size", "mechanics_mesh_size", "mismatch", "frames_per_load",
               "loads")
 MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
+
+#: Version of the simulated frames' cache entries (:meth:`Truth.frames`): bump it when the physics of
+#: the simulation changes in a way its inputs do not show (mechanics, material law, forward model).
+TRUTH_FORMAT = 1
 
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
@@ -144,9 +151,12 @@ class Truth:
         self._theta_cache: dict[tuple, np.ndarray] = {}
 
     @cached_property
+    def truth_mesh(self) -> TetMesh:
+        return build_mesh(self.geometry, MeshSpec(h=self.truth_h), self.cache_dir)
+
+    @cached_property
     def forward(self) -> ForwardModel:
-        mesh = build_mesh(self.geometry, MeshSpec(h=self.truth_h), self.cache_dir)
-        return ForwardModel(self.device, mesh, contact_impedance=self.z)
+        return ForwardModel(self.device, self.truth_mesh, contact_impedance=self.z)
 
     @cached_property
     def mechanics_mesh(self) -> TetMesh:
@@ -199,6 +209,47 @@ class Truth:
     def voltages(self, load: Load | tuple[Load, ...]) -> np.ndarray:
         """Noise-free frame under ``load`` (or several loads together, see :meth:`conductivity`)."""
         return self.forward.voltages(self.conductivity(load))
+
+    def frames(self, loads: list[Load]) -> tuple[np.ndarray, np.ndarray]:
+        """(noise-free unloaded reference (n_meas,), noise-free frames (len(loads), n_meas)) of this
+        device, from the disk cache or computed (then saved there; then the mechanics' factor is freed).
+
+        The entry is keyed by every input of the numbers: :data:`TRUTH_FORMAT`, the geometry (all its
+        fields, material included), the simulated device (its moved electrodes and contact
+        impedances), the content of the truth mesh and, when a load is mechanical, of the mechanics
+        mesh, and the loads in order; so another seed, mesh, sensor file or load script never reuses it.
+        """
+        mechanical = any(ld.kind in ("socket", "patches") and any(ld.force) for ld in loads)
+        meshes = [self.truth_mesh] + ([self.mechanics_mesh] if mechanical else [])
+        key = input_hash({
+            "format": TRUTH_FORMAT, "geometry": self.geometry.digest(),
+            "device": [list(e.center) + [e.radius] for e in self.device.electrodes], "z": self.z,
+            "meshes": [_mesh_digest(m) for m in meshes],
+            "loads": [[ld.kind, list(ld.force), repr(ld.patches), list(ld.inclusion)] for ld in loads],
+        })
+        path = Path(self.cache_dir or default_cache_dir()) / "truth" / f"{self.geometry.name}-{key}.npz"
+        hit = cache_load(path, key, names=("reference", "frames"))
+        if hit is not None and hit["frames"].shape[0] == len(loads):
+            return hit["reference"], hit["frames"]
+        t0 = time.perf_counter()
+        frames = np.array([self.voltages(ld) for ld in loads]).reshape(len(loads), -1)
+        if mechanical:
+            elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
+        reference = self.reference
+        try:
+            cache_save(path, key, reference=reference, frames=frames)
+        except OSError as err:  # a read-only cache costs the next start the same time, nothing else
+            log.warning("simulated frames not cached (%s): %s", path, err)
+        log.info("simulated device: %d loads in %.1f s (cached in %s)", len(loads), time.perf_counter() - t0, path)
+        return reference, frames
+
+
+def _mesh_digest(mesh: TetMesh) -> str:
+    """SHA-256 (24 hex digits) of a mesh's points and cells: the mesh itself, not its inputs (a
+    re-meshed geometry may differ)."""
+    h = hashlib.sha256(np.ascontiguousarray(mesh.points, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(mesh.tets, dtype=np.int64).tobytes())
+    return h.hexdigest()[:24]
 
 
 @dataclass(frozen=True)
@@ -277,7 +328,8 @@ class VoltageSource:
     """Frames of a simulated device following a load script or a scene, for the simulated board.
 
     ``frame(t, rng)`` gives the noisy frame at time t (seconds from start); ``truth(t)`` the force.
-    Every distinct load is computed once, up front (so streaming never stalls on a solve).
+    Every load is computed up front (so streaming never stalls on a solve), or read from the disk
+    cache of :meth:`Truth.frames` (a warm ``cstomo board-sim`` is ready in about a second).
     """
 
     def __init__(self, truth: Truth, times: np.ndarray, loads: list[Load], snr_db: float | None,
@@ -287,9 +339,7 @@ class VoltageSource:
         self.loads = loads
         self.snr_db = snr_db
         self.period = period
-        self._frames = [truth.voltages(ld) for ld in loads]
-        elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
-        self._ref = truth.reference
+        self._ref, self._frames = truth.frames(list(loads))
 
     @classmethod
     def from_args(cls, sensor: str = DEFAULT_SENSOR, scene: str | None = None, load_script: str | None = None,

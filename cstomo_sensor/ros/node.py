@@ -389,8 +389,10 @@ def failure_cause(err: BaseException) -> str:
     if isinstance(err, CstomoError):
         return str(err)
     if isinstance(err, ImportError):
-        return (f"missing optional dependency '{err.name or err}' ({err}): install it (e.g. pip install "
-                f"'cstomo_sensor[full]') or choose settings that do not need it")
+        from ..errors import install_hint
+
+        return (f"missing optional dependency '{err.name or err}' ({err}): {install_hint(err.name)}; "
+                "or choose settings that do not need it")
     if isinstance(err, OSError):
         where = f"{err.filename}: " if err.filename else ""
         return f"{where}{err.strerror or err} ({type(err).__name__}): check the file or device and its permissions"

@@ -4,7 +4,6 @@
 same parameters with the same defaults (a test holds them equal)."""
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ..board.wire import PROTOCOLS
 from ..cache import default_cache_dir
 from ..errors import ConfigError
+from ..force.device import tare_file_name
 from ..force.pipeline import PipelineConfig
 from ..force.stream import StreamConfig
 from ..model.geometry import SensorGeometry
@@ -158,8 +158,8 @@ class NodeConfig:
         share it."""
         if self.tare_file:
             return Path(self.tare_file)
-        device = re.sub(r"[^A-Za-z0-9]+", "_", self.port if self.input == "serial" else "topic").strip("_")
-        return self.cache_path / f"tare_{geometry.name}-{geometry.digest()[:8]}-{device[-48:]}.csv"
+        return self.cache_path / tare_file_name(geometry.name, geometry.digest(),
+                                                self.port if self.input == "serial" else "topic")
 
     def qos(self) -> QoSProfile:
         rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,

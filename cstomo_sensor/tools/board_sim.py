@@ -95,5 +95,6 @@ def _main(args: argparse.Namespace) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     st = board.stats()
-    print(f"sent {st.sent} frames; injected {st.injected}", file=sys.stderr)
+    for line in st.describe():
+        print(line, file=sys.stderr)
     return 0

@@ -1,5 +1,6 @@
 """What the command-line tools share: the pipeline's flags, the ROS environment of the tools that
-start rclpy, and starting the node together with a simulated board.
+start rclpy, finding the package's executables, and starting the node together with a simulated
+board (what a launch starts is decided in :mod:`.launching`).
 
 The flags take their defaults and choices from :class:`~cstomo_sensor.force.pipeline.PipelineConfig`
 (the one source of truth); every length is in metres, as in the node's parameters and the files.
@@ -12,7 +13,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 from typing import IO
 
@@ -91,40 +91,6 @@ def config_parameter(config_file: str | Path, name: str) -> object | None:
         if name in params:
             return params[name]
     return None
-
-
-#: The simulated board's default load script in a launch (time,fx,fy,fz in s and N, wrench frame):
-#: unloaded for the tare, then pressing straight down, tilted towards +x, towards +y, and released.
-SIM_LOAD = "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,10,0,-15\n9,0,10,-15\n12,0,0,0\n"
-
-
-def launch_plan(args: dict[str, str]) -> tuple[dict, list[str] | None, Path | None]:
-    """What ``launch/cstomo_sensor.launch.py`` starts, from its arguments (strings, never evaluated).
-
-    Returns the node's parameter overrides (only the arguments given: an empty one leaves the
-    parameter file's value) and, with ``sim`` true, the command of the simulated board and a new
-    temporary directory ``work`` (else None) that the caller removes at shutdown. The board's link,
-    its load script (``sim_load_script`` or :data:`SIM_LOAD`) and the node's tare file live there, in
-    a directory of this launch only: two launches never
-    share a link, a killed board leaves no stale link for the next launch, and the simulated board's
-    tare never replaces a real board's saved tare.
-    """
-    sim = args.get("sim", "").strip().lower()
-    if sim not in ("true", "false", "1", "0", ""):
-        raise ConfigError.bad_value("sim", sim, "true or false")
-    overrides = {k: args[k] for k in ("port", "sensor", "estimator") if args.get(k)}
-    if sim not in ("true", "1"):
-        return overrides, None, None
-    sensor = args.get("sensor") or config_parameter(args["config"], "sensor") or DEFAULTS.sensor
-    work = Path(tempfile.mkdtemp(prefix="cstomo_sim_"))
-    script = args.get("sim_load_script") or str(work / "load.csv")
-    if not args.get("sim_load_script"):
-        (work / "load.csv").write_text(SIM_LOAD)
-    link = str(work / "board")
-    overrides.update(port=link, tare_file=str(work / "tare.csv"))
-    cmd = [executable("cstomo"), "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
-           "--load-script", script]
-    return overrides, cmd, work
 
 
 class NodeWithBoard:

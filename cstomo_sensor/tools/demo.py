@@ -77,7 +77,7 @@ def _interrupt(*_: object) -> None:
 
 
 def _run(a: argparse.Namespace) -> int:
-
+    started = time.monotonic()  # the summary's times count from here
     if a.load_script:  # read before the (slow) model build: a bad file is reported at once
         times, forces = read_load_script(a.load_script)
         labels = [f"script row {i + 1}" for i in range(len(times))]
@@ -91,11 +91,16 @@ def _run(a: argparse.Namespace) -> int:
               "tare_file": work / "tare.csv", "stress_field_every": 0}
     board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate),
                   "--duration", str(duration + 2.0)]  # the board outlives the watch: the node is stopped first
+    marks: dict[str, float] = {}
+    board_log = work / "board.log"  # the board's messages and final counts, shown (explained) at the end
+    view = None
     try:
-        with NodeWithBoard(work / "board", params, board_args) as run:
-            # the board computes its loads (its script starts when the node connects) while the model builds
-            print("[1/3] simulated board: computing the scripted loads on an independent mesh (honest simulation)",
-                  flush=True)
+        with open(board_log, "w", encoding="utf-8") as err, \
+                NodeWithBoard(work / "board", params, board_args, board_err=err) as run:
+            # the board computes (or reads from the cache) its loads while the model builds; its
+            # script starts when the node connects
+            print("[1/3] simulated board: its scripted loads on an independent mesh (honest simulation; "
+                  "computed once, then read from the cache)", flush=True)
             run.start_board()
             print("[2/3] model and force estimator (built once, then loaded from the cache)", flush=True)
             t = time.perf_counter()
@@ -103,60 +108,129 @@ def _run(a: argparse.Namespace) -> int:
                            progress=lambda m: print("      " + m, flush=True))
             print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
             device = run.start()
+            marks["board ready"] = time.monotonic() - started
             print(f"[3/3] board on {device}; waiting for the node to connect", flush=True)
             run.wait_streaming()
             t0 = time.monotonic()  # the load script's t = 0
+            view = _View()
+            marks["streaming"] = t0 - started
             print("      streaming; the node tares on its first frames\n", flush=True)
-            return _watch(a, t0, duration, times, forces, labels, run.board)
+            code, summary = _watch(a, t0, duration, times, forces, labels, run.board, view)
+        # the node and then the board have stopped: the board's final counts are in its log
+        _print_summary(a, summary, marks, started, _lines(board_log))
+        return code
+    except BaseException:
+        for line in _lines(board_log):  # why the board failed, say: never lost
+            print(f"board-sim: {line}", file=sys.stderr)
+        raise
     finally:
-        shutil.rmtree(work, ignore_errors=True)  # the load script, the link and the demo's own tare
+        if view is not None:
+            view.close()
+        shutil.rmtree(work, ignore_errors=True)  # the load script, the link, the board's log and the demo's own tare
 
 
-def _watch(a, t0, duration, times, forces, labels, board) -> int:
-    # Ctrl-C and SIGTERM end the watch quietly: the summary is printed, the node and the board are
-    # stopped in order by NodeWithBoard (they run in sessions of their own, so a terminal's Ctrl-C
-    # reaches only this process).
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
+def _lines(path: Path) -> list[str]:
+    try:
+        return [ln.rstrip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return []
 
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("cstomo_demo_view")
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    latest: dict = {}
-    count = [0]
 
-    def on_wrench(msg: WrenchStamped) -> None:
+def _print_summary(a, summary: dict, marks: dict, started: float, board_lines: list[str]) -> None:
+    """What the demo measured, each figure said with what it is."""
+    first = summary["first"]
+    steps = ", ".join(f"{k} at {v:.1f} s" for k, v in marks.items())
+    print(f"\nsummary (times from the start of `cstomo demo`, its imports done: {steps})")
+    rows = [("first wrench", f"{first - started:.1f} s after the start" if first is not None else "none received"),
+            ("wrenches received", f"{summary['count']} on /cstomo_sensor/wrench (the node publishes one per board "
+                                  f"frame, {a.rate:g}/s, once it has tared on the first 50)")]
+    e = summary["errors"]
+    if len(e):
+        rows += [("settled lines", f"{len(e)}: the lines above whose load, not zero, had been held over 0.6 s; "
+                                   "the errors are their medians against the scripted true force"),
+                 ("median angle error", f"{np.median(e[:, 0]):.2f} deg (between the estimated and the true force)"),
+                 ("magnitude error", f"median {100 * np.median(e[:, 1]):.1f} % (| |F estimated| - |F true| | / "
+                                     f"|F true|; {a.estimator} estimator)")]
+    rows += [("simulated board" if i == 0 else "", line) for i, line in enumerate(board_lines)]
+    for name, text in rows:
+        print(f"  {name:<19} {text}")
+
+
+class _View:
+    """The demo's subscriber to the node's ``~/wrench``, spun in a thread of its own. Made once the
+    board streams, when the node's participant exists: its first wrench then came 0.4-0.6 s after
+    the stream started in 4 runs of 4, where a subscriber made before the node started waited for a
+    DDS discovery round (about 3 s more) in 2 runs of 3."""
+
+    def __init__(self) -> None:
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("cstomo_demo_view")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.latest: np.ndarray | None = None
+        self.count = 0
+        self.first: float | None = None  # time.monotonic() of the first wrench
+        self.wake = threading.Event()  # set by the first wrench (and by the watch's signal handlers)
+        self.node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", self._on_wrench, 10)
+        self._spinner = threading.Thread(target=self._spin, daemon=True)
+        self._spinner.start()
+
+    def _on_wrench(self, msg: WrenchStamped) -> None:
         f = msg.wrench.force
-        latest["f"] = np.array([f.x, f.y, f.z])
-        count[0] += 1
+        self.latest = np.array([f.x, f.y, f.z])
+        self.count += 1
+        if self.first is None:
+            self.first = time.monotonic()
+            self.wake.set()  # its line is printed at once, not at the next half second
 
-    def spin() -> None:
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
         try:
-            executor.spin()
+            self.executor.spin()
         except ExternalShutdownException:
             pass  # rclpy shut down under the spin: the watch is over
 
-    node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", on_wrench, 10)
-    spinner = threading.Thread(target=spin, daemon=True)
-    spinner.start()
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+        self._spinner.join(2.0)
+
+
+def _watch(a, t0, duration, times, forces, labels, board, view: _View) -> tuple[int, dict]:
+    # Ctrl-C and SIGTERM end the watch quietly: the summary is printed, the node and the board are
+    # stopped in order by NodeWithBoard (they run in sessions of their own, so a terminal's Ctrl-C
+    # reaches only this process).
+    stop = threading.Event()
+
+    def on_signal(*_: object) -> None:
+        stop.set()
+        view.wake.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(f"{'t [s]':>6}  {'load':<22} {'true':<34} {'estimated':<34} {'angle err':>9} {'rate':>7}")
     errors = []
     last_n, last_t = 0, time.monotonic()
     try:
-        while time.monotonic() - t0 < duration and board.poll() is None and not stop.wait(0.5):
+        while time.monotonic() - t0 < duration and board.poll() is None:
+            view.wake.wait(0.5)  # a line every half second, and one at the first wrench
+            view.wake.clear()
+            if stop.is_set():
+                break
             now = time.monotonic()
             t = now - t0
             i = load_index(times, t)
             true = force_at(times, forces, t)
-            rate = (count[0] - last_n) / (now - last_t)
-            last_n, last_t = count[0], now
-            if "f" not in latest:
+            rate = (view.count - last_n) / (now - last_t)
+            last_n, last_t = view.count, now
+            est = view.latest
+            if est is None:
                 print(f"{t:6.1f}  {labels[max(i, 0)]:<22} waiting for the node's first wrench...", flush=True)
                 continue
-            est = latest["f"]
             settled = i >= 0 and t - times[i] > 0.6
             err = np.degrees(angle_between(est, true)) if np.linalg.norm(true) > 0 else float("nan")
             shown = f"{err:8.1f}°" if np.isfinite(err) else f"{'-':>9}"
@@ -165,24 +239,18 @@ def _watch(a, t0, duration, times, forces, labels, board) -> int:
             print(f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true):<34} {_fmt(est):<34} "
                   f"{shown} {rate:6.0f}/s", flush=True)
     finally:
-        executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
-        spinner.join(2.0)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     if stop.is_set():
         print(f"\nstopped at t = {time.monotonic() - t0:.1f} s", flush=True)
+    summary = {"first": view.first, "count": view.count, "errors": np.array(errors).reshape(-1, 2)}
     if errors:
-        e = np.array(errors)
-        print(f"\n{count[0]} wrenches received; settled loads: median angle error {np.median(e[:, 0]):.2f} deg, "
-              f"median magnitude error {100 * np.median(e[:, 1]):.1f} % ({a.estimator} estimator)")
-        return 0
-    if count[0]:
-        print(f"\n{count[0]} wrenches received; no load held long enough (0.6 s) to summarise")
-        return 0
+        return 0, summary
+    if view.count:
+        print(f"\n{view.count} wrenches received; no load held long enough (0.6 s) to summarise")
+        return 0, summary
     if stop.is_set():
         print("no wrench received yet")
-        return 0
+        return 0, summary
     print("\nno wrench received from the node", file=sys.stderr)
-    return 1
+    return 1, summary
