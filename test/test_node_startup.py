@@ -144,6 +144,9 @@ def test_the_default_tare_file_is_keyed_by_the_sensor_geometry(ros, capfd, tmp_p
     geom = load_sensor(a / "joint.yaml")
     assert real.tare_path_for(geom) != sim.tare_path_for(geom)
     assert real.tare_path_for(geom).name.endswith("-dev_cstomo.csv")
+    # ... and by the node's namespace: two sensors of one robot never share a tare (the root: no prefix)
+    left, right, root = (real.tare_path_for(geom, ns) for ns in ("/left_knee", "/right_knee", "/"))
+    assert left != right and left.name.startswith("tare_left_knee-") and root == real.tare_path_for(geom)
     # the node uses it (the preset's geometry digest in the name; topic input)
     _, _, path, err = configure(ros, capfd, "tare_key")
     assert path.name == f"tare_cuboid_joint-{warm_model.geometry.digest()[:8]}-topic.csv", path

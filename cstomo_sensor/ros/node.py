@@ -154,7 +154,7 @@ class CstomoSensorNode(LifecycleNode):
         log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration
                  else "calibration: none (the nominal model; `cstomo calibrate` fits one on known loads)")
         self.config, self.pipe = cfg, pipe
-        self.tare_path = cfg.tare_path_for(pipe.geometry)
+        self.tare_path = cfg.tare_path_for(pipe.geometry, self.get_namespace())
         self.stream = FrameStream(pipe, cfg.stream, tare_file=self.tare_path,
                                   tare_comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
                                                f"(geometry {pipe.geometry.digest()})")

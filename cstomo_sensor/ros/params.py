@@ -150,16 +150,16 @@ class NodeConfig:
 
         return default_cache_dir()
 
-    def tare_path_for(self, geometry: SensorGeometry) -> Path:
+    def tare_path_for(self, geometry: SensorGeometry, namespace: str = "") -> Path:
         """Where the tare of this device is saved (frames-file format) and read back at start:
-        ``tare_file``, else ``<cache_dir>/tare_<name>-<digest>-<port>.csv``, keyed by a digest of the
-        whole geometry and by the port (``topic`` for topic input): a tare belongs to one board on one
-        sensor, so two sensor files with the same name, or a simulated board and the real one, never
-        share it."""
+        ``tare_file``, else ``<cache_dir>/tare_[<namespace>-]<name>-<digest>-<port>.csv``, keyed by the
+        node's namespace, a digest of the whole geometry and the port (``topic`` for topic input): a
+        tare belongs to one board on one sensor, so two sensors of one robot, two sensor files with
+        the same name, or a simulated board and the real one, never share it."""
         if self.tare_file:
             return Path(self.tare_file)
         return self.cache_path / tare_file_name(geometry.name, geometry.digest(),
-                                                self.port if self.input == "serial" else "topic")
+                                                self.port if self.input == "serial" else "topic", namespace)
 
     def qos(self) -> QoSProfile:
         rel = {"system_default": ReliabilityPolicy.SYSTEM_DEFAULT, "reliable": ReliabilityPolicy.RELIABLE,
