@@ -17,6 +17,7 @@ adjoint fields are the drive fields themselves).
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass, field
@@ -104,6 +105,17 @@ class CEMSystem:
             v += [w, w, [p.area / z]]
         return sp.csr_matrix((np.concatenate(v), (np.concatenate(r), np.concatenate(c))), shape=(n + L, n + L))
 
+    def with_contact_impedance(self, contact_impedance) -> CEMSystem:
+        """The same system with other contact impedances (ohm m^2, a scalar or one per electrode):
+        the volume's assembly is shared, only the electrode blocks are built again."""
+        z = np.broadcast_to(np.asarray(contact_impedance, dtype=float), (self.n_electrodes,)).copy()
+        if np.any(~np.isfinite(z)) or np.any(z <= 0):
+            raise ConfigError(f"contact_impedance={z!r}: expected positive finite values (ohm m^2)")
+        out = copy.copy(self)
+        out.z = z
+        out._static = out._electrode_blocks()
+        return out
+
     def stiffness(self, sigma: np.ndarray) -> sp.csr_matrix:
         """The volume stiffness K(sigma), (n_nodes, n_nodes)."""
         data = np.bincount(self._pos, weights=(sigma[:, None] * self._kloc).ravel(), minlength=len(self._indices))
@@ -184,6 +196,13 @@ class ForwardModel:
         z = geometry.contact_impedance if contact_impedance is None else contact_impedance
         self.cem = CEMSystem(mesh, self.patches, z)
         self.seconds = {"assembly": time.perf_counter() - t0}
+
+    def with_contact_impedance(self, contact_impedance) -> ForwardModel:
+        """The same model with other per-electrode contact impedances (ohm m^2): mesh, patches and
+        the volume's assembly are shared (a device whose contacts drift, model/timeline.py)."""
+        out = copy.copy(self)
+        out.cem = self.cem.with_contact_impedance(contact_impedance)
+        return out
 
     @property
     def sigma0(self) -> np.ndarray:

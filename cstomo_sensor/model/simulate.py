@@ -22,6 +22,9 @@ Scene file (YAML)::
       - {patches: [{shape: circle, radius: 0.004, center: [0.005, 0.01], face: +y}], total_force: 10}
                                     # a side face of a cuboid; center in the face's (x, z), m
       - {inclusion: {center: [0, 0, 0.01], radius: 0.003, contrast: 0.5}}   # no mechanics
+
+A scene with a ``timeline:`` section instead of ``loads`` is a device over time (temperature, drive,
+contacts, creep, contact tasks): model/timeline.py reads it (docs/formats.md#timeline).
 """
 from __future__ import annotations
 
@@ -58,7 +61,7 @@ ELECTRODE_JITTER = 2.0e-4
 #: A scene file's keys (docs/formats.md#scene-file; ``cstomo simulate --help``) and those of its ``mismatch``:
 #: any other key is refused, named.
 SCENE_KEYS = ("sensor", "snr_db", "seed", "truth_mesh_size", "mechanics_mesh_size", "mismatch", "frames_per_load",
-              "loads")
+              "loads", "timeline")
 MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
 
 #: Version of the simulated frames' cache entries (:meth:`Truth.frames`): bump it when the physics of
@@ -265,6 +268,7 @@ class Scene:
     z_rel: float = CONTACT_MISMATCH
     jitter: float = ELECTRODE_JITTER
     frames_per_load: int = 1
+    timeline: dict | None = None  # a device over time: read by model/timeline.py (it replaces loads)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Scene:
@@ -274,8 +278,9 @@ class Scene:
         d = yaml.safe_load(p.read_text()) or {}
         if not isinstance(d, dict):
             raise ConfigError(f"{p}: expected a mapping of the keys {list(SCENE_KEYS)}")
-        if "loads" not in d:
-            raise ConfigError(f"{p}: missing key 'loads'")
+        if ("loads" in d) == ("timeline" in d):
+            raise ConfigError(f"{p}: " + ("give either 'loads' or 'timeline', not both" if "loads" in d
+                                          else "missing key 'loads' (or 'timeline')"))
         mm = d.get("mismatch") or {}
         for where, m, keys in (("", d, SCENE_KEYS), ("mismatch.", mm, MISMATCH_KEYS)):
             unknown = sorted(str(k) for k in m if k not in keys) if isinstance(m, dict) else []
@@ -285,21 +290,30 @@ class Scene:
         sensor = str(d.get("sensor", DEFAULT_SENSOR))
         if not Path(sensor).is_absolute() and Path(sensor).suffix in (".yaml", ".yml"):
             sensor = str(p.parent / sensor)
-        return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d["loads"]),
+        if "timeline" in d and not isinstance(d["timeline"], dict):
+            raise ConfigError(f"{p}: timeline: expected a mapping (docs/formats.md#timeline)")
+        return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d.get("loads", ())),
                    snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
                    truth_mesh_size=float(d.get("truth_mesh_size", TRUTH_MESH_SIZE)),
                    mechanics_mesh_size=float(d.get("mechanics_mesh_size", MECHANICS_MESH_SIZE)),
                    z_rel=float(mm.get("contact_impedance", CONTACT_MISMATCH)),
                    jitter=float(mm.get("electrode_jitter", ELECTRODE_JITTER)),
-                   frames_per_load=int(d.get("frames_per_load", 1)))
+                   frames_per_load=int(d.get("frames_per_load", 1)), timeline=d.get("timeline"))
 
     def truth(self, cache_dir=None) -> Truth:
         return Truth(load_sensor(self.sensor), self.truth_mesh_size, self.mechanics_mesh_size, self.z_rel,
                      self.jitter, self.seed, cache_dir)
 
 
+def _no_timeline(scene: Scene) -> None:
+    if scene.timeline is not None:
+        raise ConfigError("a scene with a timeline is a device over time: simulate it with "
+                          "cstomo_sensor.model.timeline.Timeline.from_scene (docs/formats.md#timeline)")
+
+
 def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(reference (n_meas,), frames (n, n_meas), true forces (n, 3)) of a scene, noise included."""
+    _no_timeline(scene)
     truth = scene.truth(cache_dir)
     rng = np.random.default_rng(scene.seed + 1)
     ref = add_noise(truth.reference, truth.reference, scene.snr_db, rng)
@@ -351,6 +365,7 @@ class VoltageSource:
             raise ConfigError("give exactly one of scene=FILE or load_script=FILE.csv")
         if scene is not None:
             sc = Scene.load(scene)
+            _no_timeline(sc)
             truth = sc.truth(cache_dir)
             return cls(truth, hold * np.arange(len(sc.loads)), list(sc.loads),
                        sc.snr_db if snr_db is None else snr_db)

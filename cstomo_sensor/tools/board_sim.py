@@ -10,6 +10,7 @@ from ..board.sim import FaultConfig, SimulatedBoard
 from ..errors import CstomoError
 from ..model.geometry import DEFAULT_SNR_DB, load_sensor
 from ..model.simulate import VoltageSource
+from ..model.timeline import Timeline, is_timeline_scene
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -71,9 +72,12 @@ def _main(args: argparse.Namespace) -> int:
             saturate_channel=args.saturate_channel, full_scale=args.full_scale, dead_electrode=args.dead_electrode,
         )
         layers = load_sensor(args.sensor).layers
-        source = VoltageSource.from_args(
-            sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
-        )
+        if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
+            source = Timeline.from_scene(args.scene, snr_db=args.snr).prepare()
+        else:
+            source = VoltageSource.from_args(
+                sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
+            )
         board = SimulatedBoard(
             source, protocol=args.protocol, rate_hz=args.rate, duration=args.duration, link=args.link,
             faults=faults, seed=args.seed, layers=layers,

@@ -24,6 +24,7 @@ from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
+from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from .common import add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -124,7 +125,8 @@ def cmd_estimate(a) -> int:
 
 def cmd_simulate(a) -> int:
 
-    simulate_scene_files(a.scene, a.out, cache_dir=a.cache_dir or None)
+    simulate = simulate_timeline_files if is_timeline_scene(a.scene) else simulate_scene_files
+    simulate(a.scene, a.out, cache_dir=a.cache_dir or None)
     print(f"wrote {a.out}/reference.csv, frames.csv, truth.csv")
     return 0
 
@@ -137,7 +139,7 @@ mesh, electrodes and contact impedances mismatched (seeded), white noise. Writes
 reference.csv (the unloaded frame), frames.csv (frames_per_load frames per load, in order) and
 truth.csv (each frame's force in N, wrench frame; 0 for loads that are not socket or patch forces).
 
-scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` required, other keys refused):
+scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` (or `timeline`) required, other keys refused):
   sensor               preset name or sensor YAML path (relative: to the scene file)
                        (default {DEFAULT_SENSOR})
   snr_db               noise, dB below the reference's rms; null for none (default {Scene.snr_db:g})
@@ -153,6 +155,9 @@ scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` required, o
                  face: top (default), +x, -x, +y or -y}}], total_force: N (uniform normal pressure;
                  center in the face's own coordinates: (x, y) on top, (y, z) on +-x, (x, z) on +-y)
       inclusion: {{center: [x, y, z] m, radius: m, contrast: relative conductivity change}} (no mechanics)
+  timeline             instead of loads: a device over time (temperature, drive, contact drift, creep,
+                       contact tasks; docs/formats.md#timeline); frames.csv then holds a frame every
+                       1/rate_hz s and truth.csv adds a time column and the true device state
 """
 
 
