@@ -450,7 +450,7 @@ class FrameStream:
                                                 f"reference rms at measurement {worst}, limit "
                                                 f"{limit:.2%}); keep the sensor still and unloaded "
                                                 "during the tare")
-        why = tare_problem(ref, self.pipe.model_reference)
+        why = tare_problem(ref[used], self.pipe.model_reference[used])  # flagged channels hold no data
         if why:
             return TareOutcome(None, n, spread, f"tare refused: {why}")
         drift = None
