@@ -113,10 +113,11 @@ class Harness:
     def state(self) -> str:
         return self.node._state_machine.current_state[1]
 
-    def call_tare(self, timeout: float = 20.0):
+    def call_tare(self, timeout: float = 20.0, service: str = "tare"):
+        """Call ``~/tare`` (or ``~/tare_forced``: ``service="tare_forced"``) and return its answer."""
         from std_srvs.srv import Trigger
 
-        cli = self.probe.create_client(Trigger, f"{self.node.get_fully_qualified_name()}/tare")
+        cli = self.probe.create_client(Trigger, f"{self.node.get_fully_qualified_name()}/{service}")
         assert cli.wait_for_service(5.0)
         fut = cli.call_async(Trigger.Request())
         assert wait_for(fut.done, timeout)

@@ -6,7 +6,8 @@ The node (``ros/node.py``), ``cstomo replay`` and ``cstomo estimate`` all push t
 owns, per sensor:
 
 - the reference and the tare transaction with its rules (:data:`TARE_MAX_SPREAD`, a saved tare that
-  is not of this sensor: :func:`tare_problem`), the saved tare file, and the masks of flagged channels;
+  is not of this sensor: :func:`tare_problem`, never a tare under load: :mod:`.tare`), the saved tare
+  file, and the masks of flagged channels;
 - the per-frame core (:class:`~.pipeline.Pipeline`: plausibility gate, estimator, consistency, fields);
 - the filtered wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps);
 - the zero that holds: the device's slow change since the tare (:class:`~.drift.DriftTracker`,
@@ -47,6 +48,7 @@ from .drift import DriftTracker
 from .filter import LowPass
 from .pipeline import FrameResult, Pipeline
 from .scene_field import change_noise
+from .tare import TareCheck, check_tare
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +85,9 @@ TARE_NOISE_FACTOR = 3.0
 #: this sensor: voltages scale with the rubber's resistivity, 0.2..5 times nominal
 #: (docs/physics.md#real-devices).
 TARE_RMS_RATIO = (0.2, 5.0)
+#: Why a pending tare ends when the board comes back after an outage (:meth:`FrameStream.reconnected`).
+TARE_RECONNECTED = ("tare refused: the board reconnected during the tare (its frames would span an outage, "
+                    "and the joint may be loaded when the board returns)")
 #: Seconds over which lost and dropped frames are judged, and the fractions of the frames sent in
 #: that time above which the status is WARN and ERROR.
 LOSS_WINDOW = 5.0
@@ -161,7 +166,9 @@ class TareOutcome:
 
     ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare);
     ``noise`` (208,) volts the per-channel std of the frames (None for a one-frame tare); ``note``
-    says why an accepted tare was not saved ('' when saved or when the stream has no file).
+    says why an accepted tare was not saved ('' when saved or when the stream has no file);
+    ``check`` the load figures (:class:`~.tare.TareCheck`; None when the tare ended before them);
+    ``forced`` a forced tare, and ``overridden`` what it overrode ('' when nothing).
     """
 
     reference: np.ndarray | None
@@ -170,6 +177,9 @@ class TareOutcome:
     reason: str = ""
     noise: np.ndarray | None = None
     note: str = ""
+    check: TareCheck | None = None
+    forced: bool = False
+    overridden: str = ""
 
     @property
     def ok(self) -> bool:
@@ -249,8 +259,11 @@ class FrameStream:
     reference and the saved file stay) when its frames are not steady: the largest per-channel
     standard deviation over the channels not excluded during the tare, relative to the rms of the
     averaged reference, is above ``tare_max_spread`` (or :data:`TARE_NOISE_FACTOR` x the median
-    channel's, when larger: a noisy board); or when the average is not finite. Without any
-    reference a tare is always pending: a refused or cancelled one starts over.
+    channel's, when larger: a noisy board); when the average is not finite or not a frame of this
+    sensor (:func:`tare_problem`); when it carries a load against the reference it replaces, or the
+    load changed along its frames (a slow ramp: :mod:`.tare`, unless the tare is ``forced``); or when
+    the board reconnected while it was pending (:meth:`reconnected`). Without any reference a tare is
+    always pending: a refused or cancelled one starts over.
     """
 
     def __init__(self, pipe: Pipeline, config: StreamConfig = StreamConfig(),
@@ -281,6 +294,8 @@ class FrameStream:
         self._tare_s1 = np.zeros(pipe.n_meas)
         self._tare_s2 = np.zeros(pipe.n_meas)
         self._tare_d = np.zeros(pipe.n_meas)
+        self._tare_st = np.zeros(pipe.n_meas)  # sum of k * (frame k - first frame): the linear trend
+        self._tare_forced = False
         self._tare_mask = np.zeros(pipe.n_meas, bool)
         self._tare_left = self._tare_n = 0
         self._tare_done = threading.Event()
@@ -352,6 +367,32 @@ class FrameStream:
         if isinstance(n, bool) or n < 1:
             raise ConfigError.bad_value("tare_frames", n, ">= 1")
         self._tare_left = self._tare_n = int(n)
+        self._tare_forced = False
+
+    def joint_free(self) -> bool:
+        """A controller's hint that the joint is free now: re-zero at once, a tare on the next
+        ``tare_frames`` frames with every rule of a tare (steady frames, no load against the reference
+        it replaces, no ramp): refused under load like any tare. False (and nothing changes) while a
+        tare is already pending."""
+        with self.lock:
+            if self._tare_left:
+                return False
+            self.start_tare()
+        log.info("the joint is free (a controller's hint): re-zeroing on the next %d frames", self.config.tare_frames)
+        return True
+
+    def reconnected(self) -> None:
+        """The board came back after an outage: the filtered wrench starts again from the next frame,
+        and a pending tare ends, never completed on the returning frames (the joint may be loaded by
+        then): refused with :data:`TARE_RECONNECTED` (a :meth:`tare` transaction returns that outcome;
+        without any reference the tare starts over on the returning frames, all of them checked)."""
+        with self.lock:
+            if self.filter is not None:
+                self.filter.reset()
+            if self._tare_left:
+                taken = self._tare_n - self._tare_left
+                self._tare_left = 0
+                self._end_tare(TareOutcome(None, taken, 0.0, TARE_RECONNECTED))
 
     def cancel_tare(self) -> int:
         """Drop a pending tare (the reference stays as it is); returns the frames it had taken.
@@ -359,17 +400,21 @@ class FrameStream:
         Without any reference the tare stays pending (see the class docstring)."""
         taken = self._tare_n - self._tare_left if self._tare_left else 0
         self._tare_left = 0 if self.pipe.reference is not None else self._tare_n
+        self._tare_forced = False
         return taken
 
-    def tare(self, timeout: float) -> tuple[TareOutcome | None, int]:
+    def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
         """A tare transaction: start a tare on the next frames and wait up to ``timeout`` s for it to
         end (accepted or refused); if it has not ended by then it is cancelled (decided under the
-        frame lock: a tare cannot end while it is cancelled). Returns (the outcome or None if
-        cancelled, the frames it had taken)."""
+        frame lock: a tare cannot end while it is cancelled). ``forced``: the load checks
+        (:mod:`.tare`) do not refuse it; the outcome says what they would have refused (the
+        steadiness and the other checks still apply). Returns (the outcome or None if cancelled, the
+        frames it had taken)."""
         with self.lock:
             self._tare_done.clear()
             self._tare_ended = None
             self.start_tare()
+            self._tare_forced = bool(forced)
         self._tare_done.wait(timeout)
         with self.lock:
             ended, self._tare_ended = self._tare_ended, None
@@ -390,11 +435,14 @@ class FrameStream:
             self._tare_x0[:] = v
             self._tare_s1[:] = 0.0
             self._tare_s2[:] = 0.0
+            self._tare_st[:] = 0.0
             self._tare_mask[:] = mask
         self._tare_mask |= mask
         np.subtract(v, self._tare_x0, out=self._tare_d)
         self._tare_s1 += self._tare_d
-        self._tare_s2 += self._tare_d**2
+        self._tare_st += (self._tare_n - self._tare_left) * self._tare_d
+        self._tare_d **= 2
+        self._tare_s2 += self._tare_d
         self._tare_left -= 1
         if self._tare_left:
             return None
@@ -421,17 +469,36 @@ class FrameStream:
                                                 f"reference rms at measurement {worst}, limit "
                                                 f"{limit:.2%}); keep the sensor still and unloaded "
                                                 "during the tare")
-        return TareOutcome(ref.copy(), n, spread, noise=noise)
+        why = tare_problem(ref[used], self.pipe.model_reference[used])  # flagged channels hold no data
+        if why:
+            return TareOutcome(None, n, spread, f"tare refused: {why}")
+        drift = None
+        if n >= 3:  # the linear trend's change from the first frame to the last, per channel
+            stt = n * (n * n - 1) / 12.0
+            drift = (self._tare_st - 0.5 * (n - 1) * self._tare_s1) / stt * (n - 1)
+        check = check_tare(self.pipe, ref, drift, noise, n, used)
+        problems = check.problems()
+        if problems and not self._tare_forced:
+            return TareOutcome(None, n, spread, f"tare refused: {'; '.join(problems)}; tare with the joint "
+                                                f"unloaded and still", noise=noise, check=check)
+        return TareOutcome(ref.copy(), n, spread, noise=noise, check=check, forced=self._tare_forced,
+                           overridden="; ".join(problems))
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         when = time.strftime("%H:%M:%S")
+        self._tare_forced = False
         if outcome.ok:
             report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
             self._new_drift()
             self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
-                              f"{outcome.frames} frames, spread {outcome.spread:.2%}"
-            log.info("tare taken at %s (noise %s)", self.tare_taken,
-                     "measured" if outcome.noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB")
+                              f"{outcome.frames} frames, spread {outcome.spread:.2%}" + \
+                              (", forced" if outcome.forced else "")
+            log.info("tare taken at %s (noise %s; %s)", self.tare_taken,
+                     "measured" if outcome.noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB",
+                     outcome.check.summary() if outcome.check is not None else "no load check")
+            if outcome.forced:
+                log.warning("forced tare: %s", f"overrode: {outcome.overridden}" if outcome.overridden else
+                            "the load checks passed anyway")
             (log.warning if report.warn else log.info)("tare: %s", report.message)
             outcome = replace(outcome, note=self._save(outcome))
             if self.filter is not None:
@@ -439,8 +506,8 @@ class FrameStream:
         else:
             self.tare_refused = f"{when}: {outcome.reason}"
             if self.pipe.reference is None:
-                log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, outcome.frames)
-                self.start_tare(outcome.frames)
+                log.warning("%s; no reference yet: taring again on the next %d frames", outcome.reason, self._tare_n)
+                self.start_tare(self._tare_n)
             else:
                 log.warning("%s; the previous reference stays", outcome.reason)
         self._tare_ended = outcome

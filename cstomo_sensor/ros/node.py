@@ -36,6 +36,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 from rclpy.parameter import Parameter
 from rclpy.task import Future
 from sensor_msgs.msg import Image
+from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
@@ -77,9 +78,9 @@ class CstomoSensorNode(LifecycleNode):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._driver = None
-        self._sub = None
+        self._sub = self._free_sub = None
         self._pubs: dict = {}
-        self._diag_pub = self._diag_timer = self._tare_srv = None
+        self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
@@ -175,6 +176,9 @@ class CstomoSensorNode(LifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
+        self._free_sub = self.create_subscription(Empty, "~/joint_free", self._on_joint_free, 10)
+        self._tare_forced_srv = self.create_service(Trigger, "~/tare_forced", self._on_tare_forced,
+                                                    callback_group=self._tare_group)
         self._stop.clear()
         if cfg.input == "serial":
             if cfg.protocol == "text":
@@ -226,9 +230,10 @@ class CstomoSensorNode(LifecycleNode):
         if self._driver is not None:
             self._driver.close()
             self._driver = None
-        if self._sub is not None:
-            self.destroy_subscription(self._sub)
-            self._sub = None
+        for sub in (self._sub, self._free_sub):
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._sub = self._free_sub = None
         for pub in self._pubs.values():
             self.destroy_lifecycle_publisher(pub)
         self._pubs = {}
@@ -236,40 +241,61 @@ class CstomoSensorNode(LifecycleNode):
             self.destroy_timer(self._diag_timer)
         if self._diag_pub is not None:
             self.destroy_publisher(self._diag_pub)
-        if self._tare_srv is not None:
-            self.destroy_service(self._tare_srv)
-        self._diag_pub = self._diag_timer = self._tare_srv = None
+        for srv in (self._tare_srv, self._tare_forced_srv):
+            if srv is not None:
+                self.destroy_service(srv)
+        self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
         self.pipe = self.stream = None
 
     # --- tare --------------------------------------------------------------------------------------
 
-    def _on_tare(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    def _on_tare(self, request: Trigger.Request, response: Trigger.Response, forced: bool = False) -> Trigger.Response:
         """A tare is a transaction (:meth:`FrameStream.tare`): it ends on its own frames within the
-        deadline (accepted, or refused as not steady), or it is cancelled; only an accepted one
-        changes the reference and the saved file."""
+        deadline (accepted, or refused: not steady, under load, on a ramp, the board reconnected), or
+        it is cancelled; only an accepted one changes the reference and the saved file. ``forced``
+        (``~/tare_forced``): the load checks do not refuse it, and the answer says what it overrode."""
         cfg, stream = self.config, self.stream
         if stream is None:
             response.success, response.message = False, "not configured"
             return response
         n = cfg.tare_frames
         wait = cfg.stale_timeout + n * 0.1 + 2.0
-        outcome, taken = stream.tare(wait)
+        outcome, taken = stream.tare(wait, forced=forced)
         unchanged = f"the reference ({self.reference_source}) and {self.tare_path} are unchanged"
+        name = "~/tare_forced" if forced else "~/tare"
         if outcome is None:
             why = self.stale_reason() or "frames late, dropped or rejected"
-            msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call ~/tare " \
+            msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call {name} " \
                   "again once frames arrive"
             if stream.taring:
                 msg += " (the tare at start stays pending: no reference yet)"
             self.get_logger().warning(msg)
             response.success, response.message = False, msg
         elif not outcome.ok:
-            response.success, response.message = False, f"{outcome.reason}, then call ~/tare again; {unchanged}"
+            msg = f"{outcome.reason}, then call {name} again; {unchanged}"
+            if outcome.check is not None and outcome.check.problems():
+                msg += ("; if the joint is unloaded and the change is the device's own (warmed unevenly, contacts "
+                        "changed), ~/tare_forced takes it")
+            response.success, response.message = False, msg
         else:
+            check = outcome.check.summary() if outcome.check is not None else "no load check"
+            forced_note = ""
+            if outcome.forced:
+                forced_note = f"forced tare, overrode: {outcome.overridden}; " if outcome.overridden else \
+                              "forced tare (the load checks passed anyway); "
             response.success = True
-            response.message = f"reference from {n} frames (spread {outcome.spread:.2%} of its rms); " \
-                               f"{outcome.note or self.reference_source}"
+            response.message = f"{forced_note}reference from {n} frames (spread {outcome.spread:.2%} of its rms; " \
+                               f"{check}); {outcome.note or self.reference_source}"
         return response
+
+    def _on_joint_free(self, _msg: Empty) -> None:
+        """A controller's hint (``~/joint_free``, std_msgs/Empty): re-zero now, as a tare with its rules."""
+        if self.stream is not None and not self.stream.joint_free():
+            self.get_logger().info("~/joint_free: a tare is already pending")
+
+    def _on_tare_forced(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """``~/tare_forced``: :meth:`_on_tare` whose load checks do not refuse (docs/node.md#tare)."""
+        return self._on_tare(request, response, forced=True)
 
     # --- frames ------------------------------------------------------------------------------------
 
@@ -285,9 +311,9 @@ class CstomoSensorNode(LifecycleNode):
                 now_ns = self.get_clock().now().nanoseconds
                 age_ns = 0  # text mode: no board clock
                 reconnects = drv.stats().reconnects
-                if reconnects != self._reconnects:  # the board came back: the filtered wrench starts again
+                if reconnects != self._reconnects:  # the board came back: the filter restarts, a pending tare ends
                     self._reconnects = reconnects
-                    self.stream.reset_filter()
+                    self.stream.reconnected()
                 if frame.board_time_us is not None:
                     mono_ns = time.monotonic_ns()
                     age_ns = mono_ns - self._board_clock.stamp_ns(frame.board_time_us, mono_ns)
@@ -439,8 +465,12 @@ def usage() -> str:
     lines += [f"  ~/{RAW_TOPIC:<19} sensor_msgs/Image (32FC1, 1 x 208): the board's volts, stamped when measured "
               "(serial input; NaN where the board flagged a measurement), for ros2 bag record",
               f"  {'/diagnostics':<21} diagnostic_msgs/DiagnosticArray, status named '<namespace>/<node>: sensor'",
-              "service:", f"  {'~/tare':<21} std_srvs/Trigger: a new reference on the next tare_frames frames",
-              "subscribes (input: topic):", f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages",
+              "services:", f"  {'~/tare':<21} std_srvs/Trigger: a new reference on the next tare_frames frames "
+              "(refused under load)", f"  {'~/tare_forced':<21} std_srvs/Trigger: the same, taken even when it looks "
+              "loaded (the answer says what it overrode)",
+              "subscribes:", f"  {'~/joint_free':<21} std_msgs/Empty: a controller's hint that the joint is free "
+              "now: re-zero at once (a tare with its rules, refused under load)",
+              f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages (input: topic)",
               "(docs/node.md)", "", "parameters (default):"]
     for name, (default, desc) in PARAMETERS.items():
         lines.append(f"  {name:<20} {default!r:<16} {desc.description}")

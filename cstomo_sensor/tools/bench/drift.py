@@ -15,6 +15,16 @@ at :data:`RATE` frames/s. Per scenario, estimator and tracking on/off:
 - ``tracked_change``: the tracker's scale - 1 at the end; ``implausible``: frames refused;
 - ``us_per_frame``: median time of one frame through the stream (``FrameStream.push``) in this run.
 
+Then the device over time (model/timeline.py: the truth solved at knots of its state, interpolated,
+60 dB): a temperature gradient (10 K at 0.8 %/K, +-30 % across the block along x), every electrode's
+contact drifting on its own by up to 20 %, creep of a 20 N load held 10 minutes (4 % per decade; no
+creep compensation yet: ``creep_drift_pct`` is the reading at the end against the reading 1 s after
+the load), and the 30-minute warm-up (15 K at 0.8 %/K, 30 % gradient, contacts -1 %/K, drive +0.3 %,
+creep, contact tasks with unannounced rests) at :data:`WARMUP_RATE` frames/s against the same tasks
+without the device's drift (``baseline``). The warm-up's plot, ``drift_warmup.png``: the true uniform
+change (the rubber's mean resistivity change and the drive) and the tracked one, and the zero-load
+readings, over the 30 minutes.
+
 Writes drift.csv (and the markdown table) in ``--out``.
 """
 from __future__ import annotations
@@ -30,6 +40,7 @@ from ...force.pipeline import Pipeline, PipelineConfig
 from ...force.stream import FrameStream, StreamConfig
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.simulate import Load, Truth, add_noise
+from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, temperature_gradient, warmup_30min
 from .report import write_rows
 
 RATE = 100.0            # frames per second
@@ -40,6 +51,7 @@ SNR_DB = 60.0
 SEED = 31
 UNIFORM = (-0.10, -0.05, -0.01, 0.01, 0.05, 0.10)
 DRIVE = (-0.005, 0.005)
+WARMUP_RATE = 50.0
 
 
 def _truth_frames(say):
@@ -104,5 +116,111 @@ def drift_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
                 rows.append({"scenario": name, "estimator": estimator, "tracking": tracking, **r})
                 say(f"drift bench: {name}, {estimator}, tracking {tracking}: zero {r['zero_bias_n']:.3f} N, "
                     f"angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %")
+    rows += _timelines(out, cache_dir, say)
     Path(out).mkdir(parents=True, exist_ok=True)
     return write_rows(Path(out) / "drift.csv", rows, say)
+
+
+def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int = 7):
+    """Push a timeline's frames through a stream tared on its t = 0 state: (times, frames' forces
+    (n, 3), true forces (n, 3), state, tracked scale per frame, us per frame)."""
+    rng = np.random.default_rng(seed)
+    times, frames, forces, state = tl.frames(rate, rng=rng)
+    tare = tl.tare(20, rng)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    est = np.full((len(times), 3), np.nan)
+    scale = np.ones(len(times))
+    cost = np.empty(len(times))
+    for k, (t, v) in enumerate(zip(times, frames)):
+        t0 = time.perf_counter()
+        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
+        cost[k] = time.perf_counter() - t0
+        if out is not None and out.result.valid:
+            est[k] = out.result.force
+        scale[k] = pipe.scale
+    return times, est, forces, state, scale, 1e6 * float(np.median(cost))
+
+
+def _errors(est, forces, rest_after: float, times) -> dict:
+    loaded = np.linalg.norm(forces, axis=1) > 0
+    ok = np.isfinite(est).all(axis=1)
+    sel = loaded & ok
+    ang = np.degrees(angle_between(est[sel], forces[sel])) if sel.any() else np.array([np.nan])
+    mag = 100 * np.abs(np.linalg.norm(est[sel], axis=1) / np.linalg.norm(forces[sel], axis=1) - 1)
+    rest = ~loaded & ok & (times >= rest_after)
+    zero = np.linalg.norm(est[rest], axis=1)
+    return {"zero_bias_n": float(np.linalg.norm(est[rest].mean(axis=0))) if rest.any() else np.nan,
+            "zero_p99_n": float(np.percentile(zero, 99)) if rest.any() else np.nan,
+            "angle_deg": float(np.median(ang)), "magnitude_pct": float(np.median(mag)) if sel.any() else np.nan}
+
+
+def _timelines(out, cache_dir, say) -> list[dict]:
+    rows = []
+    pipe = Pipeline.build(PipelineConfig(cache_dir=str(cache_dir or "")))
+    cases = [("gradient 10 K, 30 %", temperature_gradient(10.0, 0.3, duration=10.0, ramp_s=5.0), RATE),
+             ("contact drift 20 %", contact_drift(0.2, "linear", duration=10.0, over_s=5.0), RATE)]
+    for name, spec, rate in cases:
+        tl = Timeline(spec, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
+        for tracking in (False, True):
+            times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, rate)
+            rows.append({"scenario": name, "estimator": pipe.estimator_name, "tracking": tracking,
+                         **_errors(est, forces, 6.0, times), "tracked_change": float(scale[-1] - 1),
+                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us})
+            say(f"drift bench: {name}, tracking {tracking}: zero {rows[-1]['zero_bias_n']:.3f} N")
+    tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, duration=601.0), DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED,
+                  cache_dir=cache_dir).prepare()
+    for tracking in (False, True):
+        times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, 10.0)
+        mag = np.linalg.norm(est, axis=1)
+        early, late = np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)]), np.nanmedian(mag[times >= 590.0])
+        rows.append({"scenario": "creep 20 N held 10 min", "estimator": pipe.estimator_name, "tracking": tracking,
+                     "zero_bias_n": np.nan, "zero_p99_n": np.nan, "angle_deg": np.nan,
+                     "magnitude_pct": float(100 * (late / early - 1)), "tracked_change": float(scale[-1] - 1),
+                     "implausible": 0, "us_per_frame": us})
+        say(f"drift bench: creep, tracking {tracking}: the reading after 10 min is {rows[-1]['magnitude_pct']:+.1f} % "
+            "of the one after 1 s (creep_drift_pct)")
+    spec = warmup_30min(seed=SEED)
+    still = type(spec)(**{**spec.__dict__, "temperature": ZERO, "drive": ZERO, "gradient": ZERO})
+    curves = {}
+    for name, sp, trackings in (("warm-up 30 min", spec, (False, True)), ("warm-up baseline (no drift)", still, (False,))):
+        tl = Timeline(sp, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
+        for tracking in trackings:
+            times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, WARMUP_RATE)
+            rows.append({"scenario": name, "estimator": pipe.estimator_name, "tracking": tracking,
+                         **_errors(est, forces, 0.0, times), "tracked_change": float(scale[-1] - 1),
+                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us})
+            say(f"drift bench: {name}, tracking {tracking}: zero p99 {rows[-1]['zero_p99_n']:.3f} N, angle "
+                f"{rows[-1]['angle_deg']:.2f} deg, magnitude {rows[-1]['magnitude_pct']:.2f} %")
+            if name.startswith("warm-up 30"):
+                curves[tracking] = (times, est, forces, state, scale)
+    _plot(curves, Path(out) / "drift_warmup.png")
+    return rows
+
+
+def _plot(curves: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    times, est, forces, state, scale = curves[True]
+    true = (1 + state.rho_change) * state.drive - 1
+    fig, (a, b) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    a.plot(times / 60, 100 * true, label="true: rubber's mean resistivity change and drive")
+    a.plot(times / 60, 100 * (scale - 1), "--", label="tracked scale - 1")
+    a.set_ylabel("uniform change (%)")
+    a.legend()
+    rest = np.linalg.norm(forces, axis=1) == 0
+    for tracking, style in ((False, "."), (True, ".")):
+        t, e = curves[tracking][0], curves[tracking][1]
+        z = np.linalg.norm(e, axis=1)
+        b.plot(t[rest] / 60, z[rest], style, ms=1, label=f"zero-load reading, tracking {'on' if tracking else 'off'}")
+    b.set_yscale("log")
+    b.set_ylabel("|F| at zero load (N)")
+    b.set_xlabel("time since the tare (min)")
+    b.legend(markerscale=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
