@@ -60,13 +60,28 @@ VALIDATED = 0.10
 RESISTIVITY_PER_K = 0.008
 
 
+def gradient_directions(model) -> np.ndarray:
+    """(3, n_meas): the normalised change of a resistivity rising linearly across the block along x,
+    y and z, by 1 (relative) per half of the block's extent from its middle, through the model's
+    sensitivity (``S`` is per relative conductivity change of its basis voxels: ``-S`` per relative
+    resistivity change; ``-S @ 1`` is the uniform scaling's ``r`` to 5e-4)."""
+    c = np.asarray(model.basis_centers, float)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    xi = (c - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
+    return -(model.S @ xi).T
+
+
 class DriftTracker:
-    """The uniform scale ``s`` of the device's voltages since its tare (module docstring).
+    """The device's slow change since its tare (module docstring): the uniform scale ``s`` of its
+    voltages and a resistivity gradient across the block (``gradient``: (3,) relative change per half
+    extent along x, y, z).
 
     Parameters
     ----------
     r : (n_meas,) ndarray
         The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
+    gradients : (k, n_meas) ndarray or None
+        :func:`gradient_directions` (None: the scale alone is tracked).
     y : (n, n_meas) ndarray
         The estimator's calibration set (socket loads' normalised changes).
     noise : (n_meas,) ndarray
@@ -75,28 +90,39 @@ class DriftTracker:
         Channels in use.
     """
 
-    def __init__(self, r: np.ndarray, y: np.ndarray, noise: np.ndarray, keep: np.ndarray) -> None:
-        self._args = (r, y, noise, keep)
+    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, y: np.ndarray, noise: np.ndarray,
+                 keep: np.ndarray) -> None:
+        self._args = (r, gradients, y, noise, keep)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
-        rw = np.asarray(r, float) * w
+        D = np.atleast_2d(np.asarray(r, float))
+        if gradients is not None:
+            D = np.vstack([D, gradients])
+        D = D * keep
+        Dw = D * w
         _, _, vt = np.linalg.svd(np.asarray(y) * w, full_matrices=False)
         U = vt[:LOAD_RANK]
-        u = rw - (U @ rw) @ U  # the part of r that no load moves
-        self._w, self._rw, self._rr = w, rw, float(rw @ rw)
-        self._h = float(u @ u) / LOAD_INFLATION
-        self._g = u / LOAD_INFLATION  # applied to the whitened change
+        Du = Dw - (Dw @ U.T) @ U  # the part of each direction that no load moves
+        self.m = len(D)
+        self._D, self._w, self._Dw, self._Du = D, w, Dw, Du
+        self._N = Dw @ Dw.T
+        self._Ninv = np.linalg.pinv(self._N)
+        self._Nu = Du @ Du.T / LOAD_INFLATION
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._yw = np.empty_like(w)
+        self._eye = np.eye(self.m)
         self.scale = 1.0
-        self.variance = 0.0
+        self.gradient = np.zeros(self.m - 1)
+        self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
+        self.P = np.zeros((self.m, self.m))
         self.rest_frames = 0  # frames measured as at rest (all time)
         self._t: float | None = None
 
     def with_mask(self, keep: np.ndarray) -> DriftTracker:
         """The same tracker (its state kept) over the channels ``keep``."""
-        r, y, noise, _ = self._args
-        new = DriftTracker(r, y, noise, keep)
-        new.scale, new.variance, new.rest_frames, new._t = self.scale, self.variance, self.rest_frames, self._t
+        r, gradients, y, noise, _ = self._args
+        new = DriftTracker(r, gradients, y, noise, keep)
+        new.scale, new.P, new.rest_frames, new._t = self.scale, self.P, self.rest_frames, self._t
+        new._set_gradient(self.gradient)
         return new
 
     @property
@@ -104,32 +130,41 @@ class DriftTracker:
         """The tracked relative change of the voltages since the tare (``s - 1``)."""
         return self.scale - 1.0
 
+    def _set_gradient(self, g: np.ndarray) -> None:
+        self.gradient = np.asarray(g, float)
+        if self.m > 1:
+            np.dot(self.gradient, self._D[1:], out=self.offset)
+
     def observe(self, y: np.ndarray, t: float | None = None) -> bool:
-        """Update the scale with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
-        :data:`DEFAULT_PERIOD` after the previous frame), formed with the current scale; returns True
+        """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
+        :data:`DEFAULT_PERIOD` after the previous frame), formed with the current state; returns True
         if the frame was taken as at rest."""
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
         if t is not None:
             self._t = t
-        p = self.variance + RATE * RATE * dt
+        P = self.P + (RATE * RATE * dt) * self._eye
         yw = np.multiply(y, self._w, out=self._yw)
-        ry = float(self._rw @ yw)
-        rest = float(yw @ yw) - ry * ry / self._rr < self._rest
-        if rest:  # the information and its vector of this frame's measurement of the change
-            info, vec = self._rr, ry
+        b = self._Dw @ yw
+        rest = float(yw @ yw) - float(b @ (self._Ninv @ b)) < self._rest
+        if rest:  # the information matrix and vector of this frame's measurement of the change
+            info, vec = self._N, b
             self.rest_frames += 1
         else:
-            info, vec = self._h, float(self._g @ yw)
-        delta = p * vec / (1.0 + p * info)
-        if math.isfinite(delta):
-            self.scale *= 1.0 + delta
-            p /= 1.0 + p * info
-        self.variance = p
+            info, vec = self._Nu, (self._Du @ yw) / LOAD_INFLATION
+        gain = P @ np.linalg.inv(self._eye + info @ P)  # (P^-1 + info)^-1, without inverting P
+        delta = gain @ vec
+        if np.isfinite(delta).all():
+            self.scale *= 1.0 + float(delta[0])
+            if self.m > 1:
+                self._set_gradient(self.gradient + delta[1:])
+            P = gain
+        self.P = 0.5 * (P + P.T)
         return rest
 
     def reset(self) -> None:
         """A new reference (a tare): no change since."""
-        self.scale, self.variance, self._t = 1.0, 0.0, None
+        self.scale, self.P, self._t = 1.0, np.zeros((self.m, self.m)), None
+        self._set_gradient(np.zeros(self.m - 1))
 
     @property
     def kelvin_text(self) -> str:

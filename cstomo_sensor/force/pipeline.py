@@ -122,6 +122,7 @@ class Pipeline:
         self._update_consistency()
         self._y = np.empty(self.n_meas, dtype=np.float64)  # the latest frame's change (last_y)
         self.scale = 1.0  # the uniform scale of the voltages since the tare (the stream's drift tracker sets it)
+        self.offset: np.ndarray | None = None  # ... and its change along other directions (y units)
         self.change_plausible = False  # the latest frame passed the gate's change bounds
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
@@ -180,7 +181,8 @@ class Pipeline:
         (``s`` the :attr:`scale`, 1 unless the stream tracks the device's drift)."""
         if self.reference is None:
             raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
-        return (check_frame(frames, self.n_meas, "frame", batch=True) / self.scale - self.reference) / self._y_scale
+        y = (check_frame(frames, self.n_meas, "frame", batch=True) / self.scale - self.reference) / self._y_scale
+        return y if self.offset is None else y - self.offset
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -216,7 +218,7 @@ class Pipeline:
             noise_y = np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
-        self.scale = 1.0  # a new reference: no change of the device since
+        self.scale, self.offset = 1.0, None  # a new reference: no change of the device since
         self.scale_report, self.noise_measured = report, noise is not None
         self.reference_frames = int(n_frames)
         self._update_gate()
@@ -274,6 +276,8 @@ class Pipeline:
             np.multiply(v, 1.0 / self.scale, out=y)  # the device's slow change (force/drift.py)
             y -= self.reference
             y /= self._y_scale
+            if self.offset is not None:
+                y -= self.offset
             y[~self._keep] = 0.0
         why = self.gate.change(y) if gate else ""
         self.change_plausible = not why  # a change some load (or a uniform drift) can cause

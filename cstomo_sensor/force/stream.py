@@ -44,7 +44,7 @@ from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
 from .device import DEFAULT_NOISE_DB, read_reference, write_reference
-from .drift import DriftTracker
+from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
 from .pipeline import FrameResult, Pipeline
 from .scene_field import change_noise
@@ -280,6 +280,7 @@ class FrameStream:
         self.counts = _Counts()
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.drift: DriftTracker | None = None  # made with each reference (drift_tracking)
+        self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         n_el = len(pipe.geometry.electrodes)
         pattern = MeasurementPattern(n_el, pipe.geometry.layers)
         self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
@@ -542,9 +543,11 @@ class FrameStream:
             self.drift = None
             return
         est = pipe.estimator
-        self.drift = DriftTracker(pipe.reference / pipe._y_scale, np.asarray(est.y),
+        if self._gradients is None:
+            self._gradients = gradient_directions(pipe.model)
+        self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients, np.asarray(est.y),
                                   change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
-        pipe.scale = 1.0
+        pipe.scale, pipe.offset = 1.0, self.drift.offset
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -592,6 +595,7 @@ class FrameStream:
         self._mask = mask
         if self.drift is not None:
             self.drift = self.drift.with_mask(~mask)
+            self.pipe.offset = self.drift.offset
         self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
                                  channels=int(mask.sum()))
         if mask.any():
