@@ -135,3 +135,36 @@ def test_the_node_parameter_and_the_command_line_turn_it_off(warm_model):
     cfg = NodeConfig.from_parameters(lambda n: {**{k: v[0] for k, v in PARAMETERS.items()}, "drift_tracking": False,
                                                 "grid": PIPE["grid"]}[n])
     assert cfg.stream.drift_tracking is False
+
+
+def test_a_drifting_device_over_time_is_followed(warm_model):
+    """scenes/timeline_drift_short.yaml (honest truth over time: 3 K at +1 %/K with a 30 % gradient,
+    contacts -1 %/K and each drifting up to 20 %, the drive +0.5 %; no load): the tracked scale follows
+    the true uniform change (the rubber's mean resistivity and the drive) and the zero holds, where
+    untracked it reads several newtons."""
+    from pathlib import Path
+
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.model.timeline import Timeline
+
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "timeline_drift_short.yaml"
+    tl = Timeline.from_scene(scene).prepare()
+    rng = np.random.default_rng(2)
+    times, frames, _, state = tl.frames(RATE, rng=rng)
+    tare = tl.tare(20, rng)
+    zero = {}
+    for tracking in (False, True):
+        stream = FrameStream(warm_model, StreamConfig(stress_field_every=0, drift_tracking=tracking))
+        stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+        scale, forces = [], []
+        for t, v in zip(times, frames):
+            out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
+            forces.append(out.result.force if out is not None and out.result.valid else np.full(3, np.nan))
+            scale.append(warm_model.scale)
+        late = times >= times[-1] - 2.0
+        zero[tracking] = float(np.linalg.norm(np.nanmean(np.array(forces)[late], axis=0)))
+    true = (1 + state.rho_change) * state.drive
+    assert true[-1] - 1 > 0.03  # the device changed by more than 3 %
+    assert np.max(np.abs(np.array(scale) - true)[times >= 1.0]) < 0.002, "the scale follows the true change"
+    print(f"scale error max {np.max(np.abs(np.array(scale) - true)[times >= 1.0]):.2e}; zero {zero}")
+    assert zero[False] > 5.0 and zero[True] < 0.5, zero
