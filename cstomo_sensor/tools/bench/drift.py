@@ -21,9 +21,10 @@ contact drifting on its own by up to 20 %, creep of a 20 N load held 10 minutes 
 creep compensation yet: ``creep_drift_pct`` is the reading at the end against the reading 1 s after
 the load), and the 30-minute warm-up (15 K at 0.8 %/K, 30 % gradient, contacts -1 %/K, drive +0.3 %,
 creep, contact tasks with unannounced rests) at :data:`WARMUP_RATE` frames/s against the same tasks
-without the device's drift (``baseline``). The warm-up's plot, ``drift_warmup.png``: the true uniform
-change (the rubber's mean resistivity change and the drive) and the tracked one, and the zero-load
-readings, over the 30 minutes.
+without the device's drift (``baseline``), and the warm-up without creep (what the drift alone
+does). The warm-up's plot, ``drift_warmup.png``: the true uniform change (the rubber's mean
+resistivity change and the drive) and the tracked one, and the zero-load readings, over the 30
+minutes.
 
 Writes drift.csv (and the markdown table) in ``--out``.
 """
@@ -182,8 +183,10 @@ def _timelines(out, cache_dir, say) -> list[dict]:
             "of the one after 1 s (creep_drift_pct)")
     spec = warmup_30min(seed=SEED)
     still = type(spec)(**{**spec.__dict__, "temperature": ZERO, "drive": ZERO, "gradient": ZERO})
+    dry = warmup_30min(seed=SEED, creep=0.0)  # the same without creep: what the drift alone does
     curves = {}
-    for name, sp, trackings in (("warm-up 30 min", spec, (False, True)), ("warm-up baseline (no drift)", still, (False,))):
+    for name, sp, trackings in (("warm-up 30 min", spec, (False, True)), ("warm-up baseline (no drift)", still, (False,)),
+                                ("warm-up 30 min without creep", dry, (False, True))):
         tl = Timeline(sp, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
         for tracking in trackings:
             times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, WARMUP_RATE)
