@@ -196,8 +196,9 @@ def _timelines(out, cache_dir, say) -> list[dict]:
             say(f"drift bench: {name}, tracking {tracking}: zero p99 {rows[-1]['zero_p99_n']:.3f} N, angle "
                 f"{rows[-1]['angle_deg']:.2f} deg, magnitude {rows[-1]['magnitude_pct']:.2f} %")
             if name.startswith("warm-up 30"):
-                curves[tracking] = (times, est, forces, state, scale)
-    _plot(curves, Path(out) / "drift_warmup.png")
+                curves.setdefault(name, {})[tracking] = (times, est, forces, state, scale)
+    _plot(curves["warm-up 30 min"], Path(out) / "drift_warmup.png")
+    _plot(curves["warm-up 30 min without creep"], Path(out) / "drift_warmup_no_creep.png")
     return rows
 
 
