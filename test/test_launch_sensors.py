@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import time
 from pathlib import Path
@@ -25,14 +24,9 @@ CONFIG = ROOT / "config" / "cstomo_sensor.yaml"
 
 
 def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:  # nodes first, then their boards (the list's order)
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+    from cstomo_sensor.tools.common import interrupt
+
+    interrupt(procs, timeout=10.0)  # nodes first, then their boards (the list's order)
 
 
 def test_two_sensors_of_a_list_publish_in_their_namespaces_frames_and_tare_files(tmp_path, warm_model):

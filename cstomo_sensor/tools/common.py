@@ -152,17 +152,23 @@ class NodeWithBoard:
             raise CstomoError(f"board-sim ended before streaming ({line!r})")
 
     def stop(self) -> None:
-        for p in (self.node, self.board):  # one after the other: the node ends before its board
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                try:
-                    p.wait(5)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+        interrupt([self.node, self.board])  # one after the other: the node ends before its board
 
     def __enter__(self) -> NodeWithBoard:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def interrupt(procs: list, timeout: float = 5.0) -> None:
+    """Stop processes one after the other (in the list's order) as Ctrl-C does, killing one that has
+    not ended within ``timeout`` s; None and ended ones are skipped."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            try:
+                p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
