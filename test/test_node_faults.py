@@ -143,6 +143,9 @@ def test_frames_without_usable_channels_are_counted_and_the_node_keeps_publishin
         np.testing.assert_array_equal(h.node.processor._mask, h.node.pipe.bad_channels)
         assert not h.node.pipe.bad_channels.any()
         assert h.node._thread.is_alive()
+        # the status returns to OK (a loaded host may overflow the frame queue for a moment: those
+        # losses leave the 5 s window)
+        assert wait_for(lambda: diag(dg[-1][1])[0] == 0, 8.0), diag(dg[-1][1])[1]
     finally:
         board.close()
         h.close()
