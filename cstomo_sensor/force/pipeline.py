@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 
 #: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load.
 RATED_FORCE = max(CalibrationSpec.magnitudes)  # N
+#: Volts: a frame whose every value is below this in size (NaN is not) forms its change in
+#: :meth:`Pipeline.process` with no guard against non-finite results (none can arise).
+_FAST_VOLTS = 1e100
 
 
 @dataclass(frozen=True)
@@ -259,12 +262,20 @@ class Pipeline:
         """
         if self.reference is None:
             raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
-        v = check_frame(frame, self.n_meas, used=self._keep)
         y = self._y
-        with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
-            np.subtract(v, self.reference, out=y)
+        if type(frame) is np.ndarray and frame.dtype == np.float64 and frame.shape == y.shape \
+                and np.maximum.reduce(np.abs(frame, out=y)) < _FAST_VOLTS:
+            # the usual frame: every value finite and far from overflowing (NaN fails the test too), so
+            # its change needs neither check_frame nor an errstate (~5 of 16 us a frame)
+            np.subtract(frame, self.reference, out=y)
             y /= self._y_scale
-            y[~self._keep] = 0.0
+            y *= self._keep
+        else:
+            v = check_frame(frame, self.n_meas, used=self._keep)
+            with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
+                np.subtract(v, self.reference, out=y)
+                y /= self._y_scale
+                y[~self._keep] = 0.0
         why = self.gate.change(y) if gate else ""
         if why:
             return FrameResult.implausible(why)
