@@ -37,6 +37,7 @@ setup(
         "console_scripts": [
             "cstomo = cstomo_sensor.tools.cli:main",
             "cstomo_sensor_node = cstomo_sensor.ros.node:main",
+            "cstomo_sensor_host = cstomo_sensor.ros.host:main",
         ],
     },
 )

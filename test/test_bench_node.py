@@ -42,3 +42,33 @@ def test_bench_node_smoke(tmp_path):
     assert row["rate_hz"] == 100 and row["stress_field_every"] == 1
     assert row["wrenches"] > 0 and row["node_vmrss_mb"] > 0 and row["node_vmhwm_mb"] >= row["node_vmrss_mb"]
     assert markdown([row]).count("\n") == 2
+
+
+def test_bench_node_two_sensors_writes_its_tables(tmp_path):
+    """``--sensors 2``: two boards and two nodes (namespaces /s0 and /s1) measured together; a row for
+    the configuration, a row per sensor from its own diagnostics counters, and the markdown."""
+    from conftest import CALLER_DOMAIN
+
+    from cstomo_sensor.tools.bench.node import SENSOR_COLUMNS
+
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
+               ROS_DOMAIN_ID=CALLER_DOMAIN or str(30 + (os.getpid() + 36) % 70))
+    r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--sensors", "2", "--rates", "50",
+                        "--stress", "0", "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
+                       env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout + r.stderr
+    with open(tmp_path / "node_bench.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["sensors"] == "2" and rows[0]["hosted"] == "0"
+    row = {k: float(v) for k, v in rows[0].items()}
+    assert all(math.isfinite(v) for v in row.values()), row
+    assert row["wrenches"] > 0 and row["node_cpu_pct"] > 0 and row["board_cpu_pct"] > 0
+    with open(tmp_path / "node_bench_sensors.csv", newline="") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == SENSOR_COLUMNS
+        sensors = list(reader)
+    assert [s["sensor"] for s in sensors] == ["/s0", "/s1"]
+    for s in sensors:
+        assert float(s["published"]) > 0 and 0 < float(s["published_pct"]) <= 100 and float(s["node_cpu_pct"]) > 0, s
+    md = (tmp_path / "node_bench.md").read_text()
+    assert "| sensors |" in md and "Per sensor" in md and md.count("| /s") == 2

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import select
 import threading
 import time
 from collections import OrderedDict, deque
@@ -32,6 +34,14 @@ FIRST_PERIOD_WAIT = 2.5
 #: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
 #: duplicate; further back, the board restarted its counter.
 REORDER_WINDOW = 256
+#: While a caller is in :meth:`BoardDriver.get`, or left it less than a lease ago, the caller reads the
+#: port itself and the reader thread only checks back once a lease: CALLER_LEASE_PERIODS of the board's
+#: frame periods, within CALLER_LEASE (seconds, least and most). A tty's buffer holds 20 frames or
+#: more (20 KB in gVisor, 64 KB on Linux), so a caller that stays away longer (a slow frame, a caller
+#: that stopped asking) hands the port back to the thread in time; an idle sensor's thread wakes 20
+#: times a second.
+CALLER_LEASE_PERIODS = 8
+CALLER_LEASE = (0.005, 0.05)
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -99,6 +109,12 @@ def _set_low_latency(port: serial.SerialBase, url: str) -> None:
 class BoardDriver:
     """Reads frames from a board over a serial port in a background thread.
 
+    On a posix tty (a device path; not a URL handler) the caller of :meth:`get` reads the port itself
+    while it keeps asking (see :data:`CALLER_LEASE_PERIODS`): a frame is then read, decoded and handed back in
+    the caller's thread, with no hand-over between threads (two thread wake-ups per frame become one).
+    The background thread opens and reopens the port and reads whenever no caller does. What is
+    counted, queued and dropped is the same either way.
+
     Parameters
     ----------
     url : str
@@ -165,6 +181,7 @@ class BoardDriver:
         self._cond = threading.Condition()
         self._port_lock = threading.Lock()
         self._port: serial.SerialBase | None = None
+        self._fd: int | None = None  # the port's file descriptor when it is a plain posix tty (_read)
         self._closing = threading.Event()
         self._frames = self._dropped = self._gaps = self._reconnects = self._opens = 0
         self._corrupt = self._duplicates = self._reordered = self._resyncs = self._bad = 0
@@ -175,7 +192,12 @@ class BoardDriver:
         self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
         self._intervals: deque[float] = deque(maxlen=16)  # recent frame periods (s)
         self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
+        self._last_byte = 0.0  # time.monotonic() of the latest byte read
         self._last_error = ""
+        self._io = threading.Lock()  # held by whoever opens, reads (and decodes) or closes the port
+        self._callers = 0  # callers in get() now
+        self._caller_left = -math.inf  # time.monotonic() when a caller last left get()
+        self._lease = CALLER_LEASE[0]  # seconds (_set_lease)
         self.identity: Identity | None = None
         self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
         self._thread.start()
@@ -184,10 +206,48 @@ class BoardDriver:
 
     def get(self, timeout: float) -> DataFrame | None:
         """The oldest queued frame, waiting up to ``timeout`` seconds; None if none came."""
-        with self._cond:
-            if not self._queue:
-                self._cond.wait_for(lambda: self._queue or self._closing.is_set(), timeout)
-            return self._queue.popleft() if self._queue else None
+        cond, queue = self._cond, self._queue
+        with cond:
+            if queue:
+                return queue.popleft()
+            self._callers += 1
+        deadline = time.monotonic() + timeout
+        try:
+            while True:
+                left = deadline - time.monotonic()
+                # read the port here (a posix tty) unless the thread holds it (it reads, or reopens)
+                if self._fd is not None and self._io.acquire(blocking=False):
+                    try:
+                        read = self._fd is not None and not self._closing.is_set()
+                        if read:
+                            self._read_step(min(max(left, 0.0), self._read_timeout))
+                    finally:
+                        self._io.release()
+                else:
+                    read = False
+                with cond:
+                    if queue:
+                        return queue.popleft()
+                    if self._closing.is_set() or left <= 0:
+                        return None
+                    if not read:  # the thread's frames (it notifies), or the port back (a lease)
+                        cond.wait_for(lambda: queue or self._closing.is_set(), min(left, self._lease))
+        finally:
+            with cond:
+                self._callers -= 1
+                self._caller_left = time.monotonic()
+
+    def _caller_reads(self) -> bool:
+        """A caller of get() reads the port (it is in get(), or was within a lease)."""
+        return self._fd is not None and (self._callers > 0 or time.monotonic() - self._caller_left < self._lease)
+
+    def _set_lease(self) -> None:
+        """The lease of CALLER_LEASE_PERIODS frame periods (measured, else the rate asked for)."""
+        period = self._period()
+        if math.isnan(period) and self._rate_hz:
+            period = 1.0 / self._rate_hz
+        lo, hi = CALLER_LEASE
+        self._lease = lo if math.isnan(period) else min(max(CALLER_LEASE_PERIODS * period, lo), hi)
 
     def send(self, data: bytes) -> bool:
         """Write raw bytes (e.g. :func:`.wire.encode` of a command); False if not connected or failed."""
@@ -201,6 +261,11 @@ class BoardDriver:
                 self._last_error = f"write failed: {err}"
                 log.warning("%s: %s", self.url, self._last_error)
                 return False
+
+    @property
+    def reconnects(self) -> int:
+        """:attr:`DriverStats.reconnects` without the cost of a snapshot (a frame loop asks per frame)."""
+        return self._reconnects
 
     def stats(self) -> DriverStats:
         """A consistent snapshot of the counters."""
@@ -227,7 +292,8 @@ class BoardDriver:
             self._cond.notify_all()
         if self._thread is not threading.current_thread():
             self._thread.join()
-        self._close_port()
+        with self._io:  # a caller reading in get() stops within read_timeout
+            self._close_port()
 
     def __enter__(self) -> BoardDriver:
         return self
@@ -271,8 +337,12 @@ class BoardDriver:
             return False
         _set_low_latency(port, self.url)
         self._decoder.reset()
+        self._last_byte = time.monotonic()
+        self._last_frame_at = None  # no period across a reconnect
         with self._port_lock:
             self._port = port
+            # a plain posix tty (not a URL handler, which may read its own way): read directly (_read)
+            self._fd = port.fd if type(port) is serial.Serial and isinstance(getattr(port, "fd", None), int) else None
         self._opens += 1
         self._fresh = True  # the first frame on a new connection may restart the counter
         self._reconnects = max(self._opens - 1, 0)
@@ -284,7 +354,7 @@ class BoardDriver:
 
     def _close_port(self) -> None:
         with self._port_lock:
-            port, self._port = self._port, None
+            port, self._port, self._fd = self._port, None, None
         if port is not None:
             try:
                 port.close()
@@ -295,29 +365,70 @@ class BoardDriver:
         backoff = self._backoff[0]
         while not self._closing.is_set():
             if self._port is None:
-                if not self._open():
+                with self._io:
+                    opened = not self._closing.is_set() and self._open()
+                if not opened:
                     self._closing.wait(backoff)
                     backoff = min(2 * backoff, self._backoff[1])
                     continue
                 backoff = self._backoff[0]
-                last_byte = time.monotonic()
-                self._last_frame_at = None  # no period across a reconnect
-            try:
-                data = self._port.read(max(1, self._port.in_waiting))
-            except (serial.SerialException, OSError) as err:
-                self._error(f"read failed: {err}")
+                with self._cond:  # a caller waiting for the port reads it now
+                    self._cond.notify_all()
+            self._set_lease()
+            if self._caller_reads():
+                self._closing.wait(self._lease)
+                continue
+            with self._io:
+                if self._port is not None and not self._caller_reads():
+                    self._read_step(self._lease if self._fd is not None else self._read_timeout)
+                    yielded = self._caller_reads()
+                else:
+                    yielded = False
+            if yielded:
+                with self._cond:  # the caller that came meanwhile reads from now on
+                    self._cond.notify_all()
+
+    def _read_step(self, timeout: float) -> None:
+        """One read of the port (waiting up to ``timeout`` s for the first byte on a posix tty, else the
+        port's read timeout) into the decoder and the queue; a stall or a read error closes the port
+        (the thread reopens it). Called with ``_io`` held, the port open."""
+        try:
+            data = self._read(timeout)
+        except (serial.SerialException, OSError) as err:
+            self._error(f"read failed: {err}")
+            self._close_port()
+            return
+        now = time.monotonic()
+        if not data:
+            stall = self._stall_after()
+            if now - self._last_byte > stall:
+                self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
+                self._intervals.clear()  # its rate may have changed: measured again
                 self._close_port()
-                continue
-            now = time.monotonic()
-            if not data:
-                stall = self._stall_after()
-                if now - last_byte > stall:
-                    self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
-                    self._intervals.clear()  # its rate may have changed: measured again
-                    self._close_port()
-                continue
-            last_byte = now
-            self._handle(self._decoder.feed(data, marks=True))
+            return
+        self._last_byte = now
+        self._handle(self._decoder.feed(data, marks=True))
+
+    def _read(self, timeout: float) -> bytes:
+        """The bytes the port has, waiting up to ``timeout`` (posix tty; else the port's read timeout)
+        for the first; b'' if none came."""
+        fd = self._fd
+        if fd is None:  # a URL handler (socket://, loop://, ...) or another platform: pyserial's read
+            port = self._port
+            return port.read(max(1, port.in_waiting))
+        # a posix tty: one select and one read of all there is. pyserial's read(in_waiting) asks TIOCINQ
+        # first and, with nothing waiting, waits for and reads 1 byte, then the rest: 5 or 6 system calls
+        # and two decoder feeds per frame instead of 2 and 1
+        if not select.select((fd,), (), (), timeout)[0]:
+            return b""
+        try:
+            data = os.read(fd, 65536)
+        except BlockingIOError:
+            return b""
+        if not data:  # readable but empty: the port is gone (pyserial's words for it)
+            raise serial.SerialException("device reports readiness to read but returned no data "
+                                         "(device disconnected or multiple access on port?)")
+        return data
 
     def _handle(self, messages: list) -> None:
         for msg in messages:
@@ -334,7 +445,9 @@ class BoardDriver:
                 log.debug("%s: %s", self.url, msg)
 
     def _push(self, frame: DataFrame) -> None:
-        now = time.monotonic()
+        # the period on the board's clock when it has one: frames read together (a reader that came
+        # late, a board that sent two at once) arrive together but were measured a period apart
+        now = time.monotonic() if frame.board_time_us is None else frame.board_time_us * 1e-6
         with self._cond:
             bad, self._bad = self._bad, 0  # pieces dropped since the last frame
             if frame.seq is None:
@@ -344,7 +457,8 @@ class BoardDriver:
             if self._last_frame_at is not None:
                 t, seq = self._last_frame_at
                 steps = 1 if seq is None or frame.seq is None else max((frame.seq - seq) & 0xFFFFFFFF, 1)
-                self._intervals.append((now - t) / steps)
+                if now > t:  # not across a board's restart (its clock starts again)
+                    self._intervals.append((now - t) / steps)
             self._last_frame_at = (now, frame.seq)
             self._frames += 1
             self._last_error = ""

@@ -111,14 +111,18 @@ class NodeWithBoard:
         Arguments of ``cstomo board-sim`` besides ``--link``.
     node_out, board_err : file or None
         Where the node's output and the board's stderr go (None: this process's).
+    namespace : str
+        The node's namespace (``-r __ns:=``); '' keeps the root namespace.
     """
 
     def __init__(self, link: str | Path, node_params: dict, board_args: list[str], node_out: IO | None = None,
-                 board_err: IO | None = None, log_level: str = "warn") -> None:
+                 board_err: IO | None = None, log_level: str = "warn", namespace: str = "") -> None:
         self.link = str(link)
         self.node_cmd = [executable("cstomo_sensor_node"), "--ros-args", "-p", f"port:={self.link}"]
         for k, v in node_params.items():
             self.node_cmd += ["-p", f"{k}:={v}"]
+        if namespace:
+            self.node_cmd += ["-r", f"__ns:={namespace}"]
         self.node_cmd += ["--log-level", log_level]
         self.board_cmd = [executable("cstomo"), "board-sim", *board_args, "--link", self.link]
         self.node_out, self.board_err = node_out, board_err
@@ -136,12 +140,18 @@ class NodeWithBoard:
         """Start the board (unless :meth:`start_board` did), wait for its device, then start the node
         on its link (so the node never finds the link missing); the board's device path. Raises
         :class:`CstomoError` if the board fails."""
+        device = self.wait_device()
+        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
+                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
+        return device
+
+    def wait_device(self) -> str:
+        """Start the board (unless :meth:`start_board` did) and wait for its device path (its link
+        exists from then on). Raises :class:`CstomoError` if the board fails."""
         self.start_board()
         first = self.board.stdout.readline().strip()
         if not first.startswith("device:"):
             raise CstomoError(f"board-sim failed to start ({first!r})")
-        self.node = subprocess.Popen(self.node_cmd, stdout=self.node_out, start_new_session=True,
-                                     stderr=subprocess.STDOUT if self.node_out is not None else None)
         return first.split(":", 1)[1].strip()
 
     def wait_streaming(self) -> None:

@@ -4,7 +4,12 @@ For each frame rate in ``--rates`` and with the stress field off (``stress_field
 on (``:=1``), starts ``cstomo_sensor_node`` (tare on start) and ``cstomo board-sim`` (binary
 protocol, a constant load script: unloaded for 2 s, then 20 N pushing straight down) on a pty
 link, as ``cstomo demo`` does, subscribes to ``~/wrench`` and ``/diagnostics`` with rclpy and, over
-a window of ``--seconds`` after a warm-up, measures:
+a window of ``--seconds`` after a warm-up, measures what follows. With ``--sensors N`` it starts N
+boards and N sensors together (namespaces ``/s0`` .. ``/s<N-1>``; with ``--hosted`` all N in one
+``cstomo_sensor_host`` process instead of a process each) and measures them together: every
+sensor's frames from its own /diagnostics counters, the wrenches and latency of ``/s0`` only (one
+subscriber, so the measuring side stays small), the CPU of every node process and of the boards
+(sums, and per process in ``node_bench_sensors.csv``):
 
 * latency = receive time in this subscriber (``time.time_ns()``, the system clock: the node's host
   time is its ROS clock, which is the system clock without ``use_sim_time``) minus the wrench's
@@ -18,9 +23,17 @@ a window of ``--seconds`` after a warm-up, measures:
   2 cores);
 * wrenches received per second, the node's frames per second and its dropped frames (queue
   overflow, late, sequence gaps: differences of the /diagnostics counters over the window);
-* VmRSS and VmHWM of the node from /proc/<pid>/status at the end of the window.
+* VmRSS and VmHWM of the node from /proc/<pid>/status at the end of the window (the largest node
+  process with several);
+* per sensor (``node_bench_sensors.csv``): the frames its board sent over the window (received +
+  lost on the way: queue overflow, sequence gaps, corrupt), the frames it published (received minus
+  late, rejected and implausible ones) and their ratio, from the differences of its /diagnostics
+  counters; the configuration row carries the smallest ratio over the sensors (``published_min_pct``)
+  and the smallest published rate against the nominal one (``published_of_nominal_min_pct``: a board
+  that falls behind under load sends fewer frames than asked, which the first ratio cannot see).
 
-Prints a markdown table and writes ``node_bench.csv`` in ``--out``.
+Prints markdown tables and writes ``node_bench.csv``, ``node_bench_sensors.csv`` and ``node_bench.md``
+in ``--out``.
 """
 from __future__ import annotations
 
@@ -28,6 +41,8 @@ import argparse
 import csv
 import math
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -36,27 +51,38 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 
 from ...errors import CstomoError
 from ...force.estimate import ESTIMATORS
 from ...force.pipeline import Pipeline, PipelineConfig
-from ..common import DEFAULTS, NodeWithBoard, local_ros_env
+from ..common import DEFAULTS, NodeWithBoard, executable, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
            "latency_median_ms", "latency_p99_ms", "latency_max_ms",
            "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb",
-           "processing_mean_ms", "host_loadavg_1m"]
+           "processing_mean_ms", "host_loadavg_1m",
+           "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct", "node_cpu_us_per_frame",
+           "node_cpu_max_pct", "bench_cpu_pct", "host_loadavg_end"]
+#: One row per sensor and configuration (node_bench_sensors.csv).
+SENSOR_COLUMNS = ["rate_hz", "stress_field_every", "sensors", "hosted", "sensor", "window_s", "board_frames",
+                  "board_rate_hz", "frames", "published", "published_pct", "published_rate_hz", "dropped_overflow",
+                  "seq_gaps", "corrupt", "late_dropped", "rejected", "implausible", "node_cpu_pct"]
 
 METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the node's ROS clock) - "
           "wrench header.stamp (board write time mapped to host time by the lower envelope of "
           "host_time - board_time); caveat: the minimum transport delay (pty + driver + queue hand-over) is "
           "absorbed into the clock offset and NOT included. CPU = utime+stime of the process (all threads) "
-          "over the window, % of one core. dropped = diagnostics dropped_overflow + late_dropped + seq_gaps "
-          "over the window. load 1m = the host's 1-minute load average at the window's end (2 cores here: "
-          "above ~1.5 the figures include contention with other work).")
+          "over the window, % of one core; with several sensors the sum over the node processes (the one "
+          "host process with --hosted), and the boards' sum. dropped = diagnostics dropped_overflow + "
+          "late_dropped + seq_gaps over the window (every sensor). published = a sensor's frames minus its "
+          "late, rejected and implausible ones, of the frames its board sent (frames + overflow + gaps + "
+          "corrupt), from its /diagnostics counters; the smallest over the sensors. load 1m = the host's "
+          "1-minute load average at the window's start and end (2 cores here: above ~1.5 the figures include "
+          "contention with other work).")
 
 _TICK = os.sysconf("SC_CLK_TCK")
 
@@ -79,14 +105,20 @@ def memory_mb(pid: int) -> tuple[float, float]:
     return vals.get("VmRSS", math.nan), vals.get("VmHWM", math.nan)
 
 
+def diagnostics_name(namespace: str) -> str:
+    """The /diagnostics status name of the sensor in ``namespace`` ('' for the root namespace)."""
+    return f"{namespace}/cstomo_sensor: sensor"
+
+
 @dataclass
 class _Recorder:
     """What the subscriber sees; ``recording`` gates the latency samples to the window."""
+    names: tuple[str, ...] = (diagnostics_name(""),)  # the sensors' diagnostics names
     lock: threading.Lock = field(default_factory=threading.Lock)
     wrenches: int = 0
     recording: bool = False
     latencies_ns: list = field(default_factory=list)
-    diags: list = field(default_factory=list)  # (time.monotonic(), {key: value})
+    diags: dict = field(default_factory=dict)  # name -> [(time.monotonic(), {key: value})]
 
     def on_wrench(self, msg) -> None:
         now = time.time_ns()
@@ -99,9 +131,9 @@ class _Recorder:
     def on_diag(self, msg) -> None:
         now = time.monotonic()
         for s in msg.status:
-            if s.name.startswith("/cstomo_sensor:"):  # the node's full name (namespace included)
+            if s.name in self.names:
                 with self.lock:
-                    self.diags.append((now, {kv.key: kv.value for kv in s.values}))
+                    self.diags.setdefault(s.name, []).append((now, {kv.key: kv.value for kv in s.values}))
 
 
 def _num(d: dict, key: str) -> float:
@@ -111,82 +143,209 @@ def _num(d: dict, key: str) -> float:
         return math.nan
 
 
-def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path) -> dict:
-    """One configuration: node + board, warm-up, measured window; a row of COLUMNS."""
+def _sensor_figures(diags: list, t0: float, t1: float, rate: float) -> dict:
+    """One sensor's figures over the window from its diagnostics (1 Hz, cumulative counters): from the
+    last one at or before the window's start to the last one in the window (at least seconds - 1 s)."""
+    keys = ("frames", "dropped_overflow", "seq_gaps", "corrupt", "late_dropped", "frames_rejected", "implausible")
+    before = [(t, d) for t, d in diags if t <= t0]
+    inside = [(t, d) for t, d in diags if t0 < t <= t1]
+    if not (before and inside):
+        return {}
+    (tb, db), (ta, da) = before[-1], inside[-1]
+    d = {k: _num(da, k) - _num(db, k) for k in keys}
+    span = ta - tb
+    published = d["frames"] - d["late_dropped"] - d["frames_rejected"] - d["implausible"]
+    board = d["frames"] + d["dropped_overflow"] + d["seq_gaps"] + d["corrupt"]
+    proc = [x for x in (_num(x, "processing_time_mean_ms") for _, x in inside) if math.isfinite(x)]
+    return {"window_s": round(span, 3), "board_frames": board, "board_rate_hz": round(board / span, 1),
+            "frames": d["frames"], "published": published,
+            "published_pct": round(100 * published / board, 3) if board > 0 else math.nan,
+            "published_rate_hz": round(published / span, 1), "published_of_nominal": 100 * published / (rate * span),
+            "dropped_overflow": d["dropped_overflow"], "seq_gaps": d["seq_gaps"], "corrupt": d["corrupt"],
+            "late_dropped": d["late_dropped"], "rejected": d["frames_rejected"], "implausible": d["implausible"],
+            "frame_rate_hz": d["frames"] / span, "processing_mean_ms": float(np.mean(proc)) if proc else math.nan}
 
-    rec = _Recorder()
-    subs = [ros_node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", rec.on_wrench, 100),
-            ros_node.create_subscription(DiagnosticArray, "/diagnostics", rec.on_diag, 10)]
-    tag = f"r{rate:g}_s{stress}"
-    # startup (rclpy import, model load, tare, 2 s unloaded) + warm-up + window + margin
-    duration = 30.0 + a.warmup + a.seconds
-    params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": rate, "protocol": "binary",
-              "tare_on_start": "true", "tare_frames": 50, "tare_file": work / "tare.csv", "stress_field_every": stress}
-    board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(rate), "--duration", str(duration),
-                  "--protocol", "binary"]
-    logs = [open(work / f"node_{tag}.log", "w"), open(work / f"board_{tag}.log", "w")]
-    run = NodeWithBoard(work / f"board_{tag}", params, board_args, node_out=logs[0], board_err=logs[1])
+
+class _Sensors:
+    """N boards and N sensors: a node process each (``hosted`` False) or one ``cstomo_sensor_host``."""
+
+    def __init__(self, a, n: int, hosted: bool, rate: float, stress: int, work: Path, script: Path, tag: str) -> None:
+        self.n, self.hosted = n, hosted
+        self.namespaces = [""] if n == 1 and not hosted else [f"/s{i}" for i in range(n)]
+        # startup (rclpy import, model load, tare, 2 s unloaded; N boards and nodes share the cores) +
+        # warm-up + window + margin
+        duration = 30.0 + 8.0 * n + a.warmup + a.seconds
+        self.params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": float(rate), "protocol": "binary",
+                       "tare_on_start": True, "tare_frames": 50, "stress_field_every": stress}
+        board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(rate), "--duration",
+                      str(duration), "--protocol", "binary"]
+        self.logs = []
+        self.runs = []
+        for i, ns in enumerate(self.namespaces):
+            node_log, board_log = (open(work / f"{what}_{tag}_{i}.log", "w") for what in ("node", "board"))
+            self.logs += [node_log, board_log]
+            params = {k: str(v).lower() if isinstance(v, bool) else v for k, v in self.params.items()}
+            params["tare_file"] = work / f"tare_{tag}_{i}.csv"
+            self.runs.append(NodeWithBoard(work / f"board_{tag}_{i}", params, board_args, node_out=node_log,
+                                           board_err=board_log, namespace=ns))
+        self.host: subprocess.Popen | None = None
+        self.host_cmd: list[str] = []
+        if hosted:
+            self.host_log = open(work / f"host_{tag}.log", "w")
+            self.logs.append(self.host_log)
+            sections = {"/**": {"ros__parameters": self.params}}
+            for ns, run in zip(self.namespaces, self.runs):
+                sections[f"{ns}/cstomo_sensor"] = {"ros__parameters": {
+                    "port": run.link, "tare_file": str(work / f"tare_{tag}_{ns.strip('/')}.csv")}}
+            params_file = work / f"host_{tag}.yaml"
+            params_file.write_text(yaml.safe_dump(sections))
+            try:
+                cmd = [executable("cstomo_sensor_host")]
+            except CstomoError:  # not installed as a console script (a source checkout): the module
+                cmd = [sys.executable, "-m", "cstomo_sensor.ros.host"]
+            self.host_cmd = cmd + self.namespaces + ["--ros-args", "--params-file", str(params_file),
+                                                     "--log-level", "warn"]
+
+    def start(self) -> None:
+        for run in self.runs:  # the boards compute their loads in parallel
+            run.start_board()
+        for run in self.runs:
+            if self.hosted:
+                run.wait_device()
+            else:
+                run.start()
+        if self.hosted:
+            self.host = subprocess.Popen(self.host_cmd, stdout=self.host_log, stderr=subprocess.STDOUT,
+                                         start_new_session=True)
+
+    @property
+    def node_pids(self) -> list[int]:
+        return [self.host.pid] if self.hosted else [run.node.pid for run in self.runs]
+
+    @property
+    def board_pids(self) -> list[int]:
+        return [run.board.pid for run in self.runs]
+
+    def failed(self) -> str:
+        """'' while every process runs, else which one ended."""
+        procs = [("host", self.host)] if self.hosted else [(f"node {i}", r.node) for i, r in enumerate(self.runs)]
+        procs += [(f"board {i}", r.board) for i, r in enumerate(self.runs)]
+        return ", ".join(f"{name} ended ({p.returncode})" for name, p in procs if p is not None and p.poll() is not None)
+
+    def stop(self) -> None:
+        if self.host is not None and self.host.poll() is None:  # the nodes end before their boards
+            self.host.send_signal(2)
+            try:
+                self.host.wait(10)
+            except subprocess.TimeoutExpired:
+                self.host.kill()
+                self.host.wait()
+        for run in self.runs:
+            run.stop()
+        for f in self.logs:
+            f.close()
+
+
+def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: int = 1,
+            hosted: bool = False) -> tuple[dict, list[dict]]:
+    """One configuration: N boards and sensors, warm-up, measured window; a row of COLUMNS and a row
+    of SENSOR_COLUMNS per sensor."""
+    tag = f"r{rate:g}_s{stress}_n{n}{'h' if hosted else ''}"
+    sensors = _Sensors(a, n, hosted, rate, stress, work, script, tag)
+    rec = _Recorder(names=tuple(diagnostics_name(ns) for ns in sensors.namespaces))
+    subs = [ros_node.create_subscription(WrenchStamped, f"{sensors.namespaces[0]}/cstomo_sensor/wrench",
+                                         rec.on_wrench, 100),
+            ros_node.create_subscription(DiagnosticArray, "/diagnostics", rec.on_diag, 10 * n)]
+    me = os.getpid()
     try:
         try:
-            run.start()
+            sensors.start()
         except CstomoError as err:
-            raise CstomoError(f"{err}; see {logs[1].name}") from None
-        node, board = run.node, run.board
-        deadline = time.monotonic() + 60.0
-        while rec.wrenches == 0 or not rec.diags:  # the window's counters start from a diagnostics message
-            if time.monotonic() > deadline or node.poll() is not None or board.poll() is not None:
-                raise CstomoError(f"no wrench and diagnostics from the node within 60 s; see {logs[0].name}")
+            raise CstomoError(f"{err}; see the logs in {work}") from None
+        deadline = time.monotonic() + 60.0 + 15.0 * n
+        # the window's counters start from a diagnostics message of every sensor
+        while rec.wrenches == 0 or len(rec.diags) < n:
+            if time.monotonic() > deadline or sensors.failed():
+                raise CstomoError(f"no wrench and diagnostics from the sensors within {deadline:.0f} s "
+                                  f"({sensors.failed() or f'{len(rec.diags)} of {n} sensors seen'}); see the logs in {work}")
             time.sleep(0.05)
         time.sleep(a.warmup)  # past the tare and the step to 20 N; queues and caches settled
 
+        load0 = os.getloadavg()[0]
         with rec.lock:
             rec.recording, n0 = True, rec.wrenches
-        t0, c0, b0 = time.monotonic(), cpu_seconds(node.pid), cpu_seconds(board.pid)
+        pids = sensors.node_pids + sensors.board_pids + [me]
+        t0, c0 = time.monotonic(), [cpu_seconds(p) for p in pids]
         time.sleep(a.seconds)
-        t1, c1, b1 = time.monotonic(), cpu_seconds(node.pid), cpu_seconds(board.pid)
+        t1, c1 = time.monotonic(), [cpu_seconds(p) for p in pids]
         with rec.lock:
             rec.recording, n1 = False, rec.wrenches
             lat = np.array(rec.latencies_ns, float) * 1e-6
-        rss, hwm = memory_mb(node.pid)
+        mem = [memory_mb(p) for p in sensors.node_pids]
         load = os.getloadavg()[0]  # other work on the host's cores skews every figure: say so
+        ended = sensors.failed()
+        if ended:
+            raise CstomoError(f"{ended} during the window; see the logs in {work}")
+        time.sleep(1.2)  # the diagnostics of the window's end
         with rec.lock:
-            diags = list(rec.diags)
+            diags = {k: list(v) for k, v in rec.diags.items()}
     finally:
-        run.stop()
+        sensors.stop()
         for s in subs:
             ros_node.destroy_subscription(s)
-        for f in logs:
-            f.close()
 
     window = t1 - t0
+    cpu = [100 * (b - a_) / window for a_, b in zip(c0, c1)]
+    k = len(sensors.node_pids)
+    node_cpu, board_cpu, bench_cpu = cpu[:k], cpu[k:k + n], cpu[-1]
+    figs = [_sensor_figures(diags.get(name, []), t0, t1, rate) for name in rec.names]
+    sensor_rows = []
+    for i, (ns, f) in enumerate(zip(sensors.namespaces, figs)):
+        row = {"rate_hz": rate, "stress_field_every": stress, "sensors": n, "hosted": int(hosted), "sensor": ns or "/",
+               **{c: f.get(c, math.nan) for c in SENSOR_COLUMNS[5:-1]},
+               "node_cpu_pct": round(node_cpu[i], 1) if not hosted else math.nan}
+        sensor_rows.append(row)
     wrench_rate = (n1 - n0) / window
-    # diagnostics (1 Hz, cumulative counters): from the last one at or before the window's start to
-    # the last one in the window (at least seconds - 1 s of it)
-    before = [(t, d) for t, d in diags if t <= t0]
-    inside = [(t, d) for t, d in diags if t0 < t <= t1]
-    node_rate, proc_ms = math.nan, math.nan
-    parts = {k: math.nan for k in ("dropped_overflow", "seq_gaps", "late_dropped")}
-    if before and inside:
-        (tb, db), (ta, da) = before[-1], inside[-1]
-        node_rate = (_num(da, "frames") - _num(db, "frames")) / (ta - tb)
-        parts = {k: _num(da, k) - _num(db, k) for k in parts}
-        proc = [x for x in (_num(d, "processing_time_mean_ms") for _, d in inside) if math.isfinite(x)]
-        proc_ms = float(np.mean(proc)) if proc else math.nan
+    total = lambda key: sum(f.get(key, math.nan) for f in figs) if all(figs) else math.nan  # noqa: E731
+    parts = {key: total(key) for key in ("dropped_overflow", "seq_gaps", "late_dropped")}
     dropped = sum(parts.values())
-    if not math.isfinite(dropped):  # no diagnostics: count the missing wrenches instead
+    if not math.isfinite(dropped):  # a sensor without diagnostics: count the missing wrenches instead
         dropped = max(0.0, rate * window - (n1 - n0))
-        parts = {k: -1 for k in parts}  # unknown
-    keeps_up = int(wrench_rate >= 0.98 * rate and dropped == 0)
+        parts = {key: -1 for key in parts}  # unknown
+    f0 = figs[0] or {}
+    published_min = min((f.get("published_pct", math.nan) for f in figs), default=math.nan) if all(figs) else math.nan
+    nominal_min = min((f.get("published_of_nominal", math.nan) for f in figs), default=math.nan) if all(figs) else math.nan
+    frames_all = total("frames")
+    keeps_up = int(wrench_rate >= 0.98 * rate and dropped == 0 and published_min >= 99.9)
     pct = lambda q: float(np.percentile(lat, q)) if lat.size else math.nan  # noqa: E731
-    return {"rate_hz": rate, "stress_field_every": stress, "window_s": round(window, 3), "wrenches": n1 - n0,
-            "wrench_rate_hz": round(wrench_rate, 1), "node_frame_rate_hz": round(node_rate, 1),
-            "frames_dropped": int(dropped), **{k: int(v) for k, v in parts.items()}, "keeps_up": keeps_up,
-            "latency_median_ms": round(pct(50), 3),
-            "latency_p99_ms": round(pct(99), 3), "latency_max_ms": round(float(lat.max()) if lat.size else math.nan, 3),
-            "node_cpu_pct": round(100 * (c1 - c0) / window, 1),
-            "node_cpu_us_per_wrench": round(1e6 * (c1 - c0) / max(n1 - n0, 1), 1), "board_cpu_pct": round(100 * (b1 - b0) / window, 1),
-            "node_vmrss_mb": round(rss, 1), "node_vmhwm_mb": round(hwm, 1), "processing_mean_ms": round(proc_ms, 3),
-            "host_loadavg_1m": round(load, 2)}
+    row = {"rate_hz": rate, "stress_field_every": stress, "window_s": round(window, 3), "wrenches": n1 - n0,
+           "wrench_rate_hz": round(wrench_rate, 1), "node_frame_rate_hz": round(f0.get("frame_rate_hz", math.nan), 1),
+           "frames_dropped": int(dropped), **{key: int(v) for key, v in parts.items()}, "keeps_up": keeps_up,
+           "latency_median_ms": round(pct(50), 3),
+           "latency_p99_ms": round(pct(99), 3), "latency_max_ms": round(float(lat.max()) if lat.size else math.nan, 3),
+           "node_cpu_pct": round(sum(node_cpu), 1),
+           "node_cpu_us_per_wrench": round(1e4 * node_cpu[0] * window / max(n1 - n0, 1), 1),  # s0's process
+           "board_cpu_pct": round(sum(board_cpu), 1),
+           "node_vmrss_mb": round(max(m[0] for m in mem), 1), "node_vmhwm_mb": round(max(m[1] for m in mem), 1),
+           "processing_mean_ms": round(f0.get("processing_mean_ms", math.nan), 3),
+           "host_loadavg_1m": round(load0, 2),
+           "sensors": n, "hosted": int(hosted), "published_min_pct": round(published_min, 3),
+           "published_of_nominal_min_pct": round(nominal_min, 3),
+           "node_cpu_us_per_frame": round(1e4 * sum(node_cpu) * window / frames_all, 1)
+           if math.isfinite(frames_all) and frames_all > 0 else math.nan,
+           "node_cpu_max_pct": round(max(node_cpu), 1), "bench_cpu_pct": round(bench_cpu, 1),
+           "host_loadavg_end": round(load, 2)}
+    return row, sensor_rows
+
+
+def _table(head: list[str], keys: list[str], rows: list[dict]) -> str:
+    assert len(head) == len(keys)
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [("yes" if r[k] else "no") if k in ("keeps_up", "hosted") else
+                 (r[k] if isinstance(r[k], str) else f"{r[k]:g}") for k in keys]
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
 
 
 def markdown(rows: list[dict]) -> str:
@@ -196,24 +355,43 @@ def markdown(rows: list[dict]) -> str:
             "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
             "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb",
             "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
-    assert len(head) == len(keys)
-    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        cells = [("yes" if r[k] else "no") if k == "keeps_up" else f"{r[k]:g}" for k in keys]
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out)
+    if any(r.get("sensors", 1) > 1 or r.get("hosted") for r in rows):  # several sensors: the figures of the issue
+        head = ["fps", "stress", "sensors", "hosted", "published min %", "of nominal min %", "dropped", "s0 wrench/s",
+                "lat med ms", "lat p99 ms", "nodes CPU %", "max node CPU %", "CPU us/frame", "boards CPU %",
+                "bench CPU %", "VmRSS MB", "load 1m start/end"]
+        keys = ["rate_hz", "stress_field_every", "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct",
+                "frames_dropped", "wrench_rate_hz", "latency_median_ms", "latency_p99_ms", "node_cpu_pct",
+                "node_cpu_max_pct", "node_cpu_us_per_frame", "board_cpu_pct", "bench_cpu_pct", "node_vmrss_mb", "load"]
+        rows = [dict(r, load=f"{r['host_loadavg_1m']:g}/{r['host_loadavg_end']:g}") for r in rows]
+    return _table(head, keys, rows)
+
+
+def sensors_markdown(rows: list[dict]) -> str:
+    head = ["fps", "stress", "sensors", "hosted", "sensor", "board fr/s", "published", "published %", "published/s",
+            "overflow", "seq gaps", "corrupt", "late", "rejected", "implausible", "node CPU %"]
+    keys = ["rate_hz", "stress_field_every", "sensors", "hosted", "sensor", "board_rate_hz", "published", "published_pct",
+            "published_rate_hz", "dropped_overflow", "seq_gaps", "corrupt", "late_dropped", "rejected", "implausible",
+            "node_cpu_pct"]
+    return _table(head, keys, rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="cstomo bench-node", description=__doc__.splitlines()[0])
     p.add_argument("--rates", type=float, nargs="+", default=[100.0, 1000.0], help="board frame rates, Hz")
     p.add_argument("--stress", type=int, nargs="+", default=[0, 1], help="stress_field_every values (0 = off)")
+    p.add_argument("--sensors", type=int, nargs="+", default=[1], metavar="N",
+                   help="numbers of boards and sensors run together (default 1)")
+    p.add_argument("--hosted", action="store_true",
+                   help="the sensors in one cstomo_sensor_host process (default: a cstomo_sensor_node each)")
+    p.add_argument("--both", action="store_true", help="every configuration with a process each and hosted")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
     p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
-    p.add_argument("--out", default=".", help="directory for node_bench.csv and the processes' logs")
+    p.add_argument("--out", default=".", help="directory for the tables and the processes' logs")
     p.add_argument("--sensor", default=DEFAULTS.sensor)
     p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
     a = p.parse_args(argv)
+    if min(a.sensors) < 1:
+        p.error("--sensors: at least 1")
 
     local_ros_env(30)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -229,19 +407,27 @@ def main(argv: list[str] | None = None) -> int:
     script = work / "load.csv"  # constant load: unloaded 2 s (tare), then 20 N pushing straight down
     np.savetxt(script, [[0.0, 0, 0, 0], [2.0, 0, 0, -20.0]], delimiter=",", header="time,fx,fy,fz", comments="")
 
-
     rclpy.init()
     ros_node = rclpy.create_node("cstomo_bench_node")
     spin = threading.Thread(target=rclpy.spin, args=(ros_node,), daemon=True)
     spin.start()
-    rows = []
+    rows, sensor_rows = [], []
+    modes = [False, True] if a.both else [a.hosted]
     try:
         for rate in a.rates:
             for stress in a.stress:
-                print(f"run: {rate:g} fps, stress_field_every {stress}, {a.seconds:g} s window ...", flush=True)
-                t = time.monotonic()
-                rows.append(run_one(ros_node, a, rate, stress, work, script))
-                print(f"     done in {time.monotonic() - t:.1f} s", flush=True)
+                for n in a.sensors:
+                    for hosted in modes:
+                        what = f"{n} sensors" + (" hosted" if hosted else " (a process each)" if n > 1 else "")
+                        print(f"run: {rate:g} fps, stress_field_every {stress}, {what}, {a.seconds:g} s window ...",
+                              flush=True)
+                        t = time.monotonic()
+                        row, per_sensor = run_one(ros_node, a, rate, stress, work, script, n, hosted)
+                        rows.append(row)
+                        sensor_rows += per_sensor
+                        print(f"     done in {time.monotonic() - t:.1f} s: published min {row['published_min_pct']:g} %, "
+                              f"p99 {row['latency_p99_ms']:g} ms, nodes {row['node_cpu_pct']:g} % of a core, "
+                              f"load {row['host_loadavg_end']:g}", flush=True)
     finally:
         ros_node.destroy_node()
         rclpy.try_shutdown()
@@ -252,8 +438,13 @@ def main(argv: list[str] | None = None) -> int:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()
         w.writerows(rows)
+    with open(out / "node_bench_sensors.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=SENSOR_COLUMNS)
+        w.writeheader()
+        w.writerows(sensor_rows)
+    text = f"{markdown(rows)}\n\nPer sensor:\n\n{sensors_markdown(sensor_rows)}\n\nMethod: {METHOD}\n"
+    (out / "node_bench.md").write_text(text)
     print()
-    print(markdown(rows))
-    print(f"\nMethod: {METHOD}")
-    print(f"wrote {path}; logs in {work}")
+    print(text)
+    print(f"wrote {path}, node_bench_sensors.csv and node_bench.md in {out}; logs in {work}")
     return 0

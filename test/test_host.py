@@ -1,0 +1,92 @@
+"""``cstomo_sensor_host``: several sensors, one CstomoSensorNode per namespace, in one process."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+import yaml
+
+pytest.importorskip("rclpy")
+
+from conftest import PIPE, wait_for  # noqa: E402
+
+HOST = [sys.executable, "-m", "cstomo_sensor.ros.host"]
+ENV = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+
+
+def _params_file(tmp_path, per_sensor: dict | None = None) -> str:
+    common = dict(PIPE, input="topic")
+    doc = {"/**": {"ros__parameters": common}}
+    for name, params in (per_sensor or {}).items():
+        doc[f"{name}/cstomo_sensor"] = {"ros__parameters": params}
+    f = tmp_path / "sensors.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    return str(f)
+
+
+def test_namespaces_are_checked():
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.ros.host import namespaces_of
+
+    assert namespaces_of(["left_knee", "/right_knee/", "/arm/wrist_2"]) == ["/left_knee", "/right_knee", "/arm/wrist_2"]
+    for bad in ([], ["/"], ["/a", "a"], ["/1a"], ["/a-b"]):
+        with pytest.raises(ConfigError):
+            namespaces_of(bad)
+
+
+def test_help_and_a_bad_namespace():
+    r = subprocess.run(HOST + ["--help"], capture_output=True, text=True, timeout=60, env=ENV)
+    assert r.returncode == 0 and r.stdout.startswith("usage: cstomo_sensor_host NAMESPACE"), r.stdout + r.stderr
+    r = subprocess.run(HOST + ["/a", "/a"], capture_output=True, text=True, timeout=60, env=ENV)
+    assert r.returncode == 2 and "given twice" in r.stderr, r.stderr
+
+
+def test_two_sensors_in_one_process_each_report_under_its_namespace(ros, tmp_path, warm_model):
+    """Two sensors with their parameters from one file (a section each, one for both), each with its
+    diagnostics named by its namespace; Ctrl-C ends the host cleanly."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    params = _params_file(tmp_path, {f"/{n}": {"tare_file": str(tmp_path / f"{n}.csv")} for n in ("left", "right")})
+    host = subprocess.Popen(HOST + ["/left", "/right", "--ros-args", "--params-file", params], env=ENV,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    probe = Node("probe", context=ros)
+    seen: dict[str, str] = {}
+    lock = threading.Lock()
+
+    def cb(msg):
+        with lock:
+            for s in msg.status:
+                seen[s.name] = {kv.key: kv.value for kv in s.values}.get("input", "")
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
+    ex = SingleThreadedExecutor(context=ros)
+    ex.add_node(probe)
+    t = threading.Thread(target=ex.spin, daemon=True)
+    t.start()
+    try:
+        assert wait_for(lambda: len(seen) >= 2, 60.0), seen
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        t.join(5.0)
+        probe.destroy_node()
+        host.send_signal(signal.SIGINT)
+        err = host.stderr.read()
+        code = host.wait(30)
+    assert seen == {"/left/cstomo_sensor: sensor": "topic", "/right/cstomo_sensor: sensor": "topic"}, seen
+    assert code == 0 and "Traceback" not in err, err
+
+
+def test_a_refused_sensor_stops_the_host_and_is_named(tmp_path, warm_model):
+    params = _params_file(tmp_path, {"/good": {"tare_file": str(tmp_path / "good.csv")},
+                                     "/bad": {"sensor": str(tmp_path / "missing.yaml")}})
+    r = subprocess.run(HOST + ["/good", "/bad", "--ros-args", "--params-file", params], capture_output=True,
+                       text=True, timeout=90, env=ENV)
+    assert r.returncode == 1, r.stderr
+    assert "/bad/cstomo_sensor refused to start" in r.stderr and "missing.yaml" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
