@@ -34,14 +34,11 @@ FIRST_PERIOD_WAIT = 2.5
 #: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
 #: duplicate; further back, the board restarted its counter.
 REORDER_WINDOW = 256
-#: While a caller is in :meth:`BoardDriver.get`, or left it less than a lease ago, the caller reads the
-#: port itself and the reader thread only checks back once a lease: CALLER_LEASE_PERIODS of the board's
-#: frame periods, within CALLER_LEASE (seconds, least and most). A tty's buffer holds 20 frames or
-#: more (20 KB in gVisor, 64 KB on Linux), so a caller that stays away longer (a slow frame, a caller
-#: that stopped asking) hands the port back to the thread in time; an idle sensor's thread wakes 20
-#: times a second.
-CALLER_LEASE_PERIODS = 8
-CALLER_LEASE = (0.005, 0.05)
+#: Seconds: while a caller is in :meth:`BoardDriver.get`, or left it less than this long ago, the caller
+#: reads the port itself and the reader thread only checks back this often. A tty's buffer holds 20 ms
+#: or more of frames at 1000 frames/s (20 KB in gVisor, 64 KB on Linux), so a caller that stays away
+#: longer (a slow frame, a caller that stopped asking) hands the port back to the thread in time.
+CALLER_LEASE = 0.01
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -110,7 +107,7 @@ class BoardDriver:
     """Reads frames from a board over a serial port in a background thread.
 
     On a posix tty (a device path; not a URL handler) the caller of :meth:`get` reads the port itself
-    while it keeps asking (see :data:`CALLER_LEASE_PERIODS`): a frame is then read, decoded and handed back in
+    while it keeps asking (see :data:`CALLER_LEASE`): a frame is then read, decoded and handed back in
     the caller's thread, with no hand-over between threads (two thread wake-ups per frame become one).
     The background thread opens and reopens the port and reads whenever no caller does. What is
     counted, queued and dropped is the same either way.
@@ -197,7 +194,6 @@ class BoardDriver:
         self._io = threading.Lock()  # held by whoever opens, reads (and decodes) or closes the port
         self._callers = 0  # callers in get() now
         self._caller_left = -math.inf  # time.monotonic() when a caller last left get()
-        self._lease = CALLER_LEASE[0]  # seconds (_set_lease)
         self.identity: Identity | None = None
         self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
         self._thread.start()
@@ -230,24 +226,16 @@ class BoardDriver:
                         return queue.popleft()
                     if self._closing.is_set() or left <= 0:
                         return None
-                    if not read:  # the thread's frames (it notifies), or the port back (a lease)
-                        cond.wait_for(lambda: queue or self._closing.is_set(), min(left, self._lease))
+                    if not read:  # the thread's frames (it notifies), or the port back (CALLER_LEASE)
+                        cond.wait_for(lambda: queue or self._closing.is_set(), min(left, CALLER_LEASE))
         finally:
             with cond:
                 self._callers -= 1
                 self._caller_left = time.monotonic()
 
     def _caller_reads(self) -> bool:
-        """A caller of get() reads the port (it is in get(), or was within a lease)."""
-        return self._fd is not None and (self._callers > 0 or time.monotonic() - self._caller_left < self._lease)
-
-    def _set_lease(self) -> None:
-        """The lease of CALLER_LEASE_PERIODS frame periods (measured, else the rate asked for)."""
-        period = self._period()
-        if math.isnan(period) and self._rate_hz:
-            period = 1.0 / self._rate_hz
-        lo, hi = CALLER_LEASE
-        self._lease = lo if math.isnan(period) else min(max(CALLER_LEASE_PERIODS * period, lo), hi)
+        """A caller of get() reads the port (it is in get(), or was within CALLER_LEASE)."""
+        return self._fd is not None and (self._callers > 0 or time.monotonic() - self._caller_left < CALLER_LEASE)
 
     def send(self, data: bytes) -> bool:
         """Write raw bytes (e.g. :func:`.wire.encode` of a command); False if not connected or failed."""
@@ -374,13 +362,12 @@ class BoardDriver:
                 backoff = self._backoff[0]
                 with self._cond:  # a caller waiting for the port reads it now
                     self._cond.notify_all()
-            self._set_lease()
             if self._caller_reads():
-                self._closing.wait(self._lease)
+                self._closing.wait(CALLER_LEASE)
                 continue
             with self._io:
                 if self._port is not None and not self._caller_reads():
-                    self._read_step(self._lease if self._fd is not None else self._read_timeout)
+                    self._read_step(CALLER_LEASE if self._fd is not None else self._read_timeout)
                     yielded = self._caller_reads()
                 else:
                     yielded = False
