@@ -330,31 +330,3 @@ def test_the_boards_counts_are_said_in_words():
 
     counted = set(re.findall(r'_injected\["(\w+)"\]', open(sim.__file__, encoding="utf-8").read()))
     assert counted == set(INJECTED_MEANING), counted ^ set(INJECTED_MEANING)  # every count the board keeps
-
-
-def test_the_caller_reads_the_port_itself_and_hands_it_back_when_it_stops_asking(tmp_path, monkeypatch):
-    """A caller that keeps calling get() reads and decodes its frames in its own thread (no hand-over
-    per frame); while it stays away (here 0.3 s: 120 frames, more than a pty buffers) the reader thread
-    reads, so nothing is lost either way."""
-    import threading
-
-    readers = []
-    handle = BoardDriver._handle
-    monkeypatch.setattr(BoardDriver, "_handle", lambda self, msgs: (readers.append(threading.get_ident()), handle(self, msgs)))
-    src = CountingSource()
-    with SimulatedBoard(src, rate_hz=RATE, duration=1.0, link=tmp_path / "board", seed=1) as board, \
-            BoardDriver(board.device, queue_size=4096) as driver:
-        assert wait_for(lambda: driver.stats().connected)
-        board.start()
-        frames = [driver.get(2.0)]
-        del readers[:]
-        frames += [driver.get(1.0) for _ in range(40)]
-        mine = readers.count(threading.get_ident()) / len(readers)
-        time.sleep(0.3)
-        frames += drain(driver)
-        st = driver.stats()
-    assert mine > 0.9, mine
-    assert len(readers) > readers.count(threading.get_ident())  # the thread read while the caller slept
-    assert [f.seq for f in frames] == list(range(board.stats().next_seq))
-    assert (st.seq_gaps, st.dropped_overflow, st.corrupt) == (0, 0, 0)
-    assert st.period == pytest.approx(1 / RATE, rel=0.05)  # on the board's clock, however the frames were read

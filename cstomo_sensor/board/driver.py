@@ -34,11 +34,6 @@ FIRST_PERIOD_WAIT = 2.5
 #: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
 #: duplicate; further back, the board restarted its counter.
 REORDER_WINDOW = 256
-#: Seconds: while a caller is in :meth:`BoardDriver.get`, or left it less than this long ago, the caller
-#: reads the port itself and the reader thread only checks back this often. A tty's buffer holds 20 ms
-#: or more of frames at 1000 frames/s (20 KB in gVisor, 64 KB on Linux), so a caller that stays away
-#: longer (a slow frame, a caller that stopped asking) hands the port back to the thread in time.
-CALLER_LEASE = 0.01
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -105,12 +100,6 @@ def _set_low_latency(port: serial.SerialBase, url: str) -> None:
 
 class BoardDriver:
     """Reads frames from a board over a serial port in a background thread.
-
-    On a posix tty (a device path; not a URL handler) the caller of :meth:`get` reads the port itself
-    while it keeps asking (see :data:`CALLER_LEASE`): a frame is then read, decoded and handed back in
-    the caller's thread, with no hand-over between threads (two thread wake-ups per frame become one).
-    The background thread opens and reopens the port and reads whenever no caller does. What is
-    counted, queued and dropped is the same either way.
 
     Parameters
     ----------
@@ -189,11 +178,7 @@ class BoardDriver:
         self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
         self._intervals: deque[float] = deque(maxlen=16)  # recent frame periods (s)
         self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
-        self._last_byte = 0.0  # time.monotonic() of the latest byte read
         self._last_error = ""
-        self._io = threading.Lock()  # held by whoever opens, reads (and decodes) or closes the port
-        self._callers = 0  # callers in get() now
-        self._caller_left = -math.inf  # time.monotonic() when a caller last left get()
         self.identity: Identity | None = None
         self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
         self._thread.start()
@@ -202,40 +187,10 @@ class BoardDriver:
 
     def get(self, timeout: float) -> DataFrame | None:
         """The oldest queued frame, waiting up to ``timeout`` seconds; None if none came."""
-        cond, queue = self._cond, self._queue
-        with cond:
-            if queue:
-                return queue.popleft()
-            self._callers += 1
-        deadline = time.monotonic() + timeout
-        try:
-            while True:
-                left = deadline - time.monotonic()
-                # read the port here (a posix tty) unless the thread holds it (it reads, or reopens)
-                if self._fd is not None and self._io.acquire(blocking=False):
-                    try:
-                        read = self._fd is not None and not self._closing.is_set()
-                        if read:
-                            self._read_step(min(max(left, 0.0), self._read_timeout))
-                    finally:
-                        self._io.release()
-                else:
-                    read = False
-                with cond:
-                    if queue:
-                        return queue.popleft()
-                    if self._closing.is_set() or left <= 0:
-                        return None
-                    if not read:  # the thread's frames (it notifies), or the port back (CALLER_LEASE)
-                        cond.wait_for(lambda: queue or self._closing.is_set(), min(left, CALLER_LEASE))
-        finally:
-            with cond:
-                self._callers -= 1
-                self._caller_left = time.monotonic()
-
-    def _caller_reads(self) -> bool:
-        """A caller of get() reads the port (it is in get(), or was within CALLER_LEASE)."""
-        return self._fd is not None and (self._callers > 0 or time.monotonic() - self._caller_left < CALLER_LEASE)
+        with self._cond:
+            if not self._queue:
+                self._cond.wait_for(lambda: self._queue or self._closing.is_set(), timeout)
+            return self._queue.popleft() if self._queue else None
 
     def send(self, data: bytes) -> bool:
         """Write raw bytes (e.g. :func:`.wire.encode` of a command); False if not connected or failed."""
@@ -280,8 +235,7 @@ class BoardDriver:
             self._cond.notify_all()
         if self._thread is not threading.current_thread():
             self._thread.join()
-        with self._io:  # a caller reading in get() stops within read_timeout
-            self._close_port()
+        self._close_port()
 
     def __enter__(self) -> BoardDriver:
         return self
@@ -325,8 +279,6 @@ class BoardDriver:
             return False
         _set_low_latency(port, self.url)
         self._decoder.reset()
-        self._last_byte = time.monotonic()
-        self._last_frame_at = None  # no period across a reconnect
         with self._port_lock:
             self._port = port
             # a plain posix tty (not a URL handler, which may read its own way): read directly (_read)
@@ -353,52 +305,32 @@ class BoardDriver:
         backoff = self._backoff[0]
         while not self._closing.is_set():
             if self._port is None:
-                with self._io:
-                    opened = not self._closing.is_set() and self._open()
-                if not opened:
+                if not self._open():
                     self._closing.wait(backoff)
                     backoff = min(2 * backoff, self._backoff[1])
                     continue
                 backoff = self._backoff[0]
-                with self._cond:  # a caller waiting for the port reads it now
-                    self._cond.notify_all()
-            if self._caller_reads():
-                self._closing.wait(CALLER_LEASE)
-                continue
-            with self._io:
-                if self._port is not None and not self._caller_reads():
-                    self._read_step(CALLER_LEASE if self._fd is not None else self._read_timeout)
-                    yielded = self._caller_reads()
-                else:
-                    yielded = False
-            if yielded:
-                with self._cond:  # the caller that came meanwhile reads from now on
-                    self._cond.notify_all()
-
-    def _read_step(self, timeout: float) -> None:
-        """One read of the port (waiting up to ``timeout`` s for the first byte on a posix tty, else the
-        port's read timeout) into the decoder and the queue; a stall or a read error closes the port
-        (the thread reopens it). Called with ``_io`` held, the port open."""
-        try:
-            data = self._read(timeout)
-        except (serial.SerialException, OSError) as err:
-            self._error(f"read failed: {err}")
-            self._close_port()
-            return
-        now = time.monotonic()
-        if not data:
-            stall = self._stall_after()
-            if now - self._last_byte > stall:
-                self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
-                self._intervals.clear()  # its rate may have changed: measured again
+                last_byte = time.monotonic()
+                self._last_frame_at = None  # no period across a reconnect
+            try:
+                data = self._read()
+            except (serial.SerialException, OSError) as err:
+                self._error(f"read failed: {err}")
                 self._close_port()
-            return
-        self._last_byte = now
-        self._handle(self._decoder.feed(data, marks=True))
+                continue
+            now = time.monotonic()
+            if not data:
+                stall = self._stall_after()
+                if now - last_byte > stall:
+                    self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
+                    self._intervals.clear()  # its rate may have changed: measured again
+                    self._close_port()
+                continue
+            last_byte = now
+            self._handle(self._decoder.feed(data, marks=True))
 
-    def _read(self, timeout: float) -> bytes:
-        """The bytes the port has, waiting up to ``timeout`` (posix tty; else the port's read timeout)
-        for the first; b'' if none came."""
+    def _read(self) -> bytes:
+        """The bytes the port has, waiting up to ``read_timeout`` for the first; b'' if none came."""
         fd = self._fd
         if fd is None:  # a URL handler (socket://, loop://, ...) or another platform: pyserial's read
             port = self._port
@@ -406,7 +338,7 @@ class BoardDriver:
         # a posix tty: one select and one read of all there is. pyserial's read(in_waiting) asks TIOCINQ
         # first and, with nothing waiting, waits for and reads 1 byte, then the rest: 5 or 6 system calls
         # and two decoder feeds per frame instead of 2 and 1
-        if not select.select((fd,), (), (), timeout)[0]:
+        if not select.select((fd,), (), (), self._read_timeout)[0]:
             return b""
         try:
             data = os.read(fd, 65536)
@@ -432,9 +364,7 @@ class BoardDriver:
                 log.debug("%s: %s", self.url, msg)
 
     def _push(self, frame: DataFrame) -> None:
-        # the period on the board's clock when it has one: frames read together (a reader that came
-        # late, a board that sent two at once) arrive together but were measured a period apart
-        now = time.monotonic() if frame.board_time_us is None else frame.board_time_us * 1e-6
+        now = time.monotonic()
         with self._cond:
             bad, self._bad = self._bad, 0  # pieces dropped since the last frame
             if frame.seq is None:
@@ -444,8 +374,7 @@ class BoardDriver:
             if self._last_frame_at is not None:
                 t, seq = self._last_frame_at
                 steps = 1 if seq is None or frame.seq is None else max((frame.seq - seq) & 0xFFFFFFFF, 1)
-                if now > t:  # not across a board's restart (its clock starts again)
-                    self._intervals.append((now - t) / steps)
+                self._intervals.append((now - t) / steps)
             self._last_frame_at = (now, frame.seq)
             self._frames += 1
             self._last_error = ""
