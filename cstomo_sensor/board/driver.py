@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import select
 import threading
 import time
 from collections import OrderedDict, deque
@@ -167,7 +165,6 @@ class BoardDriver:
         self._cond = threading.Condition()
         self._port_lock = threading.Lock()
         self._port: serial.SerialBase | None = None
-        self._fd: int | None = None  # the port's file descriptor when it is a plain posix tty (_read)
         self._closing = threading.Event()
         self._frames = self._dropped = self._gaps = self._reconnects = self._opens = 0
         self._corrupt = self._duplicates = self._reordered = self._resyncs = self._bad = 0
@@ -204,11 +201,6 @@ class BoardDriver:
                 self._last_error = f"write failed: {err}"
                 log.warning("%s: %s", self.url, self._last_error)
                 return False
-
-    @property
-    def reconnects(self) -> int:
-        """:attr:`DriverStats.reconnects` without the cost of a snapshot (a frame loop asks per frame)."""
-        return self._reconnects
 
     def stats(self) -> DriverStats:
         """A consistent snapshot of the counters."""
@@ -281,8 +273,6 @@ class BoardDriver:
         self._decoder.reset()
         with self._port_lock:
             self._port = port
-            # a plain posix tty (not a URL handler, which may read its own way): read directly (_read)
-            self._fd = port.fd if type(port) is serial.Serial and isinstance(getattr(port, "fd", None), int) else None
         self._opens += 1
         self._fresh = True  # the first frame on a new connection may restart the counter
         self._reconnects = max(self._opens - 1, 0)
@@ -294,7 +284,7 @@ class BoardDriver:
 
     def _close_port(self) -> None:
         with self._port_lock:
-            port, self._port, self._fd = self._port, None, None
+            port, self._port = self._port, None
         if port is not None:
             try:
                 port.close()
@@ -313,7 +303,7 @@ class BoardDriver:
                 last_byte = time.monotonic()
                 self._last_frame_at = None  # no period across a reconnect
             try:
-                data = self._read()
+                data = self._port.read(max(1, self._port.in_waiting))
             except (serial.SerialException, OSError) as err:
                 self._error(f"read failed: {err}")
                 self._close_port()
@@ -328,26 +318,6 @@ class BoardDriver:
                 continue
             last_byte = now
             self._handle(self._decoder.feed(data, marks=True))
-
-    def _read(self) -> bytes:
-        """The bytes the port has, waiting up to ``read_timeout`` for the first; b'' if none came."""
-        fd = self._fd
-        if fd is None:  # a URL handler (socket://, loop://, ...) or another platform: pyserial's read
-            port = self._port
-            return port.read(max(1, port.in_waiting))
-        # a posix tty: one select and one read of all there is. pyserial's read(in_waiting) asks TIOCINQ
-        # first and, with nothing waiting, waits for and reads 1 byte, then the rest: 5 or 6 system calls
-        # and two decoder feeds per frame instead of 2 and 1
-        if not select.select((fd,), (), (), self._read_timeout)[0]:
-            return b""
-        try:
-            data = os.read(fd, 65536)
-        except BlockingIOError:
-            return b""
-        if not data:  # readable but empty: the port is gone (pyserial's words for it)
-            raise serial.SerialException("device reports readiness to read but returned no data "
-                                         "(device disconnected or multiple access on port?)")
-        return data
 
     def _handle(self, messages: list) -> None:
         for msg in messages:
