@@ -30,7 +30,7 @@ from rclpy.task import Future
 
 from ..errors import ConfigError
 from . import log as ros_log
-from .node import CstomoSensorNode
+from .node import CstomoSensorNode, own_args
 
 
 def usage() -> str:
@@ -58,8 +58,7 @@ def namespaces_of(args: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_host``."""
-    argv = list(argv if argv is not None else sys.argv)
-    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    argv, own = own_args(argv)
     if "-h" in own or "--help" in own:
         print(usage())
         return 0

@@ -477,10 +477,15 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def own_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
+    """(the whole command line, the arguments before ``--ros-args``) of an entry point."""
+    argv = list(argv if argv is not None else sys.argv)
+    return argv, argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
-    argv = list(argv if argv is not None else sys.argv)
-    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    argv, own = own_args(argv)
     if "-h" in own or "--help" in own:
         print(usage())
         return 0
