@@ -344,7 +344,7 @@ class SimulatedBoard:
             if time.monotonic() - due > _RESYNC_S:
                 self._resync()
                 continue
-            self._emit(due - self._script_t0, due)
+            self._emit(due - self._script_t0)
             self._k += 1
 
     def _start_script(self, t0: float) -> None:
@@ -415,9 +415,7 @@ class SimulatedBoard:
                 break
         return done
 
-    def _emit(self, t: float, measured: float) -> None:
-        """Write the frame of script time ``t``, measured at ``measured`` (monotonic s: its slot; a real
-        board stamps a frame when it measures it, so frames written late in a burst keep their slots)."""
+    def _emit(self, t: float) -> None:
         f, rng = self.faults, self._fault_rng
         seq = self._seq
         self._seq += 1
@@ -446,7 +444,7 @@ class SimulatedBoard:
             values[rng.integers(N_VALUES)] = np.nan
             harmed = True
         if self.protocol == "binary":
-            t_us = (int(measured * 1e9) - self._t0_ns) // 1000
+            t_us = (time.monotonic_ns() - self._t0_ns) // 1000
             data = encode(DataFrame(seq, t_us, values, saturated, contact))
         else:
             data = encode_text(values)
