@@ -65,3 +65,66 @@ def warm_model_estimator(cuboid, cuboid_model):
     from cstomo_sensor.force.estimate import build_estimator
 
     return build_estimator("model", cuboid, cuboid_model)
+
+
+def _noisy_changes(est, rng, n):
+    """Calibration changes at 0.3..1.2 of their load, noisy (loaded frames), and noise alone."""
+    i = rng.integers(1, len(est.y), n)
+    loaded = est.y[i] * rng.uniform(0.3, 1.2, (n, 1)) + rng.normal(size=(n, est.y.shape[1])) * est.noise
+    return np.vstack([loaded, rng.normal(size=(n // 4, est.y.shape[1])) * est.noise])
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_model_estimator_equals_its_previous_formulation(warm_model_estimator, masked):
+    """The Gauss-Newton fit with the normal equations in one product and Cramer's rule on floats
+    lands where the plain formulation (value, Jacobian, J^T J and J^T r apart) does, to rounding."""
+    from reference_frame_path import model_estimate
+
+    est = warm_model_estimator
+    if masked:
+        keep = np.ones(est.y.shape[1], bool)
+        keep[[3, 50, 51, 120]] = False
+        est = est.masked(keep)
+    for y in _noisy_changes(est, np.random.default_rng(4), 40):
+        y = np.where(est.keep, y, 0.0)
+        np.testing.assert_allclose(est.estimate(y), model_estimate(est, y), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
+    """The tracker's update (a scalar Sherman-Morrison update under load, LAPACK's solve at rest)
+    follows the state the plain matrix-inverse update does, frame for frame, to rounding: rest and
+    loaded frames, a uniform change and a gradient, the frames normalised by the tracked state."""
+    from reference_frame_path import PlainDriftTracker
+
+    from cstomo_sensor.force.drift import DEFAULT_PERIOD, DriftTracker, gradient_directions
+
+    pipe = warm_model
+    est = pipe.estimator
+    keep = np.ones(pipe.n_meas, bool)
+    if masked:
+        keep[[7, 8, 100]] = False
+    r = pipe.model_reference / pipe.model.v_scale
+    D = gradient_directions(pipe.model)
+    args = (r, D, est.y, est.noise, keep)
+    ours, plain = DriftTracker(*args), PlainDriftTracker(*args)
+    rng = np.random.default_rng(6)
+    loads = _noisy_changes(est, rng, 200)
+    n = 600
+    rests = 0
+    for k in range(n):
+        # the device scaled by 1 + a with a gradient along x, normalised by the tracked state as the pipeline does
+        a, g = 0.02 * k / n, 0.01 * k / n
+        y = ((1 + a) / ours.scale - 1) * r + g * D[0] - ours.offset + rng.normal(size=pipe.n_meas) * est.noise
+        if (k // 50) % 2:
+            y = y + loads[k % len(loads)]
+        y = np.where(keep, y, 0.0)
+        rest = ours.observe(y, 1.0 + k * DEFAULT_PERIOD)
+        assert rest == plain.observe(y, DEFAULT_PERIOD)
+        rests += rest
+        np.testing.assert_allclose(ours.scale, plain.scale, rtol=1e-13)
+        np.testing.assert_allclose(ours.gradient, plain.gradient, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(ours.P, plain.P, rtol=1e-9, atol=1e-9 * np.abs(plain.P).max())
+    assert 0.3 * n < rests < 0.7 * n  # both kinds of frame
+    assert ours.scale == pytest.approx(1.02, abs=2e-3)
+    assert ours.gradient[0] == pytest.approx(0.01, abs=2e-3)

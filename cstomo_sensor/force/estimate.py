@@ -181,20 +181,22 @@ class LinearEstimator:
         return LinearEstimator(self.forces, self.y, noise, self.ridge, self.keep)
 
 
-def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-    """x with A x = b for a 3 x 3 ``A`` by Cramer's rule on Python floats (a few us, where
-    ``np.linalg.solve`` takes ~8 us of overhead); None if ``A`` is singular."""
-    (a, bb, c), (d, e, f), (g, h, i) = A.tolist()
-    u, v, w = b.tolist()
+def _cramer3(a, b, c, d, e, f, g, h, i, u, v, w) -> tuple[float, float, float] | None:
+    """x with [[a, b, c], [d, e, f], [g, h, i]] x = [u, v, w] by Cramer's rule on Python floats (a
+    few us, where ``np.linalg.solve`` takes ~8 us of overhead); None if the matrix is singular."""
     ei_fh, fg_di, dh_eg = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * ei_fh + bb * fg_di + c * dh_eg
+    det = a * ei_fh + b * fg_di + c * dh_eg
     if not abs(det) > 0:
         return None
-    return np.array([
-        u * ei_fh + v * (c * h - bb * i) + w * (bb * f - c * e),
-        u * fg_di + v * (a * i - c * g) + w * (c * d - a * f),
-        u * dh_eg + v * (bb * g - a * h) + w * (a * e - bb * d),
-    ]) / det
+    return ((u * ei_fh + v * (c * h - b * i) + w * (b * f - c * e)) / det,
+            (u * fg_di + v * (a * i - c * g) + w * (c * d - a * f)) / det,
+            (u * dh_eg + v * (b * g - a * h) + w * (a * e - b * d)) / det)
+
+
+def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+    """x with A x = b for a 3 x 3 ``A`` (:func:`_cramer3`); None if ``A`` is singular."""
+    x = _cramer3(*np.ravel(A).tolist(), *np.ravel(b).tolist())
+    return None if x is None else np.array(x)
 
 
 class ModelEstimator:
@@ -220,17 +222,29 @@ class ModelEstimator:
         _, s, vt = np.linalg.svd(yw, full_matrices=False)
         self.basis = vt[: max(3, int(np.count_nonzero(s / np.sqrt(len(yw)) > 1e-3)))]  # (k, n_keep)
         self.surrogate = ThinPlateSpline(forces / self.scale, yw @ self.basis.T)  # value + Jacobian (tps.py)
+        self._all_kept = bool(self.keep.all())
+        self._yw = np.empty(len(self.w))  # estimate()'s work arrays
+        self._out = np.empty((4, len(self.basis)))
+        self._G = np.empty((3, 4))
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = self.linear.estimate(y) / self.scale
-        target = self.basis @ (y[self.keep] * self.w)
+        yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
+        target = self.basis @ yw
+        spline, out, tol2 = self.surrogate, self._out, (1e-4 / self.scale) ** 2
         for _ in range(self.iterations):
-            pred, J = self.surrogate.value_and_jacobian(x)
-            step = _solve3(J.T @ J, J.T @ (target - pred))
+            # value and Jacobian (rows 1..3 of out: J^T), then the residual in row 0, and the normal
+            # equations in one product: G = [J^T r | J^T J]
+            np.dot(spline.basis_rows(x), spline.coefficients, out=out)
+            np.subtract(target, out[0], out=out[0])
+            G = np.dot(out[1:], out.T, out=self._G)
+            (u, a, b, c), (v, d, e, f), (w, g, h, i) = G.tolist()
+            step = _cramer3(a, b, c, d, e, f, g, h, i, u, v, w)
             if step is None:  # a flat surrogate (far outside the calibration): least squares
-                step = np.linalg.lstsq(J, target - pred, rcond=None)[0]
+                step = np.linalg.lstsq(out[1:].T, out[0], rcond=None)[0].tolist()
+            s0, s1, s2 = step
             x = x + step
-            if not step @ step >= (1e-4 / self.scale) ** 2:  # |step| < 1e-4 N (or NaN: stop)
+            if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
         return x * self.scale
 
