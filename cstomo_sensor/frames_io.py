@@ -27,9 +27,10 @@ def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame", used: np.
         raise FrameError(f"{what}: {err}; expected {n_meas} numbers") from None
     if a.ndim not in ((1, 2) if batch else (1,)) or a.shape[-1] != n_meas:
         raise FrameError(f"{what} has shape {a.shape}, expected ({n_meas},) voltages")
-    bad = ~np.isfinite(a)
-    if used is not None:
-        bad &= used
+    finite = np.isfinite(a)
+    if finite.all():  # the common case, per frame
+        return a
+    bad = ~finite if used is None else ~finite & used
     if bad.any():
         raise FrameError(f"{what} holds {int(bad.sum())} NaN/Inf values (first at index {int(np.argmax(bad))}); expected finite volts")
     return a

@@ -228,7 +228,7 @@ class ModelEstimator:
         self._G = np.empty((3, 4))
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        x = self.linear.estimate(y) / self.scale
+        x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
         target = self.basis @ yw
         spline, out, tol2 = self.surrogate, self._out, (1e-4 / self.scale) ** 2
@@ -243,10 +243,10 @@ class ModelEstimator:
             if step is None:  # a flat surrogate (far outside the calibration): least squares
                 step = np.linalg.lstsq(out[1:].T, out[0], rcond=None)[0].tolist()
             s0, s1, s2 = step
-            x = x + step
+            x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
-        return x * self.scale
+        return np.array(x) * self.scale
 
     def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)

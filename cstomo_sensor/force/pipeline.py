@@ -119,6 +119,7 @@ class Pipeline:
         self._R = model.R.astype(self._dtype, copy=False)
         self._fit = model.fit.astype(self._dtype, copy=False)  # y -> the part the image explains
         self._keep = np.ones(self.n_meas, dtype=bool)
+        self._dropped: np.ndarray | None = None  # indices of the excluded channels (None: none)
         self._update_consistency()
         self._y = np.empty(self.n_meas, dtype=np.float64)  # the latest frame's change (last_y)
         self.scale = 1.0  # the uniform scale of the voltages since the tare (the stream's drift tracker sets it)
@@ -258,6 +259,7 @@ class Pipeline:
         estimator = self.estimator.masked(keep)
         consistency = self.consistency.masked(keep)
         self._keep, self._R, self._fit, self.estimator, self.consistency = keep, R, fit, estimator, consistency
+        self._dropped = None if keep.all() else np.flatnonzero(~keep)
         self._update_gate()
 
     def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
@@ -278,7 +280,8 @@ class Pipeline:
             y /= self._y_scale
             if self.offset is not None:
                 y -= self.offset
-            y[~self._keep] = 0.0
+            if self._dropped is not None:
+                y[self._dropped] = 0.0
         why = self.gate.change(y) if gate else ""
         self.change_plausible = not why  # a change some load (or a uniform drift) can cause
         if why:

@@ -207,7 +207,7 @@ class Consistency:
         """The statistic of one frame's change ``y`` (n_meas,)."""
         z = np.multiply(y, self.w, out=self._z)
         p = self.Q @ z
-        return float((z @ z - p @ p) / self.dof)
+        return float((z.dot(z) - p.dot(p)) / self.dof)
 
     def masked(self, keep: np.ndarray) -> Consistency:
         return Consistency(self.y, self.noise, self.allowance, keep)

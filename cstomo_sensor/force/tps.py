@@ -54,6 +54,7 @@ class ThinPlateSpline:
         self._Bt[0, n] = 1.0
         self._Bt[1:, n + 1:] = np.eye(d)
         self._phi_row, self._grad_rows, self._x_row = self._Bt[0, :n], self._Bt[1:, :n], self._Bt[0, n + 1:]
+        self._x_col = self._x_row[:, None]
         self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
         self._diff = np.empty((d, n))
         self._sq = np.empty((d, n))
@@ -74,10 +75,11 @@ class ThinPlateSpline:
     def basis_rows(self, x: np.ndarray) -> np.ndarray:
         """The (1 + d, n + 1 + d) rows whose product with the coefficients (:attr:`coefficients`,
         (n + 1 + d, m)) is the value (row 0) and the Jacobian's transpose (rows 1..d) at one point
-        ``x`` (d,): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work array,
-        overwritten by the next call."""
+        ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work
+        array, overwritten by the next call."""
         diff, r2, g = self._diff, self._r2, self._g
-        np.subtract(x[:, None], self._pt, out=diff)  # (d, n)
+        self._x_row[:] = x
+        np.subtract(self._x_col, self._pt, out=diff)  # (d, n)
         np.dot(self._ones, np.multiply(diff, diff, out=self._sq), out=r2)  # the sum over d (einsum: 2x slower)
         np.add(r2, 1e-300, out=g)
         np.log(g, out=g)  # 2 log r; at a node r^2 log r = 0 and diff = 0, as phi is C^1 there
@@ -85,7 +87,6 @@ class ThinPlateSpline:
         phi *= 0.5
         g += 1.0
         np.multiply(diff, g, out=self._grad_rows)
-        self._x_row[:] = x
         return self._Bt
 
     @property
