@@ -180,7 +180,7 @@ class DriftTracker:
             nu, c = self._nu, P[:, 0]
             den = 1.0 + nu * float(c[0])
             delta = c * (float(b[-1]) / LOAD_INFLATION / den)
-            gain = P - (nu / den) * np.outer(c, c)
+            gain = P - (nu / den) * (c[:, None] * c)  # c c^T exactly symmetric
         d = delta.tolist()
         if all(map(math.isfinite, d)):
             self.scale *= 1.0 + d[0]

@@ -246,7 +246,8 @@ class ModelEstimator:
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
-        return np.array(x) * self.scale
+        k = self.scale
+        return np.array((x[0] * k, x[1] * k, x[2] * k))
 
     def masked(self, keep: np.ndarray) -> ModelEstimator:
         return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)

@@ -72,15 +72,20 @@ class PlausibilityGate:
     def change(self, y: np.ndarray) -> str:
         """'' if the change ``y`` (n_meas,) passes, else why not."""
         with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: rejected below
-            g = np.multiply(y, self._w, out=self._g)
-            g2 = float(np.dot(g, g))
-            if not g2 <= self.norm_bound**2:  # NaN/inf too
-                return (f"relative change of norm {np.sqrt(g2):.3g}, beyond {self.norm_bound:.3g} (the largest a "
-                        f"load up to max_force {self.max_force:g} N can cause)")
-            np.abs(g, out=g)
-            if np.greater(g, self.channel_bound, out=self._over).any():
-                i = int(np.argmax(g / self.channel_bound))
-                return f"channel {i} changed by {g[i]:.3g} of its reference, beyond {self.channel_bound[i]:.3g}"
+            return self.change_quiet(y)
+
+    def change_quiet(self, y: np.ndarray) -> str:
+        """:meth:`change` for a caller already inside ``np.errstate(over="ignore", invalid="ignore")``
+        (the pipeline's per-frame block: one context instead of two)."""
+        g = np.multiply(y, self._w, out=self._g)
+        g2 = float(g.dot(g))
+        if not g2 <= self.norm_bound**2:  # NaN/inf too
+            return (f"relative change of norm {np.sqrt(g2):.3g}, beyond {self.norm_bound:.3g} (the largest a "
+                    f"load up to max_force {self.max_force:g} N can cause)")
+        np.abs(g, out=g)
+        if np.greater(g, self.channel_bound, out=self._over).any():
+            i = int(np.argmax(g / self.channel_bound))
+            return f"channel {i} changed by {g[i]:.3g} of its reference, beyond {self.channel_bound[i]:.3g}"
         return ""
 
     def force(self, magnitude: float) -> str:

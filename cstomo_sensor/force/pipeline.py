@@ -282,7 +282,7 @@ class Pipeline:
                 y -= self.offset
             if self._dropped is not None:
                 y[self._dropped] = 0.0
-        why = self.gate.change(y) if gate else ""
+            why = self.gate.change_quiet(y) if gate else ""
         self.change_plausible = not why  # a change some load (or a uniform drift) can cause
         if why:
             return FrameResult.implausible(why)

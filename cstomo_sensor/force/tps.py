@@ -57,9 +57,9 @@ class ThinPlateSpline:
         self._x_col = self._x_row[:, None]
         self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
         self._diff = np.empty((d, n))
-        self._sq = np.empty((d, n))
-        self._ones = np.ones(d)
-        self._r2 = np.empty(n)
+        self._sq = np.full((d + 1, n), 1e-300)  # the squared differences, and 1e-300
+        self._sum_half = np.array([[1.0] * (d + 1), [0.5] * (d + 1)])  # their sum and half of it
+        self._r2 = np.empty((2, n))
         self._g = np.empty(n)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -80,11 +80,13 @@ class ThinPlateSpline:
         diff, r2, g = self._diff, self._r2, self._g
         self._x_row[:] = x
         np.subtract(self._x_col, self._pt, out=diff)  # (d, n)
-        np.dot(self._ones, np.multiply(diff, diff, out=self._sq), out=r2)  # the sum over d (einsum: 2x slower)
-        np.add(r2, 1e-300, out=g)
-        np.log(g, out=g)  # 2 log r; at a node r^2 log r = 0 and diff = 0, as phi is C^1 there
-        phi = np.multiply(r2, g, out=self._phi_row)
-        phi *= 0.5
+        # r^2 + 1e-300 and its half as one product (einsum: 2x slower): the same r^2 but at a node
+        # (r^2 < 1e-284), where it keeps the log finite: phi is 1e-300 log(1e-300) there instead of 0,
+        # and diff = 0
+        np.multiply(diff, diff, out=self._sq[:-1])
+        np.dot(self._sum_half, self._sq, out=r2)
+        np.log(r2[0], out=g)  # 2 log r
+        np.multiply(r2[1], g, out=self._phi_row)  # r^2 log r = (r^2 / 2) (2 log r)
         g += 1.0
         np.multiply(diff, g, out=self._grad_rows)
         return self._Bt

@@ -37,12 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import angle_between, force_from_angles
+from ...force.estimate import ESTIMATORS
 from ...force.pipeline import Pipeline, PipelineConfig
 from ...force.stream import FrameStream, StreamConfig
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.simulate import Load, Truth, add_noise
 from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, temperature_gradient, warmup_30min
 from .report import write_rows
+from .timing import one_core
 
 RATE = 100.0            # frames per second
 RAMP_S = 5.0            # the change happens over this long after the tare (unloaded)
@@ -55,9 +57,9 @@ DRIVE = (-0.005, 0.005)
 WARMUP_RATE = 50.0
 
 
-def _truth_frames(say):
-    """(reference, {change: unloaded}, forces (n, 3), {change: loaded (n, 208)}): the truth at each
-    uniform resistivity change (noise-free)."""
+def _truth_frames(say, changes=UNIFORM):
+    """(reference, {change: unloaded}, forces (n, 3), {change: loaded (n, 208)}): the truth unchanged
+    and at each uniform resistivity change of ``changes`` (noise-free)."""
     truth = Truth(load_sensor(DEFAULT_SENSOR), seed=SEED)
     rng = np.random.default_rng(SEED)
     forces = np.array([force_from_angles(m, np.radians(e), np.radians(a)) for m, e, a in
@@ -65,15 +67,16 @@ def _truth_frames(say):
     sigma = [truth.conductivity(Load("socket", force=tuple(f))) for f in forces]
     s0 = truth.forward.sigma0
     unloaded, loaded = {}, {}
-    for a in (0.0, *UNIFORM):
+    for a in (0.0, *changes):
         unloaded[a] = truth.forward.voltages(s0 / (1 + a))
         loaded[a] = np.array([truth.forward.voltages(s / (1 + a)) for s in sigma])
         say(f"drift bench: truth at a uniform change of {a:+.0%}")
     return unloaded[0.0], unloaded, forces, loaded
 
 
-def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed):
-    """One scenario's stream: the figures of the module docstring."""
+def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | None = None):
+    """One scenario's stream: the figures of the module docstring (``costs``: a list that gets every
+    frame's seconds through the stream)."""
     rng = np.random.default_rng(seed)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, SNR_DB, rng)
@@ -94,6 +97,8 @@ def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed):
         elif i is not None and np.isfinite(f).all():
             ang.append(np.degrees(angle_between(f, forces[i])))
             mag.append(100 * abs(np.linalg.norm(f) / np.linalg.norm(forces[i]) - 1))
+    if costs is not None:
+        costs.extend(cost)
     zero = np.array(zero)
     ok = np.isfinite(zero).all(axis=1)
     return {"zero_bias_n": float(np.linalg.norm(zero[ok].mean(axis=0))) if ok.any() else np.nan,
@@ -120,6 +125,31 @@ def drift_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
     rows += _timelines(out, cache_dir, say)
     Path(out).mkdir(parents=True, exist_ok=True)
     return write_rows(Path(out) / "drift.csv", rows, say)
+
+
+def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 5) -> list[dict]:
+    """``cstomo bench --frame-cost``: the time of one frame through the stream (``FrameStream.push``:
+    the plausibility gate, the estimator, the consistency statistic, the drift tracker, the filter and
+    the counts; no stress field) for both estimators, tracking off and on, side by side: the drift
+    bench's unchanged device (rests and held-out loads, 60 dB, 100 frames/s), ``rounds`` rounds of
+    every setting in turn on one pinned core, so the host's load weighs on all alike; median and 90th
+    percentile over every frame of the rounds, with the host's load average at the start and the end.
+    Writes frame_cost.csv in ``out``."""
+    ref, unloaded, forces, loaded = _truth_frames(say, changes=())
+    pipes = {name: Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or ""))) for name in ESTIMATORS}
+    settings = [(name, tracking) for name in ESTIMATORS for tracking in (False, True)]
+    costs = {s: [] for s in settings}
+    load0 = os.getloadavg()[0]
+    with one_core():
+        for _ in range(rounds):
+            for name, tracking in settings:
+                _run(pipes[name], ref, unloaded[0.0], loaded[0.0], forces, tracking, seed=7, costs=costs[name, tracking])
+    load1 = os.getloadavg()[0]
+    rows = [{"estimator": name, "tracking": tracking, "frames": len(c), "us_median": 1e6 * float(np.median(c)),
+             "us_p90": 1e6 * float(np.percentile(c, 90)), "load_start": load0, "load_end": load1}
+            for (name, tracking), c in costs.items()]
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return write_rows(Path(out) / "frame_cost.csv", rows, say)
 
 
 def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int = 7):

@@ -9,7 +9,7 @@ import os
 import sys
 from pathlib import Path
 
-from .drift import drift_bench
+from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
 from .greit import greit
@@ -35,6 +35,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="the rule for the Landweber weight power p on the training-side scenes")
     g.add_argument("--drift", action="store_true",
                    help="the zero and the accuracy when the device changes after its tare, with and without tracking")
+    g.add_argument("--frame-cost", action="store_true",
+                   help="time per frame through the stream, both estimators, drift tracking off and on, side by side")
     g.add_argument("--scene", action="store_true", help="scene stress field and foreign-load flag (accuracy, rates, cost)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
@@ -66,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.drift:
         drift_bench(a.out, a.cache_dir or None)
+        return 0
+    if a.frame_cost:
+        frame_cost(a.out, a.cache_dir or None)
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """Running frames through a pipeline, and timing it per frame on one core."""
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 
@@ -21,12 +22,22 @@ def run_frames(pipe, ref: np.ndarray, frames: np.ndarray, with_field: bool = Tru
     return forces, images, np.array([r.residual for r in out]), implausible
 
 
-def time_frames(pipe, frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seconds per ``process(frame, with_field=True)`` and per estimator call, n frames, one core."""
+@contextlib.contextmanager
+def one_core():
+    """Run the block pinned to one core of those allowed (where the platform can), then unpin."""
     aff = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     if aff:
         os.sched_setaffinity(0, {min(aff)})
     try:
+        yield
+    finally:
+        if aff:
+            os.sched_setaffinity(0, aff)
+
+
+def time_frames(pipe, frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seconds per ``process(frame, with_field=True)`` and per estimator call, n frames, one core."""
+    with one_core():
         idx = np.arange(n) % len(frames)
         for f in frames[:3]:
             pipe.process(f, with_field=True)  # warm-up
@@ -44,7 +55,4 @@ def time_frames(pipe, frames: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarra
             t = time.perf_counter()
             pipe.estimator.estimate(y)
             te[j] = time.perf_counter() - t
-    finally:
-        if aff:
-            os.sched_setaffinity(0, aff)
     return tp, te
