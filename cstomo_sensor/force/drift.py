@@ -128,7 +128,10 @@ class DriftTracker:
         self._nu = float(Du[0] @ Du[0]) / LOAD_INFLATION  # the information of that measurement
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._yw = np.empty_like(w)
+        self._b = np.empty(self.m + 1)
+        self._b_rest = self._b[:-1]
         self._eye = np.eye(self.m)
+        self._dt, self._qI = 0.0, np.zeros((self.m, self.m))  # the random walk's covariance over the last dt
         self.scale = 1.0
         self.gradient = np.zeros(self.m - 1)
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
@@ -161,25 +164,30 @@ class DriftTracker:
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
         if t is not None:
             self._t = t
-        P = self.P + (RATE * RATE * dt) * self._eye
+        if dt != self._dt:
+            self._dt, self._qI = dt, (RATE * RATE * dt) * self._eye
+        P = self.P + self._qI
         yw = np.multiply(y, self._w, out=self._yw)
-        b = self._Dwu @ yw
-        b0 = float(b[0])
+        b = np.dot(self._Dwu, yw, out=self._b)
+        b0, v = float(b[0]), float(b[-1])
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
         rest = float(yw.dot(yw)) - b0 * b0 / self._N00 < self._rest
         if rest:
             # the measurement of every direction, information N and vector b: the gain
             # (P^-1 + N)^-1 = P (I + N P)^-1, without inverting P; its transpose solves (I + P N) G' = P
-            gain = _solve(self._eye + P @ self._N, P).T
-            delta = gain @ b[:-1]
+            # (A = I + N P in C order is I + P N in Fortran's, as LAPACK takes it; P is symmetric)
+            A = np.dot(self._N, P)
+            A += self._eye
+            gain = _solve(A.T, P.T).T
+            delta = np.dot(gain, self._b_rest)
             self.rest_frames += 1
         else:
             # the scale's alone, information nu e0 e0^T and vector v e0: the same gain by
             # Sherman-Morrison, P - nu c c^T / (1 + nu c0) with c = P e0, and gain @ v e0 = v c / (1 + nu c0)
             nu, c = self._nu, P[:, 0]
             den = 1.0 + nu * float(c[0])
-            delta = c * (float(b[-1]) / LOAD_INFLATION / den)
+            delta = c * (v / LOAD_INFLATION / den)
             gain = P - (nu / den) * (c[:, None] * c)  # c c^T exactly symmetric
         d = delta.tolist()
         if all(map(math.isfinite, d)):

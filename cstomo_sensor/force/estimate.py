@@ -226,22 +226,25 @@ class ModelEstimator:
         self._yw = np.empty(len(self.w))  # estimate()'s work arrays
         self._out = np.empty((4, len(self.basis)))
         self._G = np.empty((3, 4))
+        # the spline's coefficients with the frame's target taken from its constant term (row n),
+        # so that one product gives the residual (with its sign changed) and the Jacobian
+        self._coef = self.surrogate.coefficients.copy()
+        self._d0, self._d0_target = self.surrogate.coefficients[len(forces)], self._coef[len(forces)]
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
-        target = self.basis @ yw
-        spline, out, tol2 = self.surrogate, self._out, (1e-4 / self.scale) ** 2
+        np.subtract(self._d0, self.basis @ yw, out=self._d0_target)
+        spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
         for _ in range(self.iterations):
-            # value and Jacobian (rows 1..3 of out: J^T), then the residual in row 0, and the normal
-            # equations in one product: G = [J^T r | J^T J]
-            np.dot(spline.basis_rows(x), spline.coefficients, out=out)
-            np.subtract(target, out[0], out=out[0])
+            # the residual's negative -r (row 0 of out) and the Jacobian's transpose (rows 1..3) in
+            # one product, then the normal equations in one more: G = [-J^T r | J^T J]
+            np.dot(spline.basis_rows(x), coef, out=out)
             G = np.dot(out[1:], out.T, out=self._G)
             (u, a, b, c), (v, d, e, f), (w, g, h, i) = G.tolist()
-            step = _cramer3(a, b, c, d, e, f, g, h, i, u, v, w)
+            step = _cramer3(a, b, c, d, e, f, g, h, i, -u, -v, -w)
             if step is None:  # a flat surrogate (far outside the calibration): least squares
-                step = np.linalg.lstsq(out[1:].T, out[0], rcond=None)[0].tolist()
+                step = np.linalg.lstsq(out[1:].T, -out[0], rcond=None)[0].tolist()
             s0, s1, s2 = step
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
