@@ -35,7 +35,7 @@ ARGUMENTS = {  # name: (default, description); None: a file of the installed pac
     "config": (None, "parameter file of the node(s)"),
     "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
     "sensor": ("", "sensor preset or YAML path (default: the config file's)"),
-    "estimator": ("", "force estimator: linear or model (default: the config file's)"),
+    "estimator": ("", "force estimator: model or linear (default: the config file's)"),
     "frame_id": ("", "frame of the wrench and the stress cloud (default: the config file's, cstomo_socket)"),
     "calibration_file": ("", "device calibration from `cstomo calibrate` (default: the config file's)"),
     "tare_on_start": ("", "true: tare on the first frames at start; false: the saved tare (default: the file's)"),

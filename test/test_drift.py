@@ -12,6 +12,7 @@ import pytest
 from conftest import PIPE
 
 from cstomo_sensor.angles import angle_between, force_from_angles
+from cstomo_sensor.force.estimate import ESTIMATORS
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
 ZERO_AIM = 0.2  # N, issue 20: up to +-10 % uniform resistivity change
@@ -67,11 +68,25 @@ def test_a_one_percent_change_reads_no_force(warm_model, device, change):
     assert stream.drift.rest_frames > 0.9 * 7 * RATE  # unloaded frames are seen as rest
 
 
+@pytest.fixture(scope="module")
+def pipes(warm_model):
+    """The test pipeline (PIPE) with each estimator: ``linear`` is warm_model's."""
+    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+
+    cfg = {k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}
+    return {"linear": warm_model, "model": Pipeline.build(PipelineConfig(**{**cfg, "estimator": "model"}))}
+
+
 @pytest.mark.parametrize("change", [-0.10, 0.10])
-@pytest.mark.xfail(strict=True, reason="measured 0.4-0.5 N (linear): a uniform resistivity change with the contacts unchanged "
-                                       "is a scaling plus a contact change; the tracker follows the scaling only")
-def test_a_ten_percent_change_reads_within_the_aim(warm_model, device, change):
-    tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
+@pytest.mark.parametrize("estimator", [
+    ESTIMATORS[0],  # the default, model: 0.01-0.04 N
+    *(pytest.param(e, marks=pytest.mark.xfail(
+        strict=True, reason="measured 0.4-0.5 N (linear): a uniform resistivity change with the contacts unchanged "
+                            "is a scaling plus a contact change; the tracker follows the scaling only"))
+      for e in ESTIMATORS[1:])])
+def test_a_ten_percent_change_reads_within_the_aim(pipes, device, change, estimator):
+    """The issue's aim, at most 0.2 N at zero load after +-10 %, holds for the default estimator."""
+    tracked, stream = _zero_reading(pipes[estimator], device, change, tracking=True)
     assert stream.drift.change == pytest.approx(change, abs=2e-3)
     assert tracked <= ZERO_AIM, (change, tracked)
 

@@ -8,13 +8,13 @@ field), the material law and the forward model on the
 reconstruction's mesh, giving normalised voltage changes y (README, *Numerical choices*, and the reconstruction
 module for the normalisation). The calibration never sees the honest-simulation meshes or seeds.
 
-- ``linear`` (fast): F = W y, ridge regression through the origin on the calibration set with
+- ``linear`` (fastest): F = W y, ridge regression through the origin on the calibration set with
   noise augmentation (the device's noise measured by a tare of several frames, else 60 dB).
   One 3 x 208 product per frame (about a microsecond of arithmetic).
-- ``model`` (accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
+- ``model`` (the default, accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/tps.py), started from the linear estimate;
-  tens of microseconds per frame.
+  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``).
 
 Both honour the bad-channel mask (``masked``), which refits the ridge map on the kept channels.
 """
@@ -264,14 +264,15 @@ class ModelEstimator:
         return ModelEstimator(self.forces, self.y, noise, self.ridge, self.keep, self.iterations)
 
 
-#: The force estimators by name; the first is the default.
-ESTIMATORS = ("linear", "model")
+#: The force estimators by name; the first is the default: ``model``, the more accurate, whose
+#: per-frame cost with the drift tracking (``cstomo bench --frame-cost``) is within the 0.1 ms aim.
+ESTIMATORS = ("model", "linear")
 
 
 def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionModel, cache_dir=None,
                     progress=None, spec: CalibrationSpec = CalibrationSpec()):
     """The estimator called ``name`` ('linear' or 'model'), calibrated (cached) for ``model``."""
-    classes = dict(zip(ESTIMATORS, (LinearEstimator, ModelEstimator)))
+    classes = {"linear": LinearEstimator, "model": ModelEstimator}
     if name not in classes:
         raise ConfigError.bad_value("estimator", name, f"one of {list(ESTIMATORS)}")
     if geometry.socket_radius <= 0:

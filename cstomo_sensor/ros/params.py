@@ -43,7 +43,7 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "sensor": _d("Sensor preset name or YAML path", read_only=True),
     "cache_dir": _d("Model and tare cache directory; '' = $CSTOMO_CACHE_DIR or ~/.cache/cstomo_sensor",
                          read_only=True),
-    "estimator": _d("Force estimator: 'linear' or 'model'", read_only=True),
+    "estimator": _d("Force estimator: 'model' (accurate) or 'linear' (fastest)", read_only=True),
     "mesh_size": _d("Forward mesh element size in metres", read_only=True, lo=MESH_SIZE_RANGE[0], hi=MESH_SIZE_RANGE[1]),
     "grid": _d("Reconstruction voxel grid (nx, ny, nz), each 1..64", read_only=True),
     "iterations": _d("Landweber iterations; 0 = discrepancy rule", read_only=True, lo=0, hi=1_000_000_000),

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...force.estimate import build_estimator
-from ...force.pipeline import Pipeline
+from ...force.pipeline import Pipeline, PipelineConfig
 from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 
@@ -29,7 +29,7 @@ class Setting:
     weight_power: float | None = None  # None = the model's (ReconSpec default); k by the rule for it
     tau: float | None = None  # discrepancy level of that rule; None = ReconSpec's
     dtype: str = "float32"
-    estimator: str = "linear"
+    estimator: str = PipelineConfig.estimator  # the default, model
     row: dict = field(default_factory=dict)
 
 
@@ -47,7 +47,7 @@ def settings_for(mode: str) -> list[Setting]:
           Setting("plain (p=0, tau=1.1: before)", "weight", **PLAIN),
           Setting("weight p=1", "weight", weight_power=1.0),
           Setting("float64", "dtype", dtype="float64"),
-          Setting("estimator model", "estimator", estimator="model"),
+          Setting("estimator linear", "estimator", estimator="linear"),
           Setting("mesh 6 mm", "mesh", mesh_size=6.0e-3)]
     return s
 

@@ -117,12 +117,12 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
                 f"{len(stats)} frames (statistic median {np.median(stats):.2f}, 98th percentile "
                 f"{np.quantile(stats, 0.98):.2f}, max {np.max(stats):.2f}, threshold {check.threshold:.2f})")
 
-    # 4. per-frame cost on one core, the default estimator (linear) and the model one
+    # 4. per-frame cost on one core, the linear estimator and the model one (the default)
     aff = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     if aff:
         os.sched_setaffinity(0, {min(aff)})
     try:
-        for p in (Pipeline.build(PipelineConfig(cache_dir=cache_dir or "")), pipe):
+        for p in (Pipeline.build(PipelineConfig(estimator="linear", cache_dir=cache_dir or "")), pipe):
             p.set_reference(ref)
             name = p.estimator.__class__.__name__
             for what, us in _costs(p, frames[0]).items():
