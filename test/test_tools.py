@@ -96,6 +96,20 @@ def test_bench_heldout_on_three_forces(tmp_path):
             assert float(r["angle_med"]) < 10.0 and float(r["mag_pct_med"]) < 20.0, r
 
 
+def test_bench_frame_cost_times_both_estimators_with_and_without_tracking(tmp_path):
+    """``cstomo bench --frame-cost`` (one round here): a row per estimator and tracking, every frame of
+    the stream timed, the host's load stated. No timing assertions."""
+    from cstomo_sensor.force.estimate import ESTIMATORS
+    from cstomo_sensor.tools.bench.drift import frame_cost
+
+    frame_cost(tmp_path, rounds=1, say=lambda msg: None)
+    rows = _rows(tmp_path / "frame_cost.csv")
+    assert [(r["estimator"], r["tracking"]) for r in rows] == [(e, t) for e in ESTIMATORS for t in ("False", "True")]
+    for r in rows:
+        assert int(r["frames"]) == 3100 and 0 < float(r["us_median"]) <= float(r["us_p90"]), r
+        assert float(r["load_start"]) >= 0 and float(r["load_end"]) >= 0
+
+
 def test_bench_greit_figures(tmp_path):
     assert cstomo(["bench", "--greit", "--out", str(tmp_path)]) == 0
     rows = _rows(tmp_path / "greit.csv")
