@@ -139,7 +139,8 @@ def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config
         for c, t, raw in r.messages():
             w.write(conns[c.id], t, raw)
     args = [str(mcap), "--out", str(tmp_path / "out"), "--mesh-size", str(PIPE["mesh_size"]),
-            "--grid", *map(str, PIPE["grid"]), "--tare-frames", str(TARE), "--storage", "mcap"]
+            "--grid", *map(str, PIPE["grid"]), "--estimator", PIPE["estimator"], "--tare-frames", str(TARE),
+            "--storage", "mcap"]
     assert main(args) == 0
     assert "results written" in capsys.readouterr().out
     np.testing.assert_array_equal(force_rows(read_bag(tmp_path / "out")), force_rows(replayed[1]))
