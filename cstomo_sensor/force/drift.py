@@ -40,15 +40,13 @@ import math
 
 import numpy as np
 
-#: Directions of the calibration set's whitened changes that a load may move: the measurement of
-#: the scale under load uses only the part of ``r`` outside them.
-LOAD_RANK = 10
-#: The variance of that measurement under load is this many times its noise (a real device's load
-#: response is not the model's: what leaks is weighed down). Measured (held-out loads held 1 s, no
-#: drift, `linear`): 10 costs 1.2x the magnitude error, 100 nothing (2.55 against 2.56 %).
-LOAD_INFLATION = 100.0
 #: Random walk of the scale, per square-root second.
 RATE = 2e-4
+#: Random walk of the scale's rate of change (per second), per square-root second: the device warms
+#: and cools over minutes (15 K in 30 minutes at 0.8 %/K: a rate of 2e-4/s falling to 1e-5/s), so
+#: during a load, when the scale is hardly measured, it goes on changing at the rate of the rests
+#: (the warm-up's angle error 2.77 -> 2.43 deg; a rate of the gradient too gains nothing).
+ACCEL = 2e-6
 #: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
 DEFAULT_PERIOD = 0.01
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
@@ -87,48 +85,42 @@ class DriftTracker:
         The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
     gradients : (k, n_meas) ndarray or None
         :func:`gradient_directions` (None: the scale alone is tracked).
-    y : (n, n_meas) ndarray
-        The estimator's calibration set (socket loads' normalised changes).
     noise : (n_meas,) ndarray
         Per-channel noise std of a change (y units).
     keep : (n_meas,) bool ndarray
         Channels in use.
     """
 
-    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, y: np.ndarray, noise: np.ndarray,
-                 keep: np.ndarray) -> None:
-        self._args = (r, gradients, y, noise, keep)
+    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray) -> None:
+        self._args = (r, gradients, noise, keep)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
             D = np.vstack([D, gradients])
         D = D * keep
         Dw = D * w
-        _, _, vt = np.linalg.svd(np.asarray(y) * w, full_matrices=False)
-        U = vt[:LOAD_RANK]
-        Du = Dw - (Dw @ U.T) @ U  # the part of each direction that no load moves
-        self.m = len(D)
-        self._D, self._w, self._Dw, self._Du = D, w, Dw, Du
-        self._N = Dw @ Dw.T
-        self._Nu = np.zeros_like(self._N)  # under load only the scale is measured: a gradient looks
-        self._Nu[0, 0] = Du[0] @ Du[0] / LOAD_INFLATION  # like a lateral load (it follows at the rests)
-        self._Du = np.zeros_like(Du)
-        self._Du[0] = Du[0]
+        self.m = m = len(D)  # measured states: the scale, the gradient; then the scale's rate
+        self._D, self._w, self._Dw = D, w, Dw
+        self._N = np.zeros((m + 1, m + 1))
+        self._N[:m, :m] = Dw @ Dw.T
+        self._Dw1 = np.vstack([Dw, np.zeros((1, len(w)))])
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._yw = np.empty_like(w)
-        self._eye = np.eye(self.m)
+        self._eye = np.eye(m + 1)
+        self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL])
         self.scale = 1.0
-        self.gradient = np.zeros(self.m - 1)
+        self.rate = 0.0  # the scale's relative change per second
+        self.gradient = np.zeros(m - 1)
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
-        self.P = np.zeros((self.m, self.m))
+        self.P = np.zeros((m + 1, m + 1))
         self.rest_frames = 0  # frames measured as at rest (all time)
         self._t: float | None = None
 
     def with_mask(self, keep: np.ndarray) -> DriftTracker:
         """The same tracker (its state kept) over the channels ``keep``."""
-        r, gradients, y, noise, _ = self._args
-        new = DriftTracker(r, gradients, y, noise, keep)
-        new.scale, new.P, new.rest_frames, new._t = self.scale, self.P, self.rest_frames, self._t
+        r, gradients, noise, _ = self._args
+        new = DriftTracker(r, gradients, noise, keep)
+        new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         return new
 
@@ -149,30 +141,38 @@ class DriftTracker:
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
         if t is not None:
             self._t = t
-        P = self.P + (RATE * RATE * dt) * self._eye
+        m = self.m
+        P = self.P.copy()  # predicted: the scale moves on at its rate, F P F^T + Q with F = I + dt e_0 e_m^T
+        P[0] += dt * P[m]
+        P[:, 0] += dt * P[:, m]
+        P[np.diag_indices_from(P)] += self._q * dt
         yw = np.multiply(y, self._w, out=self._yw)
-        b = self._Dw @ yw
+        b = self._Dw1 @ yw
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
         rest = float(yw @ yw) - b[0] * b[0] / self._N[0, 0] < self._rest
-        if rest:  # the information matrix and vector of this frame's measurement of the change
-            info, vec = self._N, b
-            self.rest_frames += 1
-        else:
-            info, vec = self._Nu, (self._Du @ yw) / LOAD_INFLATION
+        step = self.rate * dt
+        if not rest:  # under load nothing is measured: a load's change is not the device's (a lateral
+            self.scale *= 1.0 + step  # one looks like a gradient); the scale goes on at its rate
+            self.P = P
+            return False
+        self.rest_frames += 1
+        info = self._N  # the information matrix and vector of this frame's measurement of the change
         gain = P @ np.linalg.inv(self._eye + info @ P)  # (P^-1 + info)^-1, without inverting P
-        delta = gain @ vec
+        delta = gain @ (b - info[:, 0] * step)  # the innovation: what the predicted step leaves
         if np.isfinite(delta).all():
-            self.scale *= 1.0 + float(delta[0])
-            if self.m > 1:
-                self._set_gradient(self.gradient + delta[1:])
+            # the frame was formed with the scale before this frame's step: the step and the update
+            self.scale *= (1.0 + step) * (1.0 + float(delta[0]))
+            self.rate += float(delta[m])
+            if m > 1:
+                self._set_gradient(self.gradient + delta[1:m])
             P = gain
         self.P = 0.5 * (P + P.T)
-        return rest
+        return True
 
     def reset(self) -> None:
         """A new reference (a tare): no change since."""
-        self.scale, self.P, self._t = 1.0, np.zeros((self.m, self.m)), None
+        self.scale, self.rate, self.P, self._t = 1.0, 0.0, np.zeros((self.m + 1, self.m + 1)), None
         self._set_gradient(np.zeros(self.m - 1))
 
     @property

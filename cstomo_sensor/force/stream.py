@@ -43,6 +43,7 @@ import numpy as np
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
+from .creep import DEFAULT_CREEP, CreepCompensator
 from .device import DEFAULT_NOISE_DB, read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
@@ -109,6 +110,7 @@ class StreamConfig:
     wrench_filter_hz: float = 20.0  # 0 = no filtered wrench
     stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
     drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
+    creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
@@ -121,6 +123,9 @@ class StreamConfig:
             raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
         if not self.stale_timeout > 0:
             raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
+        if not 0 <= self.creep_per_decade < 0.5:
+            raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade,
+                                        "a fraction per decade, 0 <= c < 0.5 (rubbers: 0.02..0.06; 0 = off)")
 
 
 def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
@@ -280,6 +285,8 @@ class FrameStream:
         self.counts = _Counts()
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.drift: DriftTracker | None = None  # made with each reference (drift_tracking)
+        self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
+        self._offset = np.zeros(pipe.n_meas)  # the drift's and the creep's offsets, summed
         self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         n_el = len(pipe.geometry.electrodes)
         pattern = MeasurementPattern(n_el, pipe.geometry.layers)
@@ -537,17 +544,40 @@ class FrameStream:
         return ""
 
     def _new_drift(self) -> None:
-        """A drift tracker for the reference just set (none without ``drift_tracking``)."""
+        """A drift tracker (``drift_tracking``) and a creep compensator for the reference just set."""
         pipe = self.pipe
-        if not self.config.drift_tracking or pipe.reference is None:
-            self.drift = None
+        self.drift = self.creep = None
+        if pipe.reference is None:
             return
-        est = pipe.estimator
-        if self._gradients is None:
-            self._gradients = gradient_directions(pipe.model)
-        self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients, np.asarray(est.y),
-                                  change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
-        pipe.scale, pipe.offset = 1.0, self.drift.offset
+        if self.config.drift_tracking:
+            est = pipe.estimator
+            if self._gradients is None:  # the contacts' change, then the resistivity's gradient
+                g = gradient_directions(pipe.model)
+                c = pipe.model.contact
+                self._gradients = g if c is None else np.vstack([c, g])
+            self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients,
+                                      change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
+        c = self.creep_per_decade
+        if c > 0:
+            self.creep = CreepCompensator(c, pipe.n_meas)
+        pipe.scale = 1.0
+        self._apply_offsets()
+
+    @property
+    def creep_per_decade(self) -> float:
+        """The creep compensated: the calibration's coefficient if it has one, else the setting's."""
+        cal = self.pipe.calibration
+        fitted = getattr(cal, "creep_per_decade", None) if cal is not None else None
+        return float(fitted) if fitted is not None else self.config.creep_per_decade
+
+    def _apply_offsets(self) -> None:
+        """The pipeline subtracts the drift's gradient and the creep from every change."""
+        d = self.drift.offset if self.drift is not None else None
+        c = self.creep.offset if self.creep is not None else None
+        if c is None or d is None:
+            self.pipe.offset = d if c is None else c
+        else:
+            self.pipe.offset = np.add(d, c, out=self._offset)
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -595,7 +625,7 @@ class FrameStream:
         self._mask = mask
         if self.drift is not None:
             self.drift = self.drift.with_mask(~mask)
-            self.pipe.offset = self.drift.offset
+            self._apply_offsets()
         self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
                                  channels=int(mask.sum()))
         if mask.any():
@@ -634,10 +664,15 @@ class FrameStream:
         elif self._implausible_run:
             log.warning("plausible frames again after %d implausible ones", self._implausible_run)
             self._implausible_run = 0
-        drift = self.drift
-        if drift is not None and self.pipe.change_plausible:  # an estimate beyond max_force may be drift
-            drift.observe(self.pipe.last_y, t)
-            self.pipe.scale = drift.scale
+        drift, creep = self.drift, self.creep
+        if self.pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
+            y = self.pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
+            if drift is not None:
+                drift.observe(y, t)
+                self.pipe.scale = drift.scale
+            if creep is not None:
+                creep.observe(y, t)
+            self._apply_offsets()
         return result
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,

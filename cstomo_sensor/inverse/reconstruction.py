@@ -138,6 +138,8 @@ class ReconstructionModel:
     key : hash of every input.
     fit : (n_meas, n_meas) float32, ``S @ R_basis``: the data the basis image explains (residuals).
     basis_centers : (n_basis, 3) m.   average : (n_voxels, n_basis) sparse volume average.
+    contact : (n_meas,) the normalised change (``dV / v_scale``) of every electrode's contact impedance
+    rising by 1 (relative): a direction the drift tracker follows (force/drift.py).
     """
 
     R: np.ndarray
@@ -156,6 +158,7 @@ class ReconstructionModel:
     fit: np.ndarray | None = None
     basis_centers: np.ndarray | None = None
     average: scipy.sparse.csr_matrix | None = None
+    contact: np.ndarray | None = None
 
     @property
     def n_meas(self) -> int:
@@ -198,7 +201,7 @@ class ReconstructionModel:
         R, fit = self.matrices(svd, iterations, step, lam)
         return ReconstructionModel(R, self.S, self.v_scale, self.model_reference, self.sigma0, self.centers,
                                    self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta), p,
-                                   fit, self.basis_centers, self.average)
+                                   fit, self.basis_centers, self.average, self.contact)
 
     # -- one file, no pickle ----------------------------------------------------------------
     def arrays(self) -> dict[str, np.ndarray]:
@@ -237,12 +240,12 @@ class ReconstructionModel:
                                           shape=(len(z["centers"]), len(z["basis_centers"])))
         return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
                    z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"],
-                   s["weight_power"], z["fit"], z["basis_centers"], average)
+                   s["weight_power"], z["fit"], z["basis_centers"], average, z["contact"])
 
 
 #: The arrays of a saved model (besides its key and its JSON ``scalars``).
 MODEL_ARRAYS = ("R", "S", "v_scale", "model_reference", "centers", "volumes", "fit", "basis_centers",
-                "average", "average_weights")
+                "contact", "average", "average_weights")
 
 
 def model_inputs(geometry: SensorGeometry, spec: ReconSpec) -> dict:
@@ -304,6 +307,11 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     J = fm.jacobian(solution=sol)
     seconds["jacobian"] = time.perf_counter() - t
     t = time.perf_counter()
+    eps = 0.01  # every contact impedance 1 % higher: the contacts' change (a central difference)
+    z = np.full(geometry.n_electrodes, geometry.contact_impedance)
+    dv = fm.with_contact_impedance(z * (1 + eps)).voltages() - fm.with_contact_impedance(z * (1 - eps)).voltages()
+    seconds["contact"] = time.perf_counter() - t
+    t = time.perf_counter()
     image_voxel, centers, volumes = voxel_basis(geometry, mesh, spec.grid)
     cell_voxel, basis_centers, basis_volumes = voxel_basis(geometry, mesh, spec.basis_grid)
     Vref = sol.voltages
@@ -321,7 +329,8 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     else:
         k = int(spec.iterations)
     model = ReconstructionModel(None, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k, spec.damping,
-                                step, key, {}, p, None, basis_centers, volume_average(mesh, image_voxel, cell_voxel))
+                                step, key, {}, p, None, basis_centers, volume_average(mesh, image_voxel, cell_voxel),
+                                dv / (2 * eps) / v_scale)
     R, fit = model.matrices(svd, k, step, lam)
     seconds["landweber"] = time.perf_counter() - t
     meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,

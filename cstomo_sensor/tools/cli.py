@@ -25,7 +25,7 @@ from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
-from .common import add_pipeline_args, pipeline_config
+from .common import add_creep_arg, add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -98,7 +98,8 @@ def cmd_estimate(a) -> int:
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
-                                            drift_tracking=not a.no_drift_tracking))
+                                            drift_tracking=not a.no_drift_tracking,
+                                            creep_per_decade=a.creep_per_decade))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
@@ -183,6 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default %(default)g)")
     e.add_argument("--no-drift-tracking", action="store_true",
                    help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
+    add_creep_arg(e)
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
