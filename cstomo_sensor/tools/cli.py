@@ -15,7 +15,7 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.device import DEFAULT_NOISE_DB, read_reference
+from ..force.device import read_reference
 from ..force.pipeline import FrameResult, Pipeline
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
@@ -100,7 +100,8 @@ def cmd_estimate(a) -> int:
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
                                             drift_tracking=not a.no_drift_tracking))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
-    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
+    noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
+    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
