@@ -144,3 +144,23 @@ def test_set_noise_refuses_a_level_no_board_has(warm_model):
     with pytest.raises(ConfigError, match="SNR 140.0 dB"):
         pipe.set_noise(np.full(pipe.n_meas, np.sqrt(np.mean(ref**2)) * 1e-7), "a test")
     assert pipe.noise_source == NOISE_ASSUMED
+
+
+def test_cli_estimate_says_and_uses_the_estimated_noise(device, tmp_path, capsys):
+    from conftest import MODEL_H
+
+    from cstomo_sensor.frames_io import read_frames, write_frames
+    from cstomo_sensor.tools.cli import main
+
+    ref1, frames = _held(device, 40.0, seed=12)
+    write_frames(tmp_path / "reference.csv", ref1, comment="one unloaded frame")
+    write_frames(tmp_path / "frames.csv", frames)
+    assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
+                 "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(MODEL_H)]) == 0
+    err = capsys.readouterr().err
+    assert "1 frame(s), noise estimated from 95 frame pairs of" in err, err
+    said = float(err.split("frames.csv (")[1].split(" dB")[0])
+    assert abs(said - 40.0) < 20 * math.log10(1.2), err
+    lines = (tmp_path / "forces.csv").read_text().splitlines()
+    assert len(lines) == 1 + len(read_frames(tmp_path / "frames.csv"))
+    assert [r.split(",")[-1] for r in lines[1:]] == ["0"] * len(frames)  # no socket frame flagged
