@@ -176,8 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", required=True)
     r.add_argument("--out", required=True)
     e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
-    e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise; one without its "
-                        ".noise.csv: the noise is estimated from the --frames file, a time series of the board)")
+    e.add_argument("--reference", required=True,
+                   help="frames file of unloaded frames (several: mean and noise; one without its .noise.csv: "
+                        "the noise is estimated from the --frames file, a time series of the board)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
     e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
