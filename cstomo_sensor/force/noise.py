@@ -27,7 +27,7 @@ the noise in use is not measured, and hands the level to the pipeline after :dat
 then measures one pair in :data:`SAMPLE_EVERY` frames and hands it over again, every
 :data:`UPDATE_EVERY` pairs, when it moved by more than :data:`RETUNE` (the estimators are rebuilt then:
 7-13 ms, at most every 20 s at 100 frames/s). Per measured pair: one subtraction and one partial sort
-of 208 values, about 5 us (docs/node.md). ``cstomo estimate`` runs the same estimate over its whole
+of 208 values, 5-7 us (docs/node.md). ``cstomo estimate`` runs the same estimate over its whole
 frames file first (:func:`noise_level`), so every frame gets it.
 """
 from __future__ import annotations
