@@ -119,7 +119,15 @@ class DriftTracker:
     def with_mask(self, keep: np.ndarray) -> DriftTracker:
         """The same tracker (its state kept) over the channels ``keep``."""
         r, gradients, noise, _ = self._args
-        new = DriftTracker(r, gradients, noise, keep)
+        return self._carried(DriftTracker(r, gradients, noise, keep))
+
+    def with_noise(self, noise: np.ndarray) -> DriftTracker:
+        """The same tracker (its state kept) for a change of per-channel noise ``noise`` (y units)."""
+        r, gradients, _, keep = self._args
+        return self._carried(DriftTracker(r, gradients, noise, keep))
+
+    def _carried(self, new: DriftTracker) -> DriftTracker:
+        """``new`` with this tracker's state."""
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         return new

@@ -12,6 +12,9 @@ owns, per sensor:
 - the filtered wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps);
 - the zero that holds: the device's slow change since the tare (:class:`~.drift.DriftTracker`,
   ``drift_tracking``), followed frame by frame and applied by the pipeline;
+- the noise the estimators use when the reference measured none (a one-frame reference): estimated
+  from consecutive frames (:class:`~.noise.NoiseEstimate`, ``noise_estimation``) and handed to the
+  pipeline now and then, or from a whole frames file first (:meth:`FrameStream.estimate_noise`);
 - the accounting: frames, late frames, dropped frames and why, implausible and foreign-load frames,
   the processing time, and the losses over the last :data:`LOSS_WINDOW` s;
 - the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`): the node's
@@ -44,10 +47,11 @@ from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
 from .creep import DEFAULT_CREEP, CreepCompensator
-from .device import DEFAULT_NOISE_DB, read_reference, write_reference
+from .device import read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
-from .pipeline import FrameResult, Pipeline
+from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, noise_level, snr_db
+from .pipeline import NOISE_ASSUMED, FrameResult, Pipeline
 from .scene_field import change_noise
 from .tare import TareCheck, check_tare
 
@@ -111,6 +115,7 @@ class StreamConfig:
     stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
     drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
     creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
+    noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
@@ -315,6 +320,11 @@ class FrameStream:
         self._loss_history: deque = deque()
         self._last_rejected = self._last_implausible = 0
         self._drop_log = _Throttle()
+        self.noise = NoiseEstimate(pipe.n_meas) if config.noise_estimation else None  # None: not estimated
+        self._noise_level: float | None = None  # the estimated level in use (volts)
+        self._noise_from = ""  # ... and what it was estimated from
+        self._noise_next = MIN_PAIRS  # the pair count at which the estimate is evaluated next
+        self._noise_note = ""  # why no estimate is in use yet
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -337,11 +347,11 @@ class FrameStream:
         if why:
             raise ConfigError(f"{source} not used: {why}")
         report = self.pipe.set_reference(ref, noise, n_frames)
+        self._keep_estimate()
         self._new_drift()
         self.reference_source = source
-        noise_what = "measured" if noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB"
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
-                                                   noise_what, report.message)
+                                                   self.noise_text, report.message)
         return report.message
 
     def init_reference(self, tare_on_start: bool) -> str:
@@ -376,6 +386,8 @@ class FrameStream:
             raise ConfigError.bad_value("tare_frames", n, ">= 1")
         self._tare_left = self._tare_n = int(n)
         self._tare_forced = False
+        if self.noise is not None:
+            self.noise.restart()  # no frame pair across the tare
 
     def joint_free(self) -> bool:
         """A controller's hint that the joint is free now: re-zero at once, a tare on the next
@@ -397,6 +409,8 @@ class FrameStream:
         with self.lock:
             if self.filter is not None:
                 self.filter.reset()
+            if self.noise is not None:
+                self.noise.restart()  # no frame pair across the outage
             if self._tare_left:
                 taken = self._tare_n - self._tare_left
                 self._tare_left = 0
@@ -497,12 +511,12 @@ class FrameStream:
         self._tare_forced = False
         if outcome.ok:
             report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
+            self._keep_estimate()
             self._new_drift()
             self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
                               f"{outcome.frames} frames, spread {outcome.spread:.2%}" + \
                               (", forced" if outcome.forced else "")
-            log.info("tare taken at %s (noise %s; %s)", self.tare_taken,
-                     "measured" if outcome.noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB",
+            log.info("tare taken at %s (noise %s; %s)", self.tare_taken, self.noise_text,
                      outcome.check.summary() if outcome.check is not None else "no load check")
             if outcome.forced:
                 log.warning("forced tare: %s", f"overrode: {outcome.overridden}" if outcome.overridden else
@@ -578,6 +592,85 @@ class FrameStream:
             self.pipe.offset = d if c is None else c
         else:
             self.pipe.offset = np.add(d, c, out=self._offset)
+
+    # --- noise -----------------------------------------------------------------------------------
+
+    @property
+    def noise_text(self) -> str:
+        """What noise the estimators use, in words: measured by the tare, estimated from N frame pairs
+        (with its SNR), or assumed (and why no estimate is in use yet)."""
+        pipe = self.pipe
+        if pipe.noise_measured or self._noise_level is not None or self.noise is None:
+            return pipe.noise_source
+        return f"{pipe.noise_source} ({self._noise_note or f'estimating: {self.noise.count} of {MIN_PAIRS} frame pairs'})"
+
+    def estimate_noise(self, frames: np.ndarray, source: str) -> str:
+        """Estimate the noise from a whole file of consecutive frames ``frames`` (n, n_meas) before they
+        are processed, by the running estimate's rules (force/noise.py), so every frame gets it; the
+        estimate then stays (the file holds no more). Nothing changes when the reference's noise is
+        measured or ``noise_estimation`` is off. Returns :attr:`noise_text`."""
+        with self.lock:
+            if self.noise is None or self.pipe.noise_measured or self.pipe.reference is None:
+                return self.noise_text
+            level, pairs, agree = noise_level(frames, ~self.pipe.bad_channels)
+            if self._usable_noise(level, pairs, agree, f"of {source}"):
+                self._use_noise(level, f"estimated from {pairs} frame pairs of {source}")
+                self.noise = None
+            return self.noise_text
+
+    def _usable_noise(self, level: float, pairs: int, agree: float, where: str = "") -> bool:
+        """Whether an estimate of ``level`` volts from ``pairs`` pairs, ``agree`` of them agreeing, may
+        be used (force/noise.py); if not, :attr:`noise_text` says why."""
+        if pairs < MIN_PAIRS:
+            self._noise_note = f"not estimated: {pairs} frame pairs {where}, fewer than {MIN_PAIRS}".replace("  ", " ")
+        elif not agree >= AGREE_FRACTION:
+            self._noise_note = (f"not estimated: only {agree:.0%} of {pairs} consecutive frame pairs {where} "
+                                f"differ by noise alone (at least {AGREE_FRACTION:.0%} needed): frames of "
+                                "distinct loads, not a time series?").replace("  ", " ")
+        else:
+            return True
+        return False
+
+    def _observe_noise(self, values: np.ndarray) -> None:
+        """A processed frame into the running noise estimate (every frame's pair until an estimate is
+        in use, then one in :data:`~.noise.SAMPLE_EVERY`); the estimate is evaluated every
+        :data:`~.noise.MIN_PAIRS` pairs until one is in use, then every :data:`~.noise.UPDATE_EVERY`,
+        and replaces the one in use when it moved by more than :data:`~.noise.RETUNE`."""
+        est = self.noise
+        keep = ~self._mask if self.excluded.channels else None
+        est.observe(values, keep, pair=self._noise_level is None or self.processed % SAMPLE_EVERY == 0)
+        if est.pairs < self._noise_next:
+            return
+        self._noise_next = est.pairs + (UPDATE_EVERY if self._noise_level is not None else MIN_PAIRS)
+        level, agree = est.level()
+        if not self._usable_noise(level, est.count, agree):
+            return
+        if self._noise_level is None or abs(level / self._noise_level - 1.0) > RETUNE:
+            self._use_noise(level, f"estimated from {est.count} frame pairs")
+
+    def _use_noise(self, level: float, source: str) -> None:
+        """The estimated noise ``level`` (volts, every channel) in the pipeline and the drift tracker
+        (its state kept); ``source`` says from what. A level outside a board's range against the
+        reference (device.NOISE_DB_RANGE) is not used: the noise in use stays."""
+        pipe = self.pipe
+        try:
+            pipe.set_noise(np.full(pipe.n_meas, level), f"{source} ({snr_db(level, pipe.reference):.1f} dB)")
+        except ConfigError as err:
+            self._noise_note = f"estimate not used: {err}"
+            log.warning("noise %s", self._noise_note)
+            return
+        self._noise_level, self._noise_from, self._noise_note = level, source, ""
+        if self.drift is not None:
+            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames))
+            self._apply_offsets()
+        log.info("noise %s: the estimators use it instead of the %s", pipe.noise_source, NOISE_ASSUMED)
+
+    def _keep_estimate(self) -> None:
+        """After a new reference without a measured noise: the board's estimated noise stays in use
+        (the board's noise is constant over a session; docs/physics.md#real-devices)."""
+        if not self.pipe.noise_measured and self._noise_level is not None:
+            level, self._noise_level = self._noise_level, None
+            self._use_noise(level, self._noise_from)
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -664,6 +757,8 @@ class FrameStream:
         elif self._implausible_run:
             log.warning("plausible frames again after %d implausible ones", self._implausible_run)
             self._implausible_run = 0
+        if self.noise is not None and not self.pipe.noise_measured:
+            self._observe_noise(values)
         drift, creep = self.drift, self.creep
         if self.pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
             y = self.pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
@@ -813,7 +908,7 @@ class FrameStream:
         report = pipe.scale_report
         if report is not None:
             kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
-                      noise="measured by the tare" if pipe.noise_measured else f"assumed {DEFAULT_NOISE_DB:g} dB")
+                      noise=self.noise_text)
             if report.warn:
                 level = max(level, WARN)
                 msgs.append(report.message)

@@ -10,7 +10,8 @@ frames through a :class:`~cstomo_sensor.force.stream.FrameStream` and build the 
 settings given (``wrench_filtered`` with a filter, the stress fields with ``--stress-field-every``).
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
-(the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise) is the
+(the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise; without
+either, the noise is estimated from the bag's frames as they come, as the node does: force/noise.py) is the
 reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); without it,
 the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
 exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
