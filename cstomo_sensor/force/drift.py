@@ -1,38 +1,41 @@
 """The zero that holds: tracking the device's slow change after its tare (docs/physics.md#device-changes).
 
 After a tare the device keeps changing: the rubber warms (its resistivity rises by 0.2..1.5 % per K,
-the same sign everywhere, more on the side nearer the motor), the board's current source drifts. The
-mean change and the drive scale every voltage of a frame (nearly) alike, ``V = s (V_ref + dV_load)``:
-a change of ``s`` by 1 % reads as 18 N at zero load when the change is normalised by the tare alone.
-A gradient of the change across the block reads as a lateral load (10 K with 30 % across: 12 N).
-:class:`DriftTracker` estimates ``s`` and the gradient ``g`` (along x, y, z: :func:`gradient_directions`)
-over time, and the pipeline removes both: ``y = (V / s - V_ref) / y_scale - g . d``.
+the same sign everywhere, more on the side nearer the motor), its contacts' impedance falls with
+temperature and drifts, the board's current source drifts. The mean change and the drive scale every
+voltage of a frame (nearly) alike, ``V = s (V_ref + dV_load)``: a change of ``s`` by 1 % reads as 18 N
+at zero load when the change is normalised by the tare alone. A gradient of the change across the
+block reads as a lateral load (10 K with 30 % across: 12 N). :class:`DriftTracker` estimates ``s``,
+its rate of change, and the states of a few more directions over time (the stream gives them: the
+contacts' impedance changing alike and linearly along x, y, z, from the model; the resistivity's
+gradient along x, y, z, :func:`gradient_directions`); the pipeline removes them all:
+``y = (V / s - V_ref) / y_scale - g . d``.
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
 of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's):
 
 - **shape at rest**: a frame that ``delta r`` alone explains (the whitened residual of the best
-  ``delta`` below :data:`REST_BOUND` per channel, the gradient's current part taken out first) is a
-  frame without load; it measures the scale and the gradient with their full directions (a noise
-  of about 1e-5 per frame). A lateral load looks like a gradient: it is never taken for rest by one.
-- **shape under load**: otherwise only the scale is measured, with the part of ``r`` outside the
-  span of the socket loads' changes (the top :data:`LOAD_RANK` directions of the estimator's
-  whitened calibration set), its variance inflated :data:`LOAD_INFLATION` times: what a load does is
-  not taken for a change of the device. The gradient follows at the next rest.
-- **time**: the state is a random walk of :data:`RATE` per square-root second (a joint warming by
-  15 K in 30 minutes at 1.5 %/K changes ``s`` by 1.3e-4 per second); a Kalman filter weighs each
-  frame's measurement against it. Loads move in tenths of seconds; the device in minutes.
+  ``delta`` below :data:`REST_BOUND` per channel, the other states' current part taken out first),
+  and that reads no force once that ``delta`` is taken out (below :data:`REST_FORCE_SIGMAS` times the
+  force's noise), is a frame without load; it measures every state with its full direction (a noise
+  of about 1e-5 per frame at 60 dB). A lateral load looks like a gradient: it is never taken for rest.
+- **under load** nothing is measured: the scale goes on at its tracked rate (a warming joint keeps
+  warming during a 30 s task), the other states stay; they follow again at the next rest.
+- **time**: the states are random walks of :data:`RATE` per square-root second, the scale's rate one
+  of :data:`ACCEL`; a Kalman filter weighs each rest frame's measurement against them. Loads move in
+  tenths of seconds, the device in minutes: a load the shape takes for rest moves the scale little.
 
 What it cannot separate, said plainly:
 
-- a change that is neither a scaling nor a linear gradient: the contact impedances (a uniform
-  resistivity change with the contacts unchanged is a scaling plus a contact change: at 10 % its
-  remainder reads 0.2-0.3 N), single electrodes' contacts (20 % drift: 0.13 N), a gradient that is not
-  linear. That remainder stays in the change, reads as a small force and raises the consistency
-  statistic;
-- a load held still below about 1 N (the rest bound) is taken for rest: the part of it along ``r``
-  goes into ``s`` (it reads low while held and slightly negative for a moment after it is removed);
-- a change faster than :data:`RATE` under a long load (it is followed at the next rest).
+- a change that none of the directions describe: single electrodes' contacts (20 % drift: 0.13 N), a
+  gradient that is not linear, the model's contact response against a real device's (a uniform 10 %
+  resistivity change with the contacts unchanged, a scaling plus a contact change: 0.17 N remain).
+  That remainder stays in the change, reads as a small force and raises the consistency statistic;
+- a load held still below the rest bounds (about 0.7 N at 60 dB, 5 N at 40 dB) is taken for rest:
+  the part of it along the directions goes slowly into the states;
+- a change of rate during a long load (the warming slows while the joint is loaded: followed at the
+  next rest), and a change much faster than the rates above (a step of the drive current is followed
+  over a second or so at 60 dB).
 """
 from __future__ import annotations
 
@@ -40,13 +43,23 @@ import math
 
 import numpy as np
 
-#: Random walk of the scale, per square-root second.
-RATE = 2e-4
+#: Random walk of the scale (and of the gradient and contact states), per square-root second: what
+#: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a
+#: load a frame takes for rest is not taken for a change of the device: at 40 dB a 10 N load pressing
+#: straight down looks like a 0.5 % uniform change within the noise; at 2e-4 the scale took it
+#: within a tenth of a second (held-out loads at 40 dB: 16.6 deg with tracking, 4.7 without; now 4.7).
+RATE = 2e-5
 #: Random walk of the scale's rate of change (per second), per square-root second: the device warms
 #: and cools over minutes (15 K in 30 minutes at 0.8 %/K: a rate of 2e-4/s falling to 1e-5/s), so
-#: during a load, when the scale is hardly measured, it goes on changing at the rate of the rests
-#: (the warm-up's angle error 2.77 -> 2.43 deg; a rate of the gradient too gains nothing).
-ACCEL = 2e-6
+#: during a load, when nothing is measured, the scale goes on changing at the rate of the rests
+#: (cstomo bench --drift: the warm-up's angle error 2.77 -> 2.03 deg; a rate of the gradient too gains
+#: nothing). 1e-5 follows a ramp's end more slowly (+-10 % in 5 minutes: 0.2 N), 3e-5 costs the
+#: warm-up's angle (2.09 deg).
+ACCEL = 2e-5
+#: The scale's rate is remembered this many seconds without a measurement (it returns to 0 with this
+#: time constant): a 30 s task keeps most of it, a load held 10 minutes does not extrapolate a rate
+#: known from a few rest frames (a 20 N load: 8 % off after 10 minutes without it).
+RATE_MEMORY = 60.0
 #: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
 DEFAULT_PERIOD = 0.01
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
@@ -54,6 +67,12 @@ DEFAULT_PERIOD = 0.01
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
 #: load gives several times the bound.
 REST_BOUND = 1.5
+#: A rest frame also reads no force once the best uniform change is taken out: below this many times
+#: the rms of the force's per-frame noise (60 dB: 0.29 N; 40 dB: 1.9 N), and below :data:`REST_FORCE_MIN`
+#: whatever the noise. The residual bound alone is in units of the noise: on a 40 dB board a 5-10 N
+#: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
+REST_FORCE_SIGMAS = 2.5
+REST_FORCE_MIN = 0.5
 #: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
 #: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
@@ -89,10 +108,14 @@ class DriftTracker:
         Per-channel noise std of a change (y units).
     keep : (n_meas,) bool ndarray
         Channels in use.
+    force_map : (3, n_meas) ndarray or None
+        The estimator's linear map from a change to a force (N), for the rest frames' force bound
+        (None: the residual bound alone).
     """
 
-    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray) -> None:
-        self._args = (r, gradients, noise, keep)
+    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray,
+                 force_map: np.ndarray | None = None) -> None:
+        self._args = (r, gradients, noise, keep, force_map)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
@@ -105,6 +128,12 @@ class DriftTracker:
         self._N[:m, :m] = Dw @ Dw.T
         self._Dw1 = np.vstack([Dw, np.zeros((1, len(w)))])
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
+        self._W = None
+        if force_map is not None:  # the force of a change, of a uniform change, and its noise
+            W = np.asarray(force_map, float) * keep
+            sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
+            self._W, self._Wr = W, W @ D[0]
+            self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
         self._yw = np.empty_like(w)
         self._eye = np.eye(m + 1)
         self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL])
@@ -116,15 +145,15 @@ class DriftTracker:
         self.rest_frames = 0  # frames measured as at rest (all time)
         self._t: float | None = None
 
-    def with_mask(self, keep: np.ndarray) -> DriftTracker:
+    def with_mask(self, keep: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
         """The same tracker (its state kept) over the channels ``keep``."""
-        r, gradients, noise, _ = self._args
-        return self._carried(DriftTracker(r, gradients, noise, keep))
+        r, gradients, noise, _, force_map = self._args
+        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
 
-    def with_noise(self, noise: np.ndarray) -> DriftTracker:
+    def with_noise(self, noise: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
         """The same tracker (its state kept) for a change of per-channel noise ``noise`` (y units)."""
-        r, gradients, _, keep = self._args
-        return self._carried(DriftTracker(r, gradients, noise, keep))
+        r, gradients, _, keep, force_map = self._args
+        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
 
     def _carried(self, new: DriftTracker) -> DriftTracker:
         """``new`` with this tracker's state."""
@@ -150,16 +179,24 @@ class DriftTracker:
         if t is not None:
             self._t = t
         m = self.m
-        P = self.P.copy()  # predicted: the scale moves on at its rate, F P F^T + Q with F = I + dt e_0 e_m^T
-        P[0] += dt * P[m]
+        a = math.exp(-dt / RATE_MEMORY)
+        P = self.P.copy()  # predicted: the scale moves on at its rate, which fades: F P F^T + Q with
+        P[0] += dt * P[m]  # F = I + dt e_0 e_m^T, F_mm = a
+        P[m] *= a
         P[:, 0] += dt * P[:, m]
+        P[:, m] *= a
         P[np.diag_indices_from(P)] += self._q * dt
         yw = np.multiply(y, self._w, out=self._yw)
         b = self._Dw1 @ yw
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
-        rest = float(yw @ yw) - b[0] * b[0] / self._N[0, 0] < self._rest
+        best = b[0] / self._N[0, 0]  # the uniform change that explains the most of the frame
+        rest = float(yw @ yw) - b[0] * best < self._rest
+        if rest and self._W is not None:
+            f = self._W @ y - self._Wr * best
+            rest = math.sqrt(float(f @ f)) < self.rest_force
         step = self.rate * dt
+        self.rate *= a
         if not rest:  # under load nothing is measured: a load's change is not the device's (a lateral
             self.scale *= 1.0 + step  # one looks like a gradient); the scale goes on at its rate
             self.P = P

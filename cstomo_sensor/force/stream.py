@@ -570,12 +570,18 @@ class FrameStream:
                 c = pipe.model.contact
                 self._gradients = g if c is None else np.vstack([c, g])
             self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients,
-                                      change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
+                                      change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
+                                      self._force_map())
         c = self.creep_per_decade
         if c > 0:
             self.creep = CreepCompensator(c, pipe.n_meas)
         pipe.scale = 1.0
         self._apply_offsets()
+
+    def _force_map(self) -> np.ndarray | None:
+        """The estimator's linear map of a change to a force (the drift tracker's rest bound)."""
+        est = self.pipe.estimator
+        return getattr(getattr(est, "linear", est), "W", None)
 
     @property
     def creep_per_decade(self) -> float:
@@ -661,7 +667,8 @@ class FrameStream:
             return
         self._noise_level, self._noise_from, self._noise_note = level, source, ""
         if self.drift is not None:
-            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames))
+            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames),
+                                               self._force_map())
             self._apply_offsets()
         log.info("noise %s: the estimators use it instead of the %s", pipe.noise_source, NOISE_ASSUMED)
 
@@ -717,7 +724,7 @@ class FrameStream:
         self.pipe.set_bad_channels(mask.copy())  # raises before changing anything if refused
         self._mask = mask
         if self.drift is not None:
-            self.drift = self.drift.with_mask(~mask)
+            self.drift = self.drift.with_mask(~mask, self._force_map())
             self._apply_offsets()
         self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
                                  channels=int(mask.sum()))

@@ -43,7 +43,7 @@ from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
 log = logging.getLogger(__name__)
 
-RECON_FORMAT = 5  # 5: a fine basis averaged onto the image grid; 4: built on the shipped meshes
+RECON_FORMAT = 6  # 6: the contacts' directions; 5: a fine basis averaged onto the image grid; 4: built on the shipped meshes
 V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation is floored
 
 
@@ -138,8 +138,9 @@ class ReconstructionModel:
     key : hash of every input.
     fit : (n_meas, n_meas) float32, ``S @ R_basis``: the data the basis image explains (residuals).
     basis_centers : (n_basis, 3) m.   average : (n_voxels, n_basis) sparse volume average.
-    contact : (n_meas,) the normalised change (``dV / v_scale``) of every electrode's contact impedance
-    rising by 1 (relative): a direction the drift tracker follows (force/drift.py).
+    contact : (k, n_meas) the normalised changes (``dV / v_scale``) of the electrodes' contact impedances
+    rising by 1 (relative): all alike, then linearly with the electrode's position along x, y, z (by 1
+    per half of the electrodes' extent): directions the drift tracker follows (force/drift.py).
     """
 
     R: np.ndarray
@@ -307,9 +308,13 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     J = fm.jacobian(solution=sol)
     seconds["jacobian"] = time.perf_counter() - t
     t = time.perf_counter()
-    eps = 0.01  # every contact impedance 1 % higher: the contacts' change (a central difference)
+    eps = 0.01  # contact impedances 1 % higher, alike and along x, y, z (the warm side's contacts)
     z = np.full(geometry.n_electrodes, geometry.contact_impedance)
-    dv = fm.with_contact_impedance(z * (1 + eps)).voltages() - fm.with_contact_impedance(z * (1 - eps)).voltages()
+    e = np.asarray(geometry.electrode_centers(), float)
+    lo, hi = e.min(axis=0), e.max(axis=0)
+    along = [(e[:, k] - 0.5 * (lo[k] + hi[k])) / (0.5 * (hi[k] - lo[k])) for k in range(3) if hi[k] > lo[k]]
+    contact = np.array([(fm.with_contact_impedance(z * (1 + eps * w)).voltages() - sol.voltages) / eps
+                        for w in [np.ones_like(z), *along]])
     seconds["contact"] = time.perf_counter() - t
     t = time.perf_counter()
     image_voxel, centers, volumes = voxel_basis(geometry, mesh, spec.grid)
@@ -330,7 +335,7 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
         k = int(spec.iterations)
     model = ReconstructionModel(None, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k, spec.damping,
                                 step, key, {}, p, None, basis_centers, volume_average(mesh, image_voxel, cell_voxel),
-                                dv / (2 * eps) / v_scale)
+                                contact / v_scale)
     R, fit = model.matrices(svd, k, step, lam)
     seconds["landweber"] = time.perf_counter() - t
     meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,
