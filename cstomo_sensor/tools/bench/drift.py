@@ -45,7 +45,7 @@ from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, te
 from .report import write_rows
 
 RATE = 100.0            # frames per second
-RAMP_S = 5.0            # the change happens over this long after the tare (unloaded)
+RAMP_S = 300.0          # the change happens over this long after the tare (unloaded; 10 %: 2.5 K a minute)
 REST_S, HOLD_S = 1.0, 1.0
 N_LOADS = 12
 SNR_DB = 60.0
