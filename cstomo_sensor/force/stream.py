@@ -930,7 +930,20 @@ class FrameStream:
                 msgs.append(d_msg)
         else:
             kv.update(drift_change="not tracked (drift_tracking false)")
+        kv.update(creep=self.creep_text)
         return level, msgs, kv
+
+    @property
+    def creep_text(self) -> str:
+        """The creep compensated and where its coefficient comes from, for the diagnostics."""
+        c = self.creep_per_decade
+        if c <= 0:
+            return "not compensated (creep_per_decade 0)"
+        cal = self.pipe.calibration
+        if cal is not None and getattr(cal, "creep_per_decade", None) is not None:
+            return f"{c:.2%} per decade, from the calibration {cal.path}"
+        return (f"{c:.2%} per decade, assumed (creep_per_decade; a rubber's is 2..6 %: fit it with "
+                "cstomo calibrate --creep-hold, docs/calibration.md)")
 
     def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:
         """The level and message of the frames lost or dropped over the last :data:`LOSS_WINDOW` s
