@@ -16,7 +16,7 @@ at :data:`RATE` frames/s. Per scenario, estimator and tracking on/off:
 - ``us_per_frame``: median time of one frame through the stream (``FrameStream.push``) in this run.
 
 Then the device over time (model/timeline.py: the truth solved at knots of its state, interpolated,
-60 dB): a temperature gradient (10 K at 0.8 %/K, +-30 % across the block along x), every electrode's
+60 dB): a temperature gradient (10 K at 0.8 %/K over RAMP_S, +-30 % across the block along x), every electrode's
 contact drifting on its own by up to 20 %, creep of a 20 N load held 10 minutes (4 % per decade,
 compensated at 0 (off), 2, 4 and 6 %: ``magnitude_pct`` is the reading at the end against the reading
 1 s after the load), and the 30-minute warm-up (15 K at 0.8 %/K, 30 % gradient, contacts -1 %/K,
@@ -161,14 +161,15 @@ def _errors(est, forces, rest_after: float, times) -> dict:
 def _timelines(out, cache_dir, say) -> list[dict]:
     rows = []
     pipe = Pipeline.build(PipelineConfig(cache_dir=str(cache_dir or "")))
-    cases = [("gradient 10 K, 30 %", temperature_gradient(10.0, 0.3, duration=10.0, ramp_s=5.0), RATE),
+    cases = [("gradient 10 K, 30 %", temperature_gradient(10.0, 0.3, duration=RAMP_S + 10, ramp_s=RAMP_S), RATE),
              ("contact drift 20 %", contact_drift(0.2, "linear", duration=10.0, over_s=5.0), RATE)]
     for name, spec, rate in cases:
+        settled = spec.duration - 4.0  # the zero over the last 4 s, after the change
         tl = Timeline(spec, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
         for tracking in (False, True):
             times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, rate)
             rows.append({"scenario": name, "estimator": pipe.estimator_name, "tracking": tracking,
-                         **_errors(est, forces, 6.0, times), "tracked_change": float(scale[-1] - 1),
+                         **_errors(est, forces, settled, times), "tracked_change": float(scale[-1] - 1),
                          "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us})
             say(f"drift bench: {name}, tracking {tracking}: zero {rows[-1]['zero_bias_n']:.3f} N")
     tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, duration=601.0), DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED,
