@@ -139,6 +139,7 @@ class DeviceCalibration:
     fitted_on: dict = field(default_factory=dict)
     cv: dict = field(default_factory=dict)
     path: str = ""
+    creep_per_decade: float | None = None  # the rubber's creep (force/creep.py); None: the stream's setting
 
     def corrected_set(self, forces: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The model's training set (``forces`` (n, 3), ``y`` (n, n_meas)) corrected to this device:
@@ -167,6 +168,7 @@ class DeviceCalibration:
     def save(self, path: str | Path) -> None:
         doc = {"format": FORMAT, "sensor": self.sensor, "model_hash": self.model_hash, "estimator": self.estimator,
                "prior_rel": self.prior_rel, "fitted_on": self.fitted_on, "cross_validation": self.cv,
+               **({} if self.creep_per_decade is None else {"creep_per_decade": float(self.creep_per_decade)}),
                "force_map": [[float(f"{v:.12g}") for v in row] for row in self.force_map],
                "correction_per_newton": [[float(f"{v:.9g}") for v in row] for row in self.correction]}
         text = "# cstomo_sensor device calibration: y_device(F) = y_model(force_map F) + correction F (README)\n"
@@ -205,9 +207,13 @@ class DeviceCalibration:
         if not 0.2 < abs(np.linalg.det(A)) ** (1 / 3) < 5:
             raise ConfigError.bad_value(f"{where}: force_map", A.round(3).tolist(), "a map near the identity "
                                         "(a device within docs/physics.md#real-devices)")
+        creep = doc.get("creep_per_decade")
+        if creep is not None and not (isinstance(creep, (int, float)) and 0 <= creep < 0.5):
+            raise ConfigError.bad_value(f"{where}: creep_per_decade", creep, "a fraction per decade, 0 <= c < 0.5 "
+                                        "(rubbers: 0.02..0.06)")
         return cls(str(doc["sensor"]), str(doc["model_hash"]), str(doc["estimator"]), A, D,
                    float(doc.get("prior_rel", PRIOR_REL)), doc.get("fitted_on") or {}, doc.get("cross_validation") or {},
-                   str(path))
+                   str(path), None if creep is None else float(creep))
 
 
 def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | None = None,

@@ -1,55 +1,66 @@
 """The zero that holds: tracking the device's slow change after its tare (docs/physics.md#device-changes).
 
 After a tare the device keeps changing: the rubber warms (its resistivity rises by 0.2..1.5 % per K,
-the same sign everywhere, more on the side nearer the motor), the board's current source drifts. The
-mean change and the drive scale every voltage of a frame (nearly) alike, ``V = s (V_ref + dV_load)``:
-a change of ``s`` by 1 % reads as 18 N at zero load when the change is normalised by the tare alone.
-A gradient of the change across the block reads as a lateral load (10 K with 30 % across: 12 N).
-:class:`DriftTracker` estimates ``s`` and the gradient ``g`` (along x, y, z: :func:`gradient_directions`)
-over time, and the pipeline removes both: ``y = (V / s - V_ref) / y_scale - g . d``.
+the same sign everywhere, more on the side nearer the motor), its contacts' impedance falls with
+temperature and drifts, the board's current source drifts. The mean change and the drive scale every
+voltage of a frame (nearly) alike, ``V = s (V_ref + dV_load)``: a change of ``s`` by 1 % reads as 18 N
+at zero load when the change is normalised by the tare alone. A gradient of the change across the
+block reads as a lateral load (10 K with 30 % across: 12 N). :class:`DriftTracker` estimates ``s``,
+its rate of change, and the states of a few more directions over time (the stream gives them: the
+contacts' impedance changing alike and linearly along x, y, z, from the model; the resistivity's
+gradient along x, y, z, :func:`gradient_directions`); the pipeline removes them all:
+``y = (V / s - V_ref) / y_scale - g . d``.
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
 of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's):
 
 - **shape at rest**: a frame that ``delta r`` alone explains (the whitened residual of the best
-  ``delta`` below :data:`REST_BOUND` per channel, the gradient's current part taken out first) is a
-  frame without load; it measures the scale and the gradient with their full directions (a noise
-  of about 1e-5 per frame). A lateral load looks like a gradient: it is never taken for rest by one.
-- **shape under load**: otherwise only the scale is measured, with the part of ``r`` outside the
-  span of the socket loads' changes (the top :data:`LOAD_RANK` directions of the estimator's
-  whitened calibration set), its variance inflated :data:`LOAD_INFLATION` times: what a load does is
-  not taken for a change of the device. The gradient follows at the next rest.
-- **time**: the state is a random walk of :data:`RATE` per square-root second (a joint warming by
-  15 K in 30 minutes at 1.5 %/K changes ``s`` by 1.3e-4 per second); a Kalman filter weighs each
-  frame's measurement against it. Loads move in tenths of seconds; the device in minutes.
+  ``delta`` below :data:`REST_BOUND` per channel, the other states' current part taken out first),
+  and that reads no force once that ``delta`` is taken out (below :data:`REST_FORCE_SIGMAS` times the
+  force's noise), is a frame without load; it measures every state with its full direction (a noise
+  of about 1e-5 per frame at 60 dB). A lateral load looks like a gradient: it is never taken for rest.
+- **under load** nothing is measured: the scale goes on at its tracked rate (a warming joint keeps
+  warming during a 30 s task), the other states stay; they follow again at the next rest.
+- **time**: the states are random walks of :data:`RATE` per square-root second, the scale's rate one
+  of :data:`ACCEL`; a Kalman filter weighs each rest frame's measurement against them. Loads move in
+  tenths of seconds, the device in minutes: a load the shape takes for rest moves the scale little.
 
 What it cannot separate, said plainly:
 
-- a change that is neither a scaling nor a linear gradient: the contact impedances (a uniform
-  resistivity change with the contacts unchanged is a scaling plus a contact change: at 10 % its
-  remainder reads 0.2-0.3 N), single electrodes' contacts (20 % drift: 0.13 N), a gradient that is not
-  linear. That remainder stays in the change, reads as a small force and raises the consistency
-  statistic;
-- a load held still below about 1 N (the rest bound) is taken for rest: the part of it along ``r``
-  goes into ``s`` (it reads low while held and slightly negative for a moment after it is removed);
-- a change faster than :data:`RATE` under a long load (it is followed at the next rest).
+- a change that none of the directions describe: single electrodes' contacts (20 % drift: 0.13 N), a
+  gradient that is not linear, the model's contact response against a real device's (a uniform 10 %
+  resistivity change with the contacts unchanged, a scaling plus a contact change: 0.17 N remain).
+  That remainder stays in the change, reads as a small force and raises the consistency statistic;
+- a load held still below the rest bounds (about 0.7 N at 60 dB, 5 N at 40 dB) is taken for rest:
+  the part of it along the directions goes slowly into the states;
+- a change of rate during a long load (the warming slows while the joint is loaded: followed at the
+  next rest), and a change much faster than the rates above (a step of the drive current is followed
+  over a second or so at 60 dB).
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.linalg import lapack
 
-#: Directions of the calibration set's whitened changes that a load may move: the measurement of
-#: the scale under load uses only the part of ``r`` outside them.
-LOAD_RANK = 10
-#: The variance of that measurement under load is this many times its noise (a real device's load
-#: response is not the model's: what leaks is weighed down). Measured (held-out loads held 1 s, no
-#: drift, `linear`): 10 costs 1.2x the magnitude error, 100 nothing (2.55 against 2.56 %).
-LOAD_INFLATION = 100.0
-#: Random walk of the scale, per square-root second.
-RATE = 2e-4
+#: Random walk of the scale (and of the gradient and contact states), per square-root second: what
+#: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a
+#: load a frame takes for rest is not taken for a change of the device: at 40 dB a 10 N load pressing
+#: straight down looks like a 0.5 % uniform change within the noise; at 2e-4 the scale took it
+#: within a tenth of a second (held-out loads at 40 dB: 16.6 deg with tracking, 4.7 without; now 4.7).
+RATE = 2e-5
+#: Random walk of the scale's rate of change (per second), per square-root second: the device warms
+#: and cools over minutes (15 K in 30 minutes at 0.8 %/K: a rate of 2e-4/s falling to 1e-5/s), so
+#: during a load, when nothing is measured, the scale goes on changing at the rate of the rests
+#: (cstomo bench --drift: the warm-up's angle error 2.77 -> 2.03 deg; a rate of the gradient too gains
+#: nothing). 1e-5 follows a ramp's end more slowly (+-10 % in 5 minutes: 0.2 N), 3e-5 costs the
+#: warm-up's angle (2.09 deg).
+ACCEL = 2e-5
+#: The scale's rate is remembered this many seconds without a measurement (it returns to 0 with this
+#: time constant): a task keeps much of it, a load held 10 minutes does not extrapolate a rate known
+#: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
+#: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
+RATE_MEMORY = 30.0
 #: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
 DEFAULT_PERIOD = 0.01
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
@@ -57,6 +68,12 @@ DEFAULT_PERIOD = 0.01
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
 #: load gives several times the bound.
 REST_BOUND = 1.5
+#: A rest frame also reads no force once the best uniform change is taken out: below this many times
+#: the rms of the force's per-frame noise (60 dB: 0.29 N; 40 dB: 1.9 N), and below :data:`REST_FORCE_MIN`
+#: whatever the noise. The residual bound alone is in units of the noise: on a 40 dB board a 5-10 N
+#: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
+REST_FORCE_SIGMAS = 2.5
+REST_FORCE_MIN = 0.5
 #: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
 #: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
@@ -64,15 +81,6 @@ VALIDATED = 0.10
 #: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
 #: to express the tracked change in kelvin.
 RESISTIVITY_PER_K = 0.008
-
-
-def _solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """X with A X = B for a small square ``A`` (LAPACK's gesv without numpy.linalg's checks: 2 us
-    instead of 7 for 4 x 4)."""
-    _, _, X, info = lapack.dgesv(A, B)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"singular matrix (gesv info {info})")
-    return X
 
 
 def gradient_directions(model) -> np.ndarray:
@@ -97,53 +105,60 @@ class DriftTracker:
         The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
     gradients : (k, n_meas) ndarray or None
         :func:`gradient_directions` (None: the scale alone is tracked).
-    y : (n, n_meas) ndarray
-        The estimator's calibration set (socket loads' normalised changes).
     noise : (n_meas,) ndarray
         Per-channel noise std of a change (y units).
     keep : (n_meas,) bool ndarray
         Channels in use.
+    force_map : (3, n_meas) ndarray or None
+        The estimator's linear map from a change to a force (N), for the rest frames' force bound
+        (None: the residual bound alone).
     """
 
-    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, y: np.ndarray, noise: np.ndarray,
-                 keep: np.ndarray) -> None:
-        self._args = (r, gradients, y, noise, keep)
+    def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray,
+                 force_map: np.ndarray | None = None) -> None:
+        self._args = (r, gradients, noise, keep, force_map)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
             D = np.vstack([D, gradients])
         D = D * keep
         Dw = D * w
-        _, _, vt = np.linalg.svd(np.asarray(y) * w, full_matrices=False)
-        U = vt[:LOAD_RANK]
-        Du = Dw - (Dw @ U.T) @ U  # the part of each direction that no load moves
-        self.m = len(D)
-        self._D, self._w = D, w
-        self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
-        # under load only the scale is measured, along Du[0] (a gradient looks like a lateral load:
-        # it follows at the rests); one product gives Dw yw (rows 0..m-1) and Du[0] yw (row m)
-        self._Dwu = np.vstack([Dw, Du[:1]])
-        self._N = Dw @ Dw.T
-        self._N00 = float(self._N[0, 0])
-        self._nu = float(Du[0] @ Du[0]) / LOAD_INFLATION  # the information of that measurement
+        self.m = m = len(D)  # measured states: the scale, the gradient; then the scale's rate
+        self._D, self._w, self._Dw = D, w, Dw
+        self._N = np.zeros((m + 1, m + 1))
+        self._N[:m, :m] = Dw @ Dw.T
+        self._Dw1 = np.vstack([Dw, np.zeros((1, len(w)))])
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
+        self._W = None
+        if force_map is not None:  # the force of a change, of a uniform change, and its noise
+            W = np.asarray(force_map, float) * keep
+            sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
+            self._W, self._Wr = W, W @ D[0]
+            self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
         self._yw = np.empty_like(w)
-        self._b = np.empty(self.m + 1)
-        self._b_rest = self._b[:-1]
-        self._eye = np.eye(self.m)
-        self._dt, self._qI = 0.0, np.zeros((self.m, self.m))  # the random walk's covariance over the last dt
+        self._eye = np.eye(m + 1)
+        self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL])
         self.scale = 1.0
-        self.gradient = np.zeros(self.m - 1)
+        self.rate = 0.0  # the scale's relative change per second
+        self.gradient = np.zeros(m - 1)
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
-        self.P = np.zeros((self.m, self.m))
+        self.P = np.zeros((m + 1, m + 1))
         self.rest_frames = 0  # frames measured as at rest (all time)
         self._t: float | None = None
 
-    def with_mask(self, keep: np.ndarray) -> DriftTracker:
+    def with_mask(self, keep: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
         """The same tracker (its state kept) over the channels ``keep``."""
-        r, gradients, y, noise, _ = self._args
-        new = DriftTracker(r, gradients, y, noise, keep)
-        new.scale, new.P, new.rest_frames, new._t = self.scale, self.P, self.rest_frames, self._t
+        r, gradients, noise, _, force_map = self._args
+        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
+
+    def with_noise(self, noise: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
+        """The same tracker (its state kept) for a change of per-channel noise ``noise`` (y units)."""
+        r, gradients, _, keep, force_map = self._args
+        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
+
+    def _carried(self, new: DriftTracker) -> DriftTracker:
+        """``new`` with this tracker's state."""
+        new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         return new
 
@@ -155,7 +170,7 @@ class DriftTracker:
     def _set_gradient(self, g: np.ndarray) -> None:
         self.gradient = np.asarray(g, float)
         if self.m > 1:
-            np.dot(self.gradient, self._Dg, out=self.offset)
+            np.dot(self.gradient, self._D[1:], out=self.offset)
 
     def observe(self, y: np.ndarray, t: float | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
@@ -164,43 +179,46 @@ class DriftTracker:
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
         if t is not None:
             self._t = t
-        if dt != self._dt:
-            self._dt, self._qI = dt, (RATE * RATE * dt) * self._eye
-        P = self.P + self._qI
+        m = self.m
+        a = math.exp(-dt / RATE_MEMORY)
+        P = self.P.copy()  # predicted: the scale moves on at its rate, which fades: F P F^T + Q with
+        P[0] += dt * P[m]  # F = I + dt e_0 e_m^T, F_mm = a
+        P[m] *= a
+        P[:, 0] += dt * P[:, m]
+        P[:, m] *= a
+        P[np.diag_indices_from(P)] += self._q * dt
         yw = np.multiply(y, self._w, out=self._yw)
-        b = np.dot(self._Dwu, yw, out=self._b)
-        b0, v = float(b[0]), float(b[-1])
+        b = self._Dw1 @ yw
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
-        rest = float(yw.dot(yw)) - b0 * b0 / self._N00 < self._rest
-        if rest:
-            # the measurement of every direction, information N and vector b: the gain
-            # (P^-1 + N)^-1 = P (I + N P)^-1, without inverting P; its transpose solves (I + P N) G' = P
-            # (A = I + N P in C order is I + P N in Fortran's, as LAPACK takes it; P is symmetric)
-            A = np.dot(self._N, P)
-            A += self._eye
-            gain = _solve(A.T, P.T).T
-            delta = np.dot(gain, self._b_rest)
-            self.rest_frames += 1
-        else:
-            # the scale's alone, information nu e0 e0^T and vector v e0: the same gain by
-            # Sherman-Morrison, P - nu c c^T / (1 + nu c0) with c = P e0, and gain @ v e0 = v c / (1 + nu c0)
-            nu, c = self._nu, P[:, 0]
-            den = 1.0 + nu * float(c[0])
-            delta = c * (v / LOAD_INFLATION / den)
-            gain = P - (nu / den) * (c[:, None] * c)  # c c^T exactly symmetric
-        d = delta.tolist()
-        if all(map(math.isfinite, d)):
-            self.scale *= 1.0 + d[0]
-            if self.m > 1:
-                self._set_gradient(self.gradient + delta[1:])
+        best = b[0] / self._N[0, 0]  # the uniform change that explains the most of the frame
+        rest = float(yw @ yw) - b[0] * best < self._rest
+        if rest and self._W is not None:
+            f = self._W @ y - self._Wr * best
+            rest = math.sqrt(float(f @ f)) < self.rest_force
+        step = self.rate * dt
+        self.rate *= a
+        if not rest:  # under load nothing is measured: a load's change is not the device's (a lateral
+            self.scale *= 1.0 + step  # one looks like a gradient); the scale goes on at its rate
+            self.P = P
+            return False
+        self.rest_frames += 1
+        info = self._N  # the information matrix and vector of this frame's measurement of the change
+        gain = P @ np.linalg.inv(self._eye + info @ P)  # (P^-1 + info)^-1, without inverting P
+        delta = gain @ (b - info[:, 0] * step)  # the innovation: what the predicted step leaves
+        if np.isfinite(delta).all():
+            # the frame was formed with the scale before this frame's step: the step and the update
+            self.scale *= (1.0 + step) * (1.0 + float(delta[0]))
+            self.rate += float(delta[m])
+            if m > 1:
+                self._set_gradient(self.gradient + delta[1:m])
             P = gain
-        self.P = 0.5 * (P + P.T) if rest else P  # the scalar update keeps P symmetric as it is
-        return rest
+        self.P = 0.5 * (P + P.T)
+        return True
 
     def reset(self) -> None:
         """A new reference (a tare): no change since."""
-        self.scale, self.P, self._t = 1.0, np.zeros((self.m, self.m)), None
+        self.scale, self.rate, self.P, self._t = 1.0, 0.0, np.zeros((self.m + 1, self.m + 1)), None
         self._set_gradient(np.zeros(self.m - 1))
 
     @property

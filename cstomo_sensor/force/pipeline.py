@@ -24,12 +24,16 @@ from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
 from ..model.geometry import DEFAULT_SENSOR, SensorGeometry, load_sensor
 from ..model.material import StressField
 from .calibration import DeviceCalibration
-from .device import ScaleReport
+from .device import DEFAULT_NOISE_DB, ScaleReport, check_noise
 from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
 from .gate import PlausibilityGate
 from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
 
 log = logging.getLogger(__name__)
+
+#: :attr:`Pipeline.noise_source` of the assumed noise, and of a noise measured by a tare of several frames.
+NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
+NOISE_MEASURED = "measured by the tare"
 
 #: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load.
 RATED_FORCE = max(CalibrationSpec.magnitudes)  # N
@@ -137,6 +141,7 @@ class Pipeline:
         self.calibration: DeviceCalibration | None = None
         self._base_set = (np.asarray(estimator.forces), np.asarray(estimator.y))  # the model's own
         self.noise_measured = False  # True: the estimators use the tare's noise
+        self.noise_source = NOISE_ASSUMED  # what noise the estimators use, in words (set_reference, set_noise)
 
     @classmethod
     def build(cls, config: PipelineConfig, progress=None) -> Pipeline:
@@ -211,20 +216,35 @@ class Pipeline:
         report = ScaleReport.of(ref, self.model_reference)
         c = report.factor if np.isfinite(report.factor) and report.factor > 0 else 1.0
         y_scale = c * self.model.v_scale
-        if noise is None:
-            noise_y = self._default_noise
-        else:
-            noise_v = check_frame(noise, self.n_meas, "noise")
-            floor = 0.1 * float(np.median(noise_v))  # a channel that happened to read steady
-            noise_y = np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
+        noise_y = self._default_noise if noise is None else self._noise_y(noise, y_scale)
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
         self.scale, self.offset = 1.0, None  # a new reference: no change of the device since
         self.scale_report, self.noise_measured = report, noise is not None
+        self.noise_source = NOISE_MEASURED if noise is not None else NOISE_ASSUMED
         self.reference_frames = int(n_frames)
         self._update_gate()
         self._update_consistency()
         return report
+
+    def _noise_y(self, noise: np.ndarray, y_scale: float) -> np.ndarray:
+        """Per-channel noise (n_meas,) volts in y units, floored at a tenth of the median channel's (a
+        channel that happened to read steady)."""
+        noise_v = check_frame(noise, self.n_meas, "noise")
+        floor = 0.1 * float(np.median(noise_v))
+        return np.maximum(noise_v, floor if floor > 0 else 1e-300) / y_scale
+
+    def set_noise(self, noise: np.ndarray, source: str) -> None:
+        """Use ``noise`` (n_meas,) volts, the per-channel std of one frame, for the reference in use
+        (its frames, scale and drift stay): the estimators and the consistency statistic are rebuilt
+        on it (milliseconds). ``source`` says where it comes from (:attr:`noise_source`), e.g. an
+        estimate from the frames (force/noise.py); :attr:`noise_measured` stays False."""
+        if self.reference is None:
+            raise FrameError("no reference: set_reference before set_noise")
+        noise_y = self._noise_y(check_noise(noise, self.reference), self._y_scale)
+        self.estimator = self.estimator.with_noise(noise_y)
+        self.noise_measured, self.noise_source = False, str(source)
+        self._update_consistency()
 
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the

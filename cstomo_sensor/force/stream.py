@@ -12,6 +12,9 @@ owns, per sensor:
 - the filtered wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps);
 - the zero that holds: the device's slow change since the tare (:class:`~.drift.DriftTracker`,
   ``drift_tracking``), followed frame by frame and applied by the pipeline;
+- the noise the estimators use when the reference measured none (a one-frame reference): estimated
+  from consecutive frames (:class:`~.noise.NoiseEstimate`, ``noise_estimation``) and handed to the
+  pipeline now and then, or from a whole frames file first (:meth:`FrameStream.estimate_noise`);
 - the accounting: frames, late frames, dropped frames and why, implausible and foreign-load frames,
   the processing time, and the losses over the last :data:`LOSS_WINDOW` s;
 - the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`): the node's
@@ -43,10 +46,12 @@ import numpy as np
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
-from .device import DEFAULT_NOISE_DB, read_reference, write_reference
+from .creep import DEFAULT_CREEP, CreepCompensator
+from .device import read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
-from .pipeline import FrameResult, Pipeline
+from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, noise_level, snr_db
+from .pipeline import NOISE_ASSUMED, FrameResult, Pipeline
 from .scene_field import change_noise
 from .tare import TareCheck, check_tare
 
@@ -109,6 +114,8 @@ class StreamConfig:
     wrench_filter_hz: float = 20.0  # 0 = no filtered wrench
     stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
     drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
+    creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
+    noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
@@ -121,6 +128,9 @@ class StreamConfig:
             raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
         if not self.stale_timeout > 0:
             raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
+        if not 0 <= self.creep_per_decade < 0.5:
+            raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade,
+                                        "a fraction per decade, 0 <= c < 0.5 (rubbers: 0.02..0.06; 0 = off)")
 
 
 def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
@@ -280,6 +290,8 @@ class FrameStream:
         self.counts = _Counts()
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.drift: DriftTracker | None = None  # made with each reference (drift_tracking)
+        self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
+        self._offset = np.zeros(pipe.n_meas)  # the drift's and the creep's offsets, summed
         self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         n_el = len(pipe.geometry.electrodes)
         pattern = MeasurementPattern(n_el, pipe.geometry.layers)
@@ -308,6 +320,11 @@ class FrameStream:
         self._loss_history: deque = deque()
         self._last_rejected = self._last_implausible = 0
         self._drop_log = _Throttle()
+        self.noise = NoiseEstimate(pipe.n_meas) if config.noise_estimation else None  # None: not estimated
+        self._noise_level: float | None = None  # the estimated level in use (volts)
+        self._noise_from = ""  # ... and what it was estimated from
+        self._noise_next = MIN_PAIRS  # the pair count at which the estimate is evaluated next
+        self._noise_note = ""  # why no estimate is in use yet
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -330,11 +347,11 @@ class FrameStream:
         if why:
             raise ConfigError(f"{source} not used: {why}")
         report = self.pipe.set_reference(ref, noise, n_frames)
+        self._keep_estimate()
         self._new_drift()
         self.reference_source = source
-        noise_what = "measured" if noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB"
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
-                                                   noise_what, report.message)
+                                                   self.noise_text, report.message)
         return report.message
 
     def init_reference(self, tare_on_start: bool) -> str:
@@ -369,6 +386,8 @@ class FrameStream:
             raise ConfigError.bad_value("tare_frames", n, ">= 1")
         self._tare_left = self._tare_n = int(n)
         self._tare_forced = False
+        if self.noise is not None:
+            self.noise.restart()  # no frame pair across the tare
 
     def joint_free(self) -> bool:
         """A controller's hint that the joint is free now: re-zero at once, a tare on the next
@@ -390,6 +409,8 @@ class FrameStream:
         with self.lock:
             if self.filter is not None:
                 self.filter.reset()
+            if self.noise is not None:
+                self.noise.restart()  # no frame pair across the outage
             if self._tare_left:
                 taken = self._tare_n - self._tare_left
                 self._tare_left = 0
@@ -490,12 +511,12 @@ class FrameStream:
         self._tare_forced = False
         if outcome.ok:
             report = self.pipe.set_reference(outcome.reference, outcome.noise, outcome.frames)
+            self._keep_estimate()
             self._new_drift()
             self.tare_taken = f"{when}, {time.monotonic() - self._t_start:.1f} s after start, " \
                               f"{outcome.frames} frames, spread {outcome.spread:.2%}" + \
                               (", forced" if outcome.forced else "")
-            log.info("tare taken at %s (noise %s; %s)", self.tare_taken,
-                     "measured" if outcome.noise is not None else f"assumed {DEFAULT_NOISE_DB:g} dB",
+            log.info("tare taken at %s (noise %s; %s)", self.tare_taken, self.noise_text,
                      outcome.check.summary() if outcome.check is not None else "no load check")
             if outcome.forced:
                 log.warning("forced tare: %s", f"overrode: {outcome.overridden}" if outcome.overridden else
@@ -537,17 +558,126 @@ class FrameStream:
         return ""
 
     def _new_drift(self) -> None:
-        """A drift tracker for the reference just set (none without ``drift_tracking``)."""
+        """A drift tracker (``drift_tracking``) and a creep compensator for the reference just set."""
         pipe = self.pipe
-        if not self.config.drift_tracking or pipe.reference is None:
-            self.drift = None
+        self.drift = self.creep = None
+        if pipe.reference is None:
             return
-        est = pipe.estimator
-        if self._gradients is None:
-            self._gradients = gradient_directions(pipe.model)
-        self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients, np.asarray(est.y),
-                                  change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels)
-        pipe.scale, pipe.offset = 1.0, self.drift.offset
+        if self.config.drift_tracking:
+            est = pipe.estimator
+            if self._gradients is None:  # the contacts' change, then the resistivity's gradient
+                g = gradient_directions(pipe.model)
+                c = pipe.model.contact
+                self._gradients = g if c is None else np.vstack([c, g])
+            self.drift = DriftTracker(pipe.reference / pipe._y_scale, self._gradients,
+                                      change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
+                                      self._force_map())
+        c = self.creep_per_decade
+        if c > 0:
+            self.creep = CreepCompensator(c, pipe.n_meas)
+        pipe.scale = 1.0
+        self._apply_offsets()
+
+    def _force_map(self) -> np.ndarray | None:
+        """The estimator's linear map of a change to a force (the drift tracker's rest bound)."""
+        est = self.pipe.estimator
+        return getattr(getattr(est, "linear", est), "W", None)
+
+    @property
+    def creep_per_decade(self) -> float:
+        """The creep compensated: the calibration's coefficient if it has one, else the setting's."""
+        cal = self.pipe.calibration
+        fitted = getattr(cal, "creep_per_decade", None) if cal is not None else None
+        return float(fitted) if fitted is not None else self.config.creep_per_decade
+
+    def _apply_offsets(self) -> None:
+        """The pipeline subtracts the drift's gradient and the creep from every change."""
+        d = self.drift.offset if self.drift is not None else None
+        c = self.creep.offset if self.creep is not None else None
+        if c is None or d is None:
+            self.pipe.offset = d if c is None else c
+        else:
+            self.pipe.offset = np.add(d, c, out=self._offset)
+
+    # --- noise -----------------------------------------------------------------------------------
+
+    @property
+    def noise_text(self) -> str:
+        """What noise the estimators use, in words: measured by the tare, estimated from N frame pairs
+        (with its SNR), or assumed (and why no estimate is in use yet)."""
+        pipe = self.pipe
+        if pipe.noise_measured or self._noise_level is not None or self.noise is None:
+            return pipe.noise_source
+        return f"{pipe.noise_source} ({self._noise_note or f'estimating: {self.noise.count} of {MIN_PAIRS} frame pairs'})"
+
+    def estimate_noise(self, frames: np.ndarray, source: str) -> str:
+        """Estimate the noise from a whole file of consecutive frames ``frames`` (n, n_meas) before they
+        are processed, by the running estimate's rules (force/noise.py), so every frame gets it; the
+        estimate then stays (the file holds no more). Nothing changes when the reference's noise is
+        measured or ``noise_estimation`` is off. Returns :attr:`noise_text`."""
+        with self.lock:
+            if self.noise is None or self.pipe.noise_measured or self.pipe.reference is None:
+                return self.noise_text
+            level, pairs, agree = noise_level(frames, ~self.pipe.bad_channels)
+            if self._usable_noise(level, pairs, agree, f"of {source}"):
+                self._use_noise(level, f"estimated from {pairs} frame pairs of {source}")
+                self.noise = None
+            return self.noise_text
+
+    def _usable_noise(self, level: float, pairs: int, agree: float, where: str = "") -> bool:
+        """Whether an estimate of ``level`` volts from ``pairs`` pairs, ``agree`` of them agreeing, may
+        be used (force/noise.py); if not, :attr:`noise_text` says why."""
+        if pairs < MIN_PAIRS:
+            self._noise_note = f"not estimated: {pairs} frame pairs {where}, fewer than {MIN_PAIRS}".replace("  ", " ")
+        elif not agree >= AGREE_FRACTION:
+            self._noise_note = (f"not estimated: only {agree:.0%} of {pairs} consecutive frame pairs {where} "
+                                f"differ by noise alone (at least {AGREE_FRACTION:.0%} needed): frames of "
+                                "distinct loads, not a time series?").replace("  ", " ")
+        else:
+            return True
+        return False
+
+    def _observe_noise(self, values: np.ndarray) -> None:
+        """A processed frame into the running noise estimate (every frame's pair until an estimate is
+        in use, then one in :data:`~.noise.SAMPLE_EVERY`); the estimate is evaluated every
+        :data:`~.noise.MIN_PAIRS` pairs until one is in use, then every :data:`~.noise.UPDATE_EVERY`,
+        and replaces the one in use when it moved by more than :data:`~.noise.RETUNE`."""
+        est = self.noise
+        keep = ~self._mask if self.excluded.channels else None
+        est.observe(values, keep, pair=self._noise_level is None or self.processed % SAMPLE_EVERY == 0)
+        if est.pairs < self._noise_next:
+            return
+        self._noise_next = est.pairs + (UPDATE_EVERY if self._noise_level is not None else MIN_PAIRS)
+        level, agree = est.level()
+        if not self._usable_noise(level, est.count, agree):
+            return
+        if self._noise_level is None or abs(level / self._noise_level - 1.0) > RETUNE:
+            self._use_noise(level, f"estimated from {est.count} frame pairs")
+
+    def _use_noise(self, level: float, source: str) -> None:
+        """The estimated noise ``level`` (volts, every channel) in the pipeline and the drift tracker
+        (its state kept); ``source`` says from what. A level outside a board's range against the
+        reference (device.NOISE_DB_RANGE) is not used: the noise in use stays."""
+        pipe = self.pipe
+        try:
+            pipe.set_noise(np.full(pipe.n_meas, level), f"{source} ({snr_db(level, pipe.reference):.1f} dB)")
+        except ConfigError as err:
+            self._noise_note = f"estimate not used: {err}"
+            log.warning("noise %s", self._noise_note)
+            return
+        self._noise_level, self._noise_from, self._noise_note = level, source, ""
+        if self.drift is not None:
+            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames),
+                                               self._force_map())
+            self._apply_offsets()
+        log.info("noise %s: the estimators use it instead of the %s", pipe.noise_source, NOISE_ASSUMED)
+
+    def _keep_estimate(self) -> None:
+        """After a new reference without a measured noise: the board's estimated noise stays in use
+        (the board's noise is constant over a session; docs/physics.md#real-devices)."""
+        if not self.pipe.noise_measured and self._noise_level is not None:
+            level, self._noise_level = self._noise_level, None
+            self._use_noise(level, self._noise_from)
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -594,8 +724,8 @@ class FrameStream:
         self.pipe.set_bad_channels(mask.copy())  # raises before changing anything if refused
         self._mask = mask
         if self.drift is not None:
-            self.drift = self.drift.with_mask(~mask)
-            self.pipe.offset = self.drift.offset
+            self.drift = self.drift.with_mask(~mask, self._force_map())
+            self._apply_offsets()
         self.excluded = Excluded(saturated=n_sat, dead_electrodes=tuple(int(e) for e in np.flatnonzero(dead)),
                                  channels=int(mask.sum()))
         if mask.any():
@@ -634,10 +764,17 @@ class FrameStream:
         elif self._implausible_run:
             log.warning("plausible frames again after %d implausible ones", self._implausible_run)
             self._implausible_run = 0
-        drift = self.drift
-        if drift is not None and self.pipe.change_plausible:  # an estimate beyond max_force may be drift
-            drift.observe(self.pipe.last_y, t)
-            self.pipe.scale = drift.scale
+        if self.noise is not None and not self.pipe.noise_measured:
+            self._observe_noise(values)
+        drift, creep = self.drift, self.creep
+        if self.pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
+            y = self.pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
+            if drift is not None:
+                drift.observe(y, t)
+                self.pipe.scale = drift.scale
+            if creep is not None:
+                creep.observe(y, t)
+            self._apply_offsets()
         return result
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
@@ -778,7 +915,7 @@ class FrameStream:
         report = pipe.scale_report
         if report is not None:
             kv.update(reference_scale=f"{report.factor:.4g}", reference_unexplained=f"{report.unexplained:.4f}",
-                      noise="measured by the tare" if pipe.noise_measured else f"assumed {DEFAULT_NOISE_DB:g} dB")
+                      noise=self.noise_text)
             if report.warn:
                 level = max(level, WARN)
                 msgs.append(report.message)
@@ -793,7 +930,20 @@ class FrameStream:
                 msgs.append(d_msg)
         else:
             kv.update(drift_change="not tracked (drift_tracking false)")
+        kv.update(creep=self.creep_text)
         return level, msgs, kv
+
+    @property
+    def creep_text(self) -> str:
+        """The creep compensated and where its coefficient comes from, for the diagnostics."""
+        c = self.creep_per_decade
+        if c <= 0:
+            return "not compensated (creep_per_decade 0)"
+        cal = self.pipe.calibration
+        if cal is not None and getattr(cal, "creep_per_decade", None) is not None:
+            return f"{c:.2%} per decade, from the calibration {cal.path}"
+        return (f"{c:.2%} per decade, assumed (creep_per_decade; a rubber's is 2..6 %: fit it with "
+                "cstomo calibrate --creep-hold, docs/calibration.md)")
 
     def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:
         """The level and message of the frames lost or dropped over the last :data:`LOSS_WINDOW` s

@@ -43,7 +43,7 @@ from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
 log = logging.getLogger(__name__)
 
-RECON_FORMAT = 5  # 5: a fine basis averaged onto the image grid; 4: built on the shipped meshes
+RECON_FORMAT = 6  # 6: the contacts' directions; 5: a fine basis averaged onto the image grid; 4: built on the shipped meshes
 V_FLOOR = 0.05  # fraction of rms(V_ref) below which a channel's normalisation is floored
 
 
@@ -138,6 +138,9 @@ class ReconstructionModel:
     key : hash of every input.
     fit : (n_meas, n_meas) float32, ``S @ R_basis``: the data the basis image explains (residuals).
     basis_centers : (n_basis, 3) m.   average : (n_voxels, n_basis) sparse volume average.
+    contact : (k, n_meas) the normalised changes (``dV / v_scale``) of the electrodes' contact impedances
+    rising by 1 (relative): all alike, then linearly with the electrode's position along x, y, z (by 1
+    per half of the electrodes' extent): directions the drift tracker follows (force/drift.py).
     """
 
     R: np.ndarray
@@ -156,6 +159,7 @@ class ReconstructionModel:
     fit: np.ndarray | None = None
     basis_centers: np.ndarray | None = None
     average: scipy.sparse.csr_matrix | None = None
+    contact: np.ndarray | None = None
 
     @property
     def n_meas(self) -> int:
@@ -198,7 +202,7 @@ class ReconstructionModel:
         R, fit = self.matrices(svd, iterations, step, lam)
         return ReconstructionModel(R, self.S, self.v_scale, self.model_reference, self.sigma0, self.centers,
                                    self.volumes, int(iterations), float(damping), step, self.key, dict(self.meta), p,
-                                   fit, self.basis_centers, self.average)
+                                   fit, self.basis_centers, self.average, self.contact)
 
     # -- one file, no pickle ----------------------------------------------------------------
     def arrays(self) -> dict[str, np.ndarray]:
@@ -237,12 +241,12 @@ class ReconstructionModel:
                                           shape=(len(z["centers"]), len(z["basis_centers"])))
         return cls(z["R"], z["S"], z["v_scale"], z["model_reference"], s["sigma0"], z["centers"],
                    z["volumes"], s["iterations"], s["damping"], s["step"], str(z["cache_key"]), s["meta"],
-                   s["weight_power"], z["fit"], z["basis_centers"], average)
+                   s["weight_power"], z["fit"], z["basis_centers"], average, z["contact"])
 
 
 #: The arrays of a saved model (besides its key and its JSON ``scalars``).
 MODEL_ARRAYS = ("R", "S", "v_scale", "model_reference", "centers", "volumes", "fit", "basis_centers",
-                "average", "average_weights")
+                "contact", "average", "average_weights")
 
 
 def model_inputs(geometry: SensorGeometry, spec: ReconSpec) -> dict:
@@ -304,6 +308,15 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     J = fm.jacobian(solution=sol)
     seconds["jacobian"] = time.perf_counter() - t
     t = time.perf_counter()
+    eps = 0.01  # contact impedances 1 % higher, alike and along x, y, z (the warm side's contacts)
+    z = np.full(geometry.n_electrodes, geometry.contact_impedance)
+    e = np.asarray(geometry.electrode_centers(), float)
+    lo, hi = e.min(axis=0), e.max(axis=0)
+    along = [(e[:, k] - 0.5 * (lo[k] + hi[k])) / (0.5 * (hi[k] - lo[k])) for k in range(3) if hi[k] > lo[k]]
+    contact = np.array([(fm.with_contact_impedance(z * (1 + eps * w)).voltages() - sol.voltages) / eps
+                        for w in [np.ones_like(z), *along]])
+    seconds["contact"] = time.perf_counter() - t
+    t = time.perf_counter()
     image_voxel, centers, volumes = voxel_basis(geometry, mesh, spec.grid)
     cell_voxel, basis_centers, basis_volumes = voxel_basis(geometry, mesh, spec.basis_grid)
     Vref = sol.voltages
@@ -321,7 +334,8 @@ def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key:
     else:
         k = int(spec.iterations)
     model = ReconstructionModel(None, S, v_scale, Vref, geometry.material.sigma0, centers, volumes, k, spec.damping,
-                                step, key, {}, p, None, basis_centers, volume_average(mesh, image_voxel, cell_voxel))
+                                step, key, {}, p, None, basis_centers, volume_average(mesh, image_voxel, cell_voxel),
+                                contact / v_scale)
     R, fit = model.matrices(svd, k, step, lam)
     seconds["landweber"] = time.perf_counter() - t
     meta = {"seconds": seconds, "mesh": mesh.summary(), "mesh_h": spec.mesh_size, "rank": svd.rank, "condition": svd.condition,

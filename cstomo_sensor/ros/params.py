@@ -67,6 +67,9 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
                            "(no ~/wrench_filtered)", read_only=True, lo=0.0, hi=10000.0),
     "drift_tracking": _d("Follow the device's slow uniform change after the tare (warming, drive drift) so the "
                          "zero holds; diagnostics show the tracked change (force/drift.py)", read_only=True),
+    "creep_per_decade": _d("The rubber's creep per decade of time (0.02..0.06), compensated so a held load reads "
+                           "constant (force/creep.py); a calibration file's fitted value wins; 0 = off",
+                           read_only=True, lo=0.0, hi=0.49),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -102,6 +105,7 @@ class NodeConfig:
     stress_field_every: int = StreamConfig.stress_field_every
     wrench_filter_hz: float = StreamConfig.wrench_filter_hz
     drift_tracking: bool = StreamConfig.drift_tracking
+    creep_per_decade: float = StreamConfig.creep_per_decade
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
     stale_timeout: float = StreamConfig.stale_timeout
@@ -141,7 +145,7 @@ class NodeConfig:
         """The frame stream's settings."""
         return StreamConfig(tare_frames=self.tare_frames, stress_field_every=self.stress_field_every,
                             wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout,
-                            drift_tracking=self.drift_tracking)
+                            drift_tracking=self.drift_tracking, creep_per_decade=self.creep_per_decade)
 
     @property
     def cache_path(self) -> Path:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -149,8 +150,37 @@ def _parser() -> argparse.ArgumentParser:
                    help="largest stamp difference of a frame and its wrench (default %(default)g s)")
     p.add_argument("--unloaded-below", type=float, default=UNLOADED_BELOW, metavar="N",
                    help="with --bag and no --reference: frames under this force are the reference (default %(default)g)")
+    p.add_argument("--creep-per-decade", type=float, metavar="C",
+                   help="the rubber's creep per decade, written into the file (default: fitted with --creep-hold, "
+                        "else none: the node's creep_per_decade applies)")
+    p.add_argument("--creep-hold", metavar="FRAMES",
+                   help="frames file of one load held still for a minute or more, its first frame when the load "
+                        "was applied: the creep per decade is fitted from it (force/creep.py)")
+    p.add_argument("--creep-rate", type=float, default=100.0, metavar="HZ",
+                   help="frames per second of --creep-hold (default %(default)g)")
     p.add_argument("--out", required=True, help="calibration file to write (YAML); the table goes beside it")
     return p
+
+
+def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
+    """The creep per decade of a held load's frames (the first when the load was applied, ``rate``
+    frames/s): their force magnitudes through the stream, neither creep nor drift compensated."""
+    from ..force.creep import fit_creep
+    from ..force.stream import FrameStream, StreamConfig
+
+    if not rate > 0:
+        raise ConfigError.bad_value("--creep-rate", rate, "frames per second > 0")
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, drift_tracking=False,
+                                            creep_per_decade=0.0))
+    mags = np.full(len(frames), np.nan)
+    for k, v in enumerate(frames):
+        out = stream.push(v, stamp_ns=int(1e9 * (1 + k / rate)))
+        if out is not None and out.result.valid:
+            mags[k] = out.result.magnitude
+    try:
+        return fit_creep(np.arange(len(frames)) / rate + 1.0 / rate, mags)
+    except ValueError as err:
+        raise ConfigError(f"--creep-hold: {err}") from None
 
 
 def run(a) -> int:
@@ -191,6 +221,14 @@ def run(a) -> int:
     report = pipe.set_reference(ref, noise, n_ref)
     print(f"reference: {report.message}")
     cal = calibrate(pipe, frames, forces, fitted_on=source)
+    creep = a.creep_per_decade
+    if a.creep_hold:
+        creep = held_creep(pipe, read_frames(a.creep_hold), a.creep_rate)
+        print(f"creep: {creep:.2%} per decade, fitted on the held load of {a.creep_hold}")
+    if creep is not None:
+        if not 0 <= creep < 0.5:
+            raise ConfigError.bad_value("--creep-per-decade", creep, "a fraction per decade, 0 <= c < 0.5")
+        cal = replace(cal, creep_per_decade=float(creep))
     out = Path(a.out)
     cal.save(out)
     table = cv_table(cal)

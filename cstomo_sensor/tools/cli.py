@@ -15,7 +15,7 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.device import DEFAULT_NOISE_DB, read_reference
+from ..force.device import read_reference
 from ..force.pipeline import FrameResult, Pipeline
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
@@ -25,7 +25,7 @@ from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
-from .common import add_pipeline_args, pipeline_config
+from .common import add_creep_arg, add_pipeline_args, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -98,9 +98,11 @@ def cmd_estimate(a) -> int:
     frames = read_frames(a.frames)
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
-                                            drift_tracking=not a.no_drift_tracking))
+                                            drift_tracking=not a.no_drift_tracking,
+                                            creep_per_decade=a.creep_per_decade))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
-    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else f'assumed {DEFAULT_NOISE_DB:g} dB'}; "
+    noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
+    print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
@@ -175,7 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", required=True)
     r.add_argument("--out", required=True)
     e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
-    e.add_argument("--reference", required=True, help="frames file of unloaded frames (several: mean and noise)")
+    e.add_argument("--reference", required=True,
+                   help="frames file of unloaded frames (several: mean and noise; one without its .noise.csv: "
+                        "the noise is estimated from the --frames file, a time series of the board)")
     e.add_argument("--frames", required=True)
     e.add_argument("--out", required=True)
     e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
@@ -183,6 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default %(default)g)")
     e.add_argument("--no-drift-tracking", action="store_true",
                    help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
+    add_creep_arg(e)
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)

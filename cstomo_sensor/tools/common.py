@@ -44,6 +44,15 @@ def add_pipeline_args(p: argparse.ArgumentParser, estimator: bool = True) -> Non
                        help="frames implying a larger force are implausible: no output (default %(default)g)")
 
 
+def add_creep_arg(p: argparse.ArgumentParser) -> None:
+    """``--creep-per-decade``: the stream's creep compensation, as the node's ``creep_per_decade``."""
+    from ..force.stream import StreamConfig
+
+    p.add_argument("--creep-per-decade", type=float, default=StreamConfig.creep_per_decade, metavar="C",
+                   help="the rubber's creep per decade of time, compensated so a held load reads constant "
+                        "(default %(default)g; a calibration's fitted value wins; 0: off)")
+
+
 def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
     """The :class:`PipelineConfig` of parsed :func:`add_pipeline_args` flags (validated there)."""
     if a.mesh_size > 0.1:  # a value in millimetres, as older versions took it

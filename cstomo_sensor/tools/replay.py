@@ -10,7 +10,8 @@ frames through a :class:`~cstomo_sensor.force.stream.FrameStream` and build the 
 settings given (``wrench_filtered`` with a filter, the stress fields with ``--stress-field-every``).
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
-(the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise) is the
+(the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise; without
+either, the noise is estimated from the bag's frames as they come, as the node does: force/noise.py) is the
 reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); without it,
 the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
 exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
@@ -43,7 +44,7 @@ from ..force.pipeline import Pipeline, PipelineConfig
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import write_forces
 from ..ros.messages import LEGACY_RAW_TYPE, RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
-from .common import add_pipeline_args, pipeline_config
+from .common import add_creep_arg, add_pipeline_args, pipeline_config
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +95,7 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
            tare_frames: int = StreamConfig.tare_frames, stress_field_every: int = 0,
            wrench_filter_hz: float = StreamConfig.wrench_filter_hz, drift_tracking: bool = StreamConfig.drift_tracking,
-           frame_id: str = "cstomo_socket",
+           creep_per_decade: float = StreamConfig.creep_per_decade, frame_id: str = "cstomo_socket",
            topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
            forces_file: str | Path | None = None) -> ReplaySummary:
     """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
@@ -111,6 +112,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         Cutoff of ``wrench_filtered`` (the node's ``wrench_filter_hz``); 0 = no filtered wrench.
     drift_tracking : bool
         Follow the device's slow change after the tare, as the node's ``drift_tracking``.
+    creep_per_decade : float
+        The rubber's creep compensated (the node's ``creep_per_decade``; a calibration's wins; 0 = off).
     pipeline : Pipeline or None
         An already built pipeline for ``config`` (its reference and mask are reset here).
     storage : {'sqlite3', 'mcap'}
@@ -131,7 +134,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     if forces_file is not None and not Path(forces_file).parent.is_dir():
         raise ConfigError(f"forces file {forces_file}: its directory {Path(forces_file).parent} does not exist")
     stream_cfg = StreamConfig(tare_frames=tare_frames, stress_field_every=stress_field_every,
-                              wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking)
+                              wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking,
+                              creep_per_decade=creep_per_decade)
     with Reader(in_bag) as reader:  # the inputs are checked before any model is loaded
         raw_topic = find_raw_topic(reader.connections, topic)
     pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
@@ -204,6 +208,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="cutoff of wrench_filtered, as the node's parameter (default %(default)g; 0: none)")
     p.add_argument("--no-drift-tracking", action="store_true",
                    help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
+    add_creep_arg(p)
     p.add_argument("--frame-id", default="cstomo_socket")
     p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
     p.add_argument("--forces", help="also write a forces file (CSV) with the consistency and foreign_load columns")
@@ -220,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
                    stress_field_every=args.stress_field_every, wrench_filter_hz=args.wrench_filter_hz,
-                   drift_tracking=not args.no_drift_tracking,
+                   drift_tracking=not args.no_drift_tracking, creep_per_decade=args.creep_per_decade,
                    frame_id=args.frame_id, topic=args.topic, storage=args.storage, forces_file=args.forces,
                    progress=lambda m: print(f"model: {m}", file=sys.stderr))
     except (CstomoError, OSError, ReaderError, WriterError) as err:

@@ -14,7 +14,7 @@ from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
 from .greit import greit
-from .heldout import heldout
+from .heldout import heldout, one_frame_reference
 from .pyeit import run as run_pyeit
 from .scene import run_scene
 from .table import run
@@ -42,8 +42,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
                    help="with --heldout: a device calibration (cstomo calibrate) applied to both estimators")
+    p.add_argument("--one-frame-reference", action="store_true",
+                   help="with --heldout: loads held 10 frames each through the frame stream, after a one-frame "
+                        "reference with the noise assumed, given or estimated from the frames, and a 50-frame tare")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if a.one_frame_reference and not a.heldout:
+        p.error("--one-frame-reference goes with --heldout N")
     if os.environ.get("OPENBLAS_NUM_THREADS") != "1":
         print("cstomo bench: note: OPENBLAS_NUM_THREADS is not 1; timings are pinned to one core anyway",
               file=sys.stderr)
@@ -75,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.heldout or a.greit or a.filter:
         Path(a.out).mkdir(parents=True, exist_ok=True)
-        job = ((lambda o, c: heldout(a.heldout, o, c, calibration=a.calibration)) if a.heldout
+        study = one_frame_reference if a.one_frame_reference else heldout
+        job = ((lambda o, c: study(a.heldout, o, c, calibration=a.calibration)) if a.heldout
                else filter_bench if a.filter else greit)
         job(a.out, a.cache_dir or None)
         return 0

@@ -1,0 +1,90 @@
+"""Creep (force/creep.py): a held load reads constant, its recovery reads zero, the coefficient is fitted
+from a held load and carried by the calibration file. The data: the honest device over time
+(model/timeline.py: its own mesh, the creep law applied to the truth's strain), never the model's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cstomo_sensor.force.creep import CREEP_T0, creep_kernel
+
+
+def test_the_kernel_is_the_documented_law():
+    """The sum of exponentials against log10(max(t, 0.1) / 0.1) written out here: within 0.07 of a
+    decade from 0.3 s to a day (0.3 % of a load at 4 % per decade)."""
+    t = np.logspace(np.log10(0.3), np.log10(86400), 300)
+    assert np.max(np.abs(creep_kernel(t) - np.log10(t / 0.1))) < 0.07
+    assert CREEP_T0 == 0.1
+
+
+@pytest.fixture(scope="module")
+def held(warm_model):
+    """A 20 N load pressed into the socket at 1 s, held 10 minutes, removed; 10 frames/s, 60 dB, creep 4 %."""
+    from cstomo_sensor.model.timeline import Timeline, held_load_creep
+
+    tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, off=601.0, duration=631.0), warm_model.geometry.name,
+                  snr_db=60, seed=31).prepare()
+    rng = np.random.default_rng(7)
+    times, frames, forces, _ = tl.frames(10.0, rng=rng)
+    return times, frames, tl.tare(20, rng)
+
+
+def _magnitudes(pipe, held, creep, tracking=True):
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+
+    times, frames, tare = held
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    mag = np.full(len(times), np.nan)
+    for k, (t, v) in enumerate(zip(times, frames)):
+        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
+        if out is not None and out.result.valid:
+            mag[k] = out.result.magnitude
+    return times, mag
+
+
+def test_a_held_load_reads_constant_and_its_recovery_reads_zero(warm_model, held):
+    """The issue's aim: 20 N held 10 minutes reads within 1 % of its value 1 s after it was applied
+    (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades). 5 s after its removal the
+    recovering strain reads 0.56 N uncompensated, 0.2-0.26 N compensated: the change is not proportional
+    to the strain at small strains (the material law), so the recovery is removed only in part."""
+    rows = []
+    for creep, tracking in ((0.04, True), (0.04, False), (0.0, True)):
+        times, mag = _magnitudes(warm_model, held, creep, tracking)
+        early = np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)])
+        late = np.nanmedian(mag[(times >= 590) & (times < 600.9)])
+        after = np.nanmedian(mag[(times >= 606) & (times <= 607)])
+        print(f"creep {creep}, tracking {tracking}: {early:.2f} N -> {late:.2f} N, 5 s after removal {after:.3f} N")
+        rows.append((creep, tracking, early, late, after))
+    uncompensated = rows[-1][4]
+    for creep, _tracking, early, late, after in rows:
+        if creep:
+            assert abs(late / early - 1) < 0.01 and after < 0.5 * uncompensated, rows
+        else:
+            assert late / early - 1 > 0.05 and after > 0.3, rows
+
+
+def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibration_file(warm_model, held, tmp_path):
+    from cstomo_sensor.force.calibration import DeviceCalibration
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.tools.calibrate import held_creep
+
+    times, frames, tare = held
+    warm_model.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20)
+    on = (times >= 1.0) & (times < 121.0)  # two minutes of the hold, from the load's application
+    c = held_creep(warm_model, frames[on], 10.0)
+    assert c == pytest.approx(0.04, rel=0.2), c
+    cal = DeviceCalibration("cuboid_joint", "h", "linear", np.eye(3), np.zeros((208, 3)), creep_per_decade=c)
+    cal.save(tmp_path / "cal.yaml")
+    assert DeviceCalibration.load(tmp_path / "cal.yaml").creep_per_decade == pytest.approx(c, rel=1e-9)
+    text = (tmp_path / "cal.yaml").read_text().replace(f"creep_per_decade: {c!r}", "creep_per_decade: 0.7")
+    (tmp_path / "bad.yaml").write_text(text)
+    from cstomo_sensor.errors import ConfigError
+    with pytest.raises(ConfigError, match="creep_per_decade.*0.7"):
+        DeviceCalibration.load(tmp_path / "bad.yaml")
+    stream = FrameStream(warm_model, StreamConfig(creep_per_decade=0.02))
+    assert stream.creep_per_decade == 0.02  # no calibration: the setting, and the diagnostics say so
+    assert "2.00% per decade, assumed" in stream.health(1e9)[2]["creep"]
+    assert "not compensated" in FrameStream(warm_model, StreamConfig(creep_per_decade=0.0)).health(1e9)[2]["creep"]
+    with pytest.raises(ValueError, match="decade of time"):
+        held_creep(warm_model, frames[on][:50], 10.0)
