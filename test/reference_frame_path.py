@@ -3,6 +3,8 @@ against (test_frame_path.py): the ``model`` estimator's Gauss-Newton fit through
 and Jacobian with ``numpy`` normal equations. The package uses none of them."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -27,3 +29,48 @@ def model_estimate(est, y: np.ndarray) -> np.ndarray:
             break
     return x * est.scale
 
+
+
+def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
+    """``DriftTracker.observe`` as it was (issue 20's tracker with the rate): the prediction by row and
+    column operations and the rest frame's gain through a matrix inverse, on ``tracker``'s state."""
+    from cstomo_sensor.force.drift import DEFAULT_PERIOD, RATE_MEMORY
+
+    self = tracker
+    dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
+    if t is not None:
+        self._t = t
+    m = self.m
+    a = math.exp(-dt / RATE_MEMORY)
+    P = self.P.copy()
+    P[0] += dt * P[m]
+    P[m] *= a
+    P[:, 0] += dt * P[:, m]
+    P[:, m] *= a
+    P[np.diag_indices_from(P)] += self._q * dt
+    yw = y * self._w
+    b = self._Dw1 @ yw
+    best = b[0] / self._N[0, 0]
+    rest = float(yw @ yw) - b[0] * best < self._rest
+    if rest and self._W is not None:
+        f = self._W @ y - self._Wr * best
+        rest = math.sqrt(float(f @ f)) < self.rest_force
+    step = self.rate * dt
+    self.rate *= a
+    if not rest:
+        self.scale *= 1.0 + step
+        self.P = P
+        return False
+    self.rest_frames += 1
+    info = self._N
+    gain = P @ np.linalg.inv(self._eye + info @ P)
+    delta = gain @ (b - info[:, 0] * step)
+    if np.isfinite(delta).all():
+        self.scale *= (1.0 + step) * (1.0 + float(delta[0]))
+        self.rate += float(delta[m])
+        if m > 1:
+            self.gradient = self.gradient + delta[1:m]
+            np.dot(self.gradient, self._D[1:], out=self.offset)
+        P = gain
+    self.P = 0.5 * (P + P.T)
+    return True

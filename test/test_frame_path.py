@@ -88,3 +88,52 @@ def test_model_estimator_equals_its_previous_formulation(warm_model_estimator, m
     for y in _noisy_changes(est, np.random.default_rng(4), 40):
         y = np.where(est.keep, y, 0.0)
         np.testing.assert_allclose(est.estimate(y), model_estimate(est, y), rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
+    """The tracker's update (the prediction's diagonal as a strided view, LAPACK's solve at rest, its
+    factors kept per period) follows the state the plain formulation does (row and column operations,
+    a matrix inverse), frame for frame, to rounding: a stream through a 2 % warming with rests and
+    loads, the twin fed each frame's change as the stream formed it."""
+    import copy
+
+    from reference_frame_path import drift_observe
+
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+
+    pipe = warm_model
+    rng = np.random.default_rng(6)
+    ref = pipe.model_reference
+    noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
+    tare = ref + noise * rng.normal(size=(20, len(ref)))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    flags = None
+    if masked:  # three saturated channels on every frame
+        flags = np.zeros(pipe.n_meas, bool)
+        flags[[7, 8, 100]] = True
+        stream.update_mask(flags, None)
+    ours = stream.drift
+    twin = copy.deepcopy(ours)
+    observe = ours.observe
+    rests = []
+
+    def both(y, t=None):
+        rest = observe(y, t)
+        assert drift_observe(twin, y.copy(), t) == rest
+        np.testing.assert_allclose(ours.scale, twin.scale, rtol=1e-12)
+        np.testing.assert_allclose(ours.rate, twin.rate, rtol=1e-6, atol=1e-15)
+        np.testing.assert_allclose(ours.gradient, twin.gradient, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(ours.P, twin.P, rtol=1e-6, atol=1e-9 * np.abs(twin.P).max())
+        rests.append(rest)
+        return rest
+
+    ours.observe = both
+    Y = np.asarray(pipe.estimator.y)
+    for k in range(1500):
+        v = (1 + 0.02 * min(k / 1000, 1)) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale
+                                                   if (k // 100) % 2 else 0.0))
+        stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
+    assert stream.drift is ours and 0.3 < np.mean(rests) < 0.7  # both kinds of frame
+    assert ours.change == pytest.approx(0.02, abs=2e-3)

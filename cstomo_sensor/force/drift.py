@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg import lapack
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
 #: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a
@@ -81,6 +82,15 @@ VALIDATED = 0.10
 #: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
 #: to express the tracked change in kelvin.
 RESISTIVITY_PER_K = 0.008
+
+
+def _solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X with A X = B for a small square ``A`` (LAPACK's gesv without numpy.linalg's checks: 2 us
+    instead of 7); raises ``LinAlgError`` if ``A`` is singular, as ``np.linalg.inv`` did."""
+    _, _, X, info = lapack.dgesv(A, B)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular matrix (gesv info {info})")
+    return X
 
 
 def gradient_directions(model) -> np.ndarray:
@@ -135,9 +145,14 @@ class DriftTracker:
             sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
             self._W, self._Wr = W, W @ D[0]
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
+        self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
+        self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
+        self._b = np.empty(m + 1)
         self._eye = np.eye(m + 1)
         self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL])
+        self._dt, self._a, self._qdt = -1.0, 1.0, self._q  # observe()'s factors of the last period
+        self._F = np.eye(m + 1)
         self.scale = 1.0
         self.rate = 0.0  # the scale's relative change per second
         self.gradient = np.zeros(m - 1)
@@ -170,7 +185,7 @@ class DriftTracker:
     def _set_gradient(self, g: np.ndarray) -> None:
         self.gradient = np.asarray(g, float)
         if self.m > 1:
-            np.dot(self.gradient, self._D[1:], out=self.offset)
+            np.dot(self.gradient, self._Dg, out=self.offset)
 
     def observe(self, y: np.ndarray, t: float | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
@@ -180,22 +195,24 @@ class DriftTracker:
         if t is not None:
             self._t = t
         m = self.m
-        a = math.exp(-dt / RATE_MEMORY)
-        P = self.P.copy()  # predicted: the scale moves on at its rate, which fades: F P F^T + Q with
-        P[0] += dt * P[m]  # F = I + dt e_0 e_m^T, F_mm = a
-        P[m] *= a
-        P[:, 0] += dt * P[:, m]
-        P[:, m] *= a
-        P[np.diag_indices_from(P)] += self._q * dt
+        if dt != self._dt:  # frames come at one rate: the prediction's factors once
+            self._dt, self._a, self._qdt = dt, math.exp(-dt / RATE_MEMORY), self._q * dt
+            self._F[0, m], self._F[m, m] = dt, self._a
+        a = self._a
+        # predicted: the scale moves on at its rate, which fades: F P F^T + Q dt with
+        # F = I + dt e_0 e_m^T, F_mm = a (two small products: half the cost of row and column updates)
+        P = np.dot(np.dot(self._F, self.P), self._F.T)
+        P.reshape(-1)[:: m + 2] += self._qdt  # the diagonal
         yw = np.multiply(y, self._w, out=self._yw)
-        b = self._Dw1 @ yw
+        b = np.dot(self._Dw1, yw, out=self._b)
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
-        best = b[0] / self._N[0, 0]  # the uniform change that explains the most of the frame
-        rest = float(yw @ yw) - b[0] * best < self._rest
+        b0 = float(b[0])
+        best = b0 / self._N00  # the uniform change that explains the most of the frame
+        rest = float(yw.dot(yw)) - b0 * best < self._rest
         if rest and self._W is not None:
-            f = self._W @ y - self._Wr * best
-            rest = math.sqrt(float(f @ f)) < self.rest_force
+            f = np.dot(self._W, y) - self._Wr * best
+            rest = math.sqrt(float(f.dot(f))) < self.rest_force
         step = self.rate * dt
         self.rate *= a
         if not rest:  # under load nothing is measured: a load's change is not the device's (a lateral
@@ -203,13 +220,18 @@ class DriftTracker:
             self.P = P
             return False
         self.rest_frames += 1
-        info = self._N  # the information matrix and vector of this frame's measurement of the change
-        gain = P @ np.linalg.inv(self._eye + info @ P)  # (P^-1 + info)^-1, without inverting P
-        delta = gain @ (b - info[:, 0] * step)  # the innovation: what the predicted step leaves
-        if np.isfinite(delta).all():
+        # the information matrix N and vector of this frame's measurement of the change: the gain
+        # (P^-1 + N)^-1 = P (I + N P)^-1 without inverting P, its transpose solving (I + P N) G' = P
+        # (A = I + N P in C order is I + P N in Fortran's, as LAPACK takes it; P is symmetric)
+        A = np.dot(self._N, P)
+        A += self._eye
+        gain = _solve(A.T, P.T).T
+        delta = np.dot(gain, b - self._N0 * step)  # the innovation: what the predicted step leaves
+        d = delta.tolist()
+        if all(map(math.isfinite, d)):
             # the frame was formed with the scale before this frame's step: the step and the update
-            self.scale *= (1.0 + step) * (1.0 + float(delta[0]))
-            self.rate += float(delta[m])
+            self.scale *= (1.0 + step) * (1.0 + d[0])
+            self.rate += d[m]
             if m > 1:
                 self._set_gradient(self.gradient + delta[1:m])
             P = gain

@@ -74,12 +74,14 @@ def _truth_frames(say, changes=UNIFORM):
     return unloaded[0.0], unloaded, forces, loaded
 
 
-def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | None = None, ramp_s: float = RAMP_S):
+def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | None = None, ramp_s: float = RAMP_S,
+         creep: float = 0.0):
     """One scenario's stream: the figures of the module docstring (``costs``: a list that gets every
-    frame's seconds through the stream; ``ramp_s``: the change's duration)."""
+    frame's seconds through the stream; ``ramp_s``: the change's duration; ``creep``: the stream's
+    creep_per_decade: the truth has no creep, so by default neither has the stream; the timelines'
+    streams take their truth's)."""
     rng = np.random.default_rng(seed)
-    # the truth has no creep: neither has the stream (the timelines' streams take their truth's)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=0.0))
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, SNR_DB, rng)
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
     plan = [(ref + (v_unloaded - ref) * k / (ramp_s * RATE), None, False) for k in range(int(ramp_s * RATE))]
@@ -130,12 +132,13 @@ def drift_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
 
 def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 5) -> list[dict]:
     """``cstomo bench --frame-cost``: the time of one frame through the stream (``FrameStream.push``:
-    the plausibility gate, the estimator, the consistency statistic, the drift tracker, the filter and
-    the counts; no stress field) for both estimators, tracking off and on, side by side: the drift
-    bench's unchanged device (7 s at rest, then its held-out loads held 1 s with 1 s rests: 3100 frames,
-    61 % at rest; 60 dB, 100 frames/s), ``rounds`` rounds of
-    every setting in turn on one pinned core, so the host's load weighs on all alike; median and 90th
-    percentile over every frame of the rounds, with the host's load average at the start and the end.
+    the plausibility gate, the estimator, the consistency statistic, the drift tracker, the creep
+    compensation at the node's default, the filter and the counts; no stress field) for both
+    estimators, tracking off and on, side by side: the drift bench's unchanged device (7 s at rest,
+    then its held-out loads held 1 s with 1 s rests: 3100 frames, 61 % at rest; 60 dB, 100 frames/s),
+    ``rounds`` rounds of every setting in turn on one pinned core, so the host's load weighs on all
+    alike; median and 90th percentile over every frame of the rounds, with the host's load average at
+    the start and the end.
     Writes frame_cost.csv in ``out``."""
     ref, unloaded, forces, loaded = _truth_frames(say, changes=())
     pipes = {name: Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or ""))) for name in ESTIMATORS}
@@ -146,7 +149,7 @@ def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 
         for _ in range(rounds):
             for name, tracking in settings:
                 _run(pipes[name], ref, unloaded[0.0], loaded[0.0], forces, tracking, seed=7, costs=costs[name, tracking],
-                     ramp_s=5.0)
+                     ramp_s=5.0, creep=StreamConfig.creep_per_decade)
     load1 = os.getloadavg()[0]
     rows = [{"estimator": name, "tracking": tracking, "frames": len(c), "us_median": 1e6 * float(np.median(c)),
              "us_p90": 1e6 * float(np.percentile(c, 90)), "load_start": load0, "load_end": load1}
