@@ -106,15 +106,17 @@ def gradient_directions(model) -> np.ndarray:
 
 class DriftTracker:
     """The device's slow change since its tare (module docstring): the uniform scale ``s`` of its
-    voltages and a resistivity gradient across the block (``gradient``: (3,) relative change per half
-    extent along x, y, z).
+    voltages, its ``rate`` (per second), and the states of the other directions (``gradient``, (k,):
+    the stream gives the contacts' four and the resistivity gradient's three, relative change per
+    half extent).
 
     Parameters
     ----------
     r : (n_meas,) ndarray
         The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
     gradients : (k, n_meas) ndarray or None
-        :func:`gradient_directions` (None: the scale alone is tracked).
+        The other directions followed at rest (the model's contact directions, :func:`gradient_directions`;
+        None: the scale alone is tracked).
     noise : (n_meas,) ndarray
         Per-channel noise std of a change (y units).
     keep : (n_meas,) bool ndarray
