@@ -162,6 +162,24 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def recorded_noise(frames: np.ndarray, ref: np.ndarray) -> np.ndarray | None:
+    """The per-channel noise (volts, one level for all) of a recording's consecutive frames, by the
+    stream's rules (force/noise.py), or None (the estimators assume 60 dB) when its frame pairs do not
+    differ by noise alone; prints which."""
+    from ..force.device import DEFAULT_NOISE_DB
+    from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level, snr_db
+
+    level, pairs, agree = noise_level(frames)
+    db = snr_db(level, ref) if level == level else float("nan")
+    if pairs >= MIN_PAIRS and agree >= AGREE_FRACTION and 10.0 <= db <= 120.0:
+        print(f"noise: estimated from {pairs} consecutive frame pairs ({db:.1f} dB): the reference has one frame")
+        return np.full(len(ref), level)
+    print(f"noise: assumed {DEFAULT_NOISE_DB:g} dB: the reference has one frame and {agree:.0%} of the "
+          f"{pairs} consecutive frame pairs differ by noise alone (record the reference's frames, or hold "
+          "each load for several frames)")
+    return None
+
+
 def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
     """The creep per decade of a held load's frames (the first when the load was applied, ``rate``
     frames/s): their force magnitudes through the stream, neither creep nor drift compensated."""
@@ -217,6 +235,8 @@ def run(a) -> int:
         source = {"frames": str(a.frames), "forces": str(a.forces)}
     if a.reference:
         source["reference"] = str(a.reference)
+    if noise is None:  # a one-frame reference: the noise from the recording, as the node estimates it
+        noise = recorded_noise(all_frames if not a.bag else frames, ref)
     pipe = Pipeline.build(cfg, progress=lambda m: print(f"model: {m}", file=sys.stderr))
     report = pipe.set_reference(ref, noise, n_ref)
     print(f"reference: {report.message}")
