@@ -164,3 +164,18 @@ def test_cli_estimate_says_and_uses_the_estimated_noise(device, tmp_path, capsys
     lines = (tmp_path / "forces.csv").read_text().splitlines()
     assert len(lines) == 1 + len(read_frames(tmp_path / "frames.csv"))
     assert [r.split(",")[-1] for r in lines[1:]] == ["0"] * len(frames)  # no socket frame flagged
+
+
+def test_a_refused_estimate_is_said_once_not_every_evaluation(device, warm_model, caplog):
+    """A board whose frames repeat exactly (a quantised ADC at a quiet moment, a stuck converter): the
+    estimate is 0 V, no board's noise, and refused; 10 s of frames say so once, not 10 times a second."""
+    import logging
+
+    ref, _ = device
+    stream = _stream(warm_model, True)
+    stream.set_reference(ref, None, 1, "one frame")
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.stream"):
+        _run(stream, np.repeat(ref[None], 1000, axis=0))
+    said = [r for r in caplog.records if "estimate not used" in r.getMessage()]
+    assert len(said) == 1, [r.getMessage() for r in said]
+    assert "estimate not used" in stream.noise_text

@@ -41,6 +41,7 @@ from ..angles import angle_between
 from ..cache import input_hash
 from ..errors import ConfigError, ModelMismatchError
 from ..frames_io import atomic_write
+from .creep import creep_problem
 
 FORMAT = "cstomo_sensor device calibration 1"
 #: Prior std of each correction, relative to the channel's model sensitivity (rms over x, y, z).
@@ -208,9 +209,9 @@ class DeviceCalibration:
             raise ConfigError.bad_value(f"{where}: force_map", A.round(3).tolist(), "a map near the identity "
                                         "(a device within docs/physics.md#real-devices)")
         creep = doc.get("creep_per_decade")
-        if creep is not None and not (isinstance(creep, (int, float)) and 0 <= creep < 0.5):
-            raise ConfigError.bad_value(f"{where}: creep_per_decade", creep, "a fraction per decade, 0 <= c < 0.5 "
-                                        "(rubbers: 0.02..0.06)")
+        why = creep_problem(creep) if creep is not None else ""
+        if why:
+            raise ConfigError.bad_value(f"{where}: creep_per_decade", creep, why)
         return cls(str(doc["sensor"]), str(doc["model_hash"]), str(doc["estimator"]), A, D,
                    float(doc.get("prior_rel", PRIOR_REL)), doc.get("fitted_on") or {}, doc.get("cross_validation") or {},
                    str(path), None if creep is None else float(creep))

@@ -38,6 +38,20 @@ CREEP_T0 = 0.1
 DEFAULT_CREEP = 0.04
 #: Seconds between frames without stamps (as the drift tracker's).
 DEFAULT_PERIOD = 0.01
+#: The largest coefficient taken (rubbers: 0.02..0.06); the compensation feeds back its own output,
+#: stable to about 0.3 per decade.
+MAX_CREEP = 0.2
+#: Longest time step taken between two frames, in frame periods (the running mean of the steps): a
+#: stamp that jumps (a stepped clock) does not age the history by more; an outage ages it by that
+#: much only (a load held through it is a little younger to the compensation than it is).
+MAX_STEPS = 10.0
+
+
+def creep_problem(c) -> str:
+    """Why ``c`` is no creep coefficient ('' if it is one)."""
+    if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 <= c < MAX_CREEP:
+        return f"a fraction per decade, 0 <= c < {MAX_CREEP:g} (rubbers: 0.02..0.06; 0 = off)"
+    return ""
 
 
 @cache
@@ -58,17 +72,19 @@ def fit_creep(times, magnitudes, min_time: float = 1.0) -> float:
     """The creep coefficient of a held load: ``|F|(t) = A (1 + c log10(t / 0.1))`` fitted by least squares
     to the (uncompensated) force magnitudes at ``times`` (s since the load was applied), from
     ``min_time`` on (the load settled). Raises ValueError when the hold is too short to tell (less
-    than a decade of time) or the fit is outside 0..0.5."""
+    than a decade of time from ``min_time``) or the fit is no creep coefficient."""
     t, m = np.asarray(times, float), np.asarray(magnitudes, float)
-    use = (t >= max(min_time, CREEP_T0)) & np.isfinite(m)
-    if use.sum() < 10 or t[use].max() < 10 * t[use].min():
-        raise ValueError(f"a held load over {t[use].min() if use.any() else 0:g}..{t[use].max() if use.any() else 0:g} s "
-                         f"({int(use.sum())} frames): expected a decade of time or more (e.g. 1..60 s) and 10 frames")
+    t0 = max(min_time, CREEP_T0)
+    use = (t >= t0) & np.isfinite(m)
+    if use.sum() < 10 or t[use].max() < 10 * t0:
+        span = f"{t.min():g}..{t.max():g} s" if t.size else "no frames"
+        raise ValueError(f"a held load over {span} with {int(use.sum())} usable frames from {t0:g} s on: expected "
+                         f"a decade of time from {t0:g} s (to {10 * t0:g} s or more; a minute is better) and 10 frames")
     phi = np.log10(t[use] / CREEP_T0)
     (a, b), *_ = np.linalg.lstsq(np.stack([np.ones_like(phi), phi], axis=1), m[use], rcond=None)
     c = float(b / a) if a > 0 else float("nan")
-    if not 0 <= c < 0.5:
-        raise ValueError(f"fitted creep {c:.3g} per decade: expected 0..0.5; was the load held still?")
+    if creep_problem(c):
+        raise ValueError(f"fitted creep {c:.3g} per decade: expected {creep_problem(c)}; was the load held still?")
     return c
 
 
@@ -85,15 +101,15 @@ class CreepCompensator:
     Parameters
     ----------
     coefficient : float
-        The rubber's creep per decade (0.02..0.06), 0 <= c < 0.5.
+        The rubber's creep per decade (0.02..0.06), 0 <= c < :data:`MAX_CREEP`.
     n_meas : int
         Measurements per frame.
     """
 
     def __init__(self, coefficient: float, n_meas: int) -> None:
-        if not 0.0 <= coefficient < 0.5:
-            raise ValueError(f"creep coefficient {coefficient!r}: expected a fraction per decade, 0 <= c < 0.5 "
-                             "(2..6 %: 0.02..0.06)")
+        why = creep_problem(coefficient)
+        if why:
+            raise ValueError(f"creep coefficient {coefficient!r}: expected {why}")
         self.coefficient = float(coefficient)
         taus, w = creep_modes()
         self._tau, self._cw = taus, self.coefficient * w
@@ -101,21 +117,28 @@ class CreepCompensator:
         self._d = np.empty_like(self._s)
         self.offset = np.zeros(n_meas)
         self._t: float | None = None
+        self._period, self._steps = DEFAULT_PERIOD, 0  # the frames' period (s), the steps it is the mean of
         self._dt = -1.0
         self._a = np.zeros((len(taus), 1))
 
-    def observe(self, y: np.ndarray, t: float | None = None) -> None:
+    def observe(self, y: np.ndarray, t: float | None = None, frozen: np.ndarray | None = None) -> None:
         """Take the compensated change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
-        :data:`DEFAULT_PERIOD` after the previous frame) into the history; :attr:`offset` becomes
-        the creep at that time (for the next frame)."""
-        dt = DEFAULT_PERIOD if t is None or self._t is None else max(t - self._t, 0.0)
-        if t is not None:
+        :data:`DEFAULT_PERIOD` after the previous frame; a stamp that goes back counts 0 s, a jump at
+        most :data:`MAX_STEPS` frame periods) into the history, except on the channels ``frozen`` (excluded: their
+        history waits); :attr:`offset` becomes the creep at that time (for the next frame)."""
+        dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), MAX_STEPS * self._period)
+        if t is not None:  # a stepped clock: one frame's step is clipped, the next ones count from it
             self._t = t
+        if dt > 0:
+            self._period = dt if self._steps == 0 else self._period + (dt - self._period) / min(self._steps + 1, 100)
+            self._steps += 1
         if dt != self._dt:  # frames come at one rate: the factors are computed once
             self._dt = dt
             self._a = -np.expm1(-dt / self._tau)[:, None]
         d = np.subtract(y, self._s, out=self._d)
         d *= self._a
+        if frozen is not None:
+            d[:, frozen] = 0.0
         self._s += d
         np.dot(self._cw, self._s, out=self.offset)
 
@@ -124,3 +147,4 @@ class CreepCompensator:
         self._s[:] = 0.0
         self.offset[:] = 0.0
         self._t = None
+        self._period, self._steps = DEFAULT_PERIOD, 0

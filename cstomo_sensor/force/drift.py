@@ -194,7 +194,7 @@ class DriftTracker:
         :data:`DEFAULT_PERIOD` after the previous frame), formed with the current state; returns True
         if the frame was taken as at rest."""
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
-        if t is not None:
+        if t is not None:  # a stepped clock: one frame's step is clipped, the next ones count from it
             self._t = t
         m = self.m
         if dt != self._dt:  # frames come at one rate: the prediction's factors once

@@ -46,7 +46,7 @@ import numpy as np
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
-from .creep import DEFAULT_CREEP, CreepCompensator
+from .creep import DEFAULT_CREEP, CreepCompensator, creep_problem
 from .device import read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
@@ -128,9 +128,9 @@ class StreamConfig:
             raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
         if not self.stale_timeout > 0:
             raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
-        if not 0 <= self.creep_per_decade < 0.5:
-            raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade,
-                                        "a fraction per decade, 0 <= c < 0.5 (rubbers: 0.02..0.06; 0 = off)")
+        why = creep_problem(self.creep_per_decade)
+        if why:
+            raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade, why)
 
 
 def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
@@ -585,7 +585,10 @@ class FrameStream:
 
     @property
     def creep_per_decade(self) -> float:
-        """The creep compensated: the calibration's coefficient if it has one, else the setting's."""
+        """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
+        setting of 0 turns it off, over a calibration's too."""
+        if not self.config.creep_per_decade:
+            return 0.0
         cal = self.pipe.calibration
         fitted = getattr(cal, "creep_per_decade", None) if cal is not None else None
         return float(fitted) if fitted is not None else self.config.creep_per_decade
@@ -662,8 +665,11 @@ class FrameStream:
         try:
             pipe.set_noise(np.full(pipe.n_meas, level), f"{source} ({snr_db(level, pipe.reference):.1f} dB)")
         except ConfigError as err:
-            self._noise_note = f"estimate not used: {err}"
-            log.warning("noise %s", self._noise_note)
+            note = f"estimate not used: {err}"
+            if note != self._noise_note:  # once per reason, not every evaluation
+                log.warning("noise %s", note)
+            self._noise_note = note
+            self._noise_next = self.noise.pairs + UPDATE_EVERY if self.noise is not None else 0
             return
         self._noise_level, self._noise_from, self._noise_note = level, source, ""
         if self.drift is not None:
@@ -773,7 +779,7 @@ class FrameStream:
                 drift.observe(y, t)
                 self.pipe.scale = drift.scale
             if creep is not None:
-                creep.observe(y, t)
+                creep.observe(y, t, self._mask if self.excluded.channels else None)
             self._apply_offsets()
         return result
 

@@ -68,8 +68,8 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "drift_tracking": _d("Follow the device's slow uniform change after the tare (warming, drive drift) so the "
                          "zero holds; diagnostics show the tracked change (force/drift.py)", read_only=True),
     "creep_per_decade": _d("The rubber's creep per decade of time (0.02..0.06), compensated so a held load reads "
-                           "constant (force/creep.py); a calibration file's fitted value wins; 0 = off",
-                           read_only=True, lo=0.0, hi=0.49),
+                           "constant (force/creep.py); a calibration file's fitted value wins; 0 = off (a calibration's too)",
+                           read_only=True, lo=0.0, hi=0.19),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),

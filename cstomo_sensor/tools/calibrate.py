@@ -189,7 +189,7 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
     if not rate > 0:
         raise ConfigError.bad_value("--creep-rate", rate, "frames per second > 0")
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, drift_tracking=False,
-                                            creep_per_decade=0.0))
+                                            creep_per_decade=0.0, noise_estimation=False))
     mags = np.full(len(frames), np.nan)
     for k, v in enumerate(frames):
         out = stream.push(v, stamp_ns=int(1e9 * (1 + k / rate)))
@@ -202,7 +202,16 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
 
 
 def run(a) -> int:
+    from ..force.creep import creep_problem
+
     cfg = pipeline_config(a)
+    if a.creep_per_decade is not None and a.creep_hold:
+        raise ConfigError("give --creep-per-decade or --creep-hold, not both")
+    if a.creep_per_decade is not None and creep_problem(a.creep_per_decade):
+        raise ConfigError.bad_value("--creep-per-decade", a.creep_per_decade, creep_problem(a.creep_per_decade))
+    if a.creep_hold and not a.creep_rate > 0:
+        raise ConfigError.bad_value("--creep-rate", a.creep_rate, "frames per second > 0")
+    hold = read_frames(a.creep_hold) if a.creep_hold else None  # read before the model is built
     if cfg.calibration_file:
         raise ConfigError("--calibration: calibrate against the nominal model (give no --calibration)")
     t0 = time.perf_counter()
@@ -242,12 +251,10 @@ def run(a) -> int:
     print(f"reference: {report.message}")
     cal = calibrate(pipe, frames, forces, fitted_on=source)
     creep = a.creep_per_decade
-    if a.creep_hold:
-        creep = held_creep(pipe, read_frames(a.creep_hold), a.creep_rate)
+    if hold is not None:
+        creep = held_creep(pipe, hold, a.creep_rate)
         print(f"creep: {creep:.2%} per decade, fitted on the held load of {a.creep_hold}")
     if creep is not None:
-        if not 0 <= creep < 0.5:
-            raise ConfigError.bad_value("--creep-per-decade", creep, "a fraction per decade, 0 <= c < 0.5")
         cal = replace(cal, creep_per_decade=float(creep))
     out = Path(a.out)
     cal.save(out)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import ConfigError, CstomoError
 from ..force.device import read_reference
+from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level
 from ..force.pipeline import FrameResult, Pipeline
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import atomic_write, read_frames, write_forces, write_frames
@@ -96,10 +97,17 @@ def cmd_estimate(a) -> int:
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
+    creep = a.creep_per_decade
+    _, pairs, agree = noise_level(frames)
+    if creep and not (pairs >= MIN_PAIRS and agree >= AGREE_FRACTION):  # creep acts on a history in time
+        why = (f"{pairs} consecutive frame pairs, fewer than {MIN_PAIRS}" if pairs < MIN_PAIRS else
+               f"only {agree:.0%} of its {pairs} consecutive frame pairs differ by noise alone")
+        print(f"creep: not compensated: {a.frames} does not look like one recording in time ({why}: frames of "
+              "distinct loads?)", file=sys.stderr)
+        creep = 0.0
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
-                                            drift_tracking=not a.no_drift_tracking,
-                                            creep_per_decade=a.creep_per_decade))
+                                            drift_tracking=not a.no_drift_tracking, creep_per_decade=creep))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "

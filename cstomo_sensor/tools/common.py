@@ -50,8 +50,8 @@ def add_creep_arg(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--creep-per-decade", type=float, default=StreamConfig.creep_per_decade, metavar="C",
                    help="the rubber's creep per decade of time, compensated so a held load reads constant "
-                        "(default %(default)g; a calibration's fitted value wins; 0: off, e.g. for frames that are "
-                        "not one recording in time)")
+                        "(default %(default)g; a calibration's fitted value wins; 0: off, over a calibration's too; "
+                        "`cstomo estimate` turns it off on frames that are not one recording in time)")
 
 
 def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
