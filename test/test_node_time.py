@@ -46,8 +46,11 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
         board.start()
         assert wait_for(lambda: len(wr) > 50, 10.0), len(wr)
         step["at"] = t_step = time.monotonic() + 0.2
+        assert wait_for(lambda: time.monotonic() > t_step, 5.0)
+        frames_at_step = h.node.stream.counts.frames
         assert wait_for(lambda: time.monotonic() > t_step + 2.5, 5.0)
         late = h.node.stream.counts.late
+        frames = h.node.stream.counts.frames - frames_at_step
     finally:
         stop.set()
         clock.join()
@@ -58,9 +61,10 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
     # (bounds loose for a loaded machine; before the fix: no wrench for 10 s, every frame late)
     assert after and after[0][0] - t_step < 1.0, (after[:1], t_step)
     times = np.array([t for t, _ in after])
-    # no blackout: wrenches all along the 2.5 s (the in-process board, sharing the GIL with the node,
-    # the probe and the clock thread, does not always keep its 100 frames/s)
-    assert len(times) > 100 and np.diff(times).max() < 1.0
+    # no blackout: every frame the node received after the step gave a wrench (the in-process board,
+    # sharing the GIL with the node, the probe and the clock thread, does not always keep its 100
+    # frames/s on a loaded host: a CI run saw 1.75 s without a frame, none of them late)
+    assert frames > 20 and len(times) >= frames - 5, (frames, len(times))
     stamps = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for _, m in after[20:]])
     assert np.all(np.abs(stamps - (1030.0 + times[20:])) < 0.5)  # the new clock's time, minus the frame's age
     assert late < 10, late
