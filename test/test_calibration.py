@@ -237,7 +237,9 @@ def test_the_node_runs_with_a_calibration_and_its_diagnostics_name_it(ros, tmp_p
 def test_a_one_frame_reference_takes_the_recordings_noise(tmp_path, device, capsys):
     """With a one-frame reference the noise comes from the recording's consecutive frames (loads held
     for 5 frames on a 40 dB board: the estimate says 40 dB, from the documented rms x 10^(-SNR/20));
-    a file of distinct loads, one frame each, cannot tell noise from load: 60 dB is assumed, and said."""
+    a recording too short to tell (fewer than 10 frame pairs) keeps the assumed 60 dB, and says so.
+    (A file of distinct loads, one frame each, may pass for noise: on one truth mesh its 19 pairs said
+    39 dB at 60 dB, on another they were refused; force/noise.py's limit, docs/calibration.md.)"""
     from cstomo_sensor.frames_io import write_forces, write_frames
     from cstomo_sensor.tools.calibrate import main
 
@@ -246,12 +248,14 @@ def test_a_one_frame_reference_takes_the_recordings_noise(tmp_path, device, caps
     held = add_noise(np.repeat(frames[:10], 5, axis=0), tare[0], 40.0, rng)
     write_frames(tmp_path / "ref1.csv", tare[:1])
     common = ["--mesh-size", str(MODEL_H), "--estimator", "linear", "--reference", str(tmp_path / "ref1.csv")]
-    for name, f, F in (("held", held, np.repeat(forces[:10], 5, axis=0)), ("distinct", frames, forces)):
+    for name, f, F in (("held", held, np.repeat(forces[:10], 5, axis=0)), ("short", frames[:6], forces[:6])):
         write_frames(tmp_path / f"{name}.csv", f)
         write_forces(tmp_path / f"{name}_forces.csv", F)
         assert main([*common, "--frames", str(tmp_path / f"{name}.csv"), "--forces", str(tmp_path / f"{name}_forces.csv"),
                      "--out", str(tmp_path / f"{name}.yaml")]) == 0
     out = capsys.readouterr().out
-    (db,) = [float(line.split("(")[1].split(" dB")[0]) for line in out.splitlines() if "noise: estimated from" in line]
+    said = [line for line in out.splitlines() if line.startswith("noise: estimated from")]
+    assert len(said) == 1, out
+    db = float(said[0].split("(")[1].split(" dB")[0])
     assert 39.0 < db < 41.0, out
     assert "noise: assumed 60 dB" in out, out
