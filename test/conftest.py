@@ -1,6 +1,7 @@
 """Shared fixtures and the ROS harness: one on-disk cache per checkout (empty on a fresh machine),
 expensive models built once per run, DDS kept on this host (set here, before any test starts rclpy;
 a ROS_DOMAIN_ID the caller set is kept)."""
+import contextlib
 import os
 import threading
 import time
@@ -205,6 +206,36 @@ def diag_records(h):
     from diagnostic_msgs.msg import DiagnosticArray
 
     return h.record("/diagnostics", DiagnosticArray)
+
+
+@contextlib.contextmanager
+def diagnostics_seen(ctx):
+    """A probe node on ``ctx``, spun in a thread while the block runs, collecting ``/diagnostics``:
+    yields {status name: [its key-values of each message, in order]}."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    probe = Node("probe", context=ctx)
+    seen: dict[str, list[dict]] = {}
+    lock = threading.Lock()
+
+    def cb(msg):
+        with lock:
+            for s in msg.status:
+                seen.setdefault(s.name, []).append({kv.key: kv.value for kv in s.values})
+
+    probe.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(probe)
+    t = threading.Thread(target=ex.spin, daemon=True)
+    t.start()
+    try:
+        yield seen
+    finally:
+        ex.shutdown(timeout_sec=2.0)
+        t.join(5.0)
+        probe.destroy_node()
 
 
 def diag(msg) -> tuple[int, str, dict]:

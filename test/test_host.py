@@ -5,14 +5,13 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 
 import pytest
 import yaml
 
 pytest.importorskip("rclpy")
 
-from conftest import PIPE, wait_for  # noqa: E402
+from conftest import PIPE, diagnostics_seen, wait_for  # noqa: E402
 
 HOST = [sys.executable, "-m", "cstomo_sensor.ros.host"]
 ENV = dict(os.environ, OPENBLAS_NUM_THREADS="1")
@@ -48,37 +47,18 @@ def test_help_and_a_bad_namespace():
 def test_two_sensors_in_one_process_each_report_under_its_namespace(ros, tmp_path, warm_model):
     """Two sensors with their parameters from one file (a section each, one for both), each with its
     diagnostics named by its namespace; Ctrl-C ends the host cleanly."""
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-
     params = _params_file(tmp_path, {f"/{n}": {"tare_file": str(tmp_path / f"{n}.csv")} for n in ("left", "right")})
     host = subprocess.Popen(HOST + ["/left", "/right", "--ros-args", "--params-file", params], env=ENV,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    probe = Node("probe", context=ros)
-    seen: dict[str, str] = {}
-    lock = threading.Lock()
-
-    def cb(msg):
-        with lock:
-            for s in msg.status:
-                seen[s.name] = {kv.key: kv.value for kv in s.values}.get("input", "")
-
-    probe.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
-    ex = SingleThreadedExecutor(context=ros)
-    ex.add_node(probe)
-    t = threading.Thread(target=ex.spin, daemon=True)
-    t.start()
     try:
-        assert wait_for(lambda: len(seen) >= 2, 60.0), seen
+        with diagnostics_seen(ros) as seen:
+            assert wait_for(lambda: len(seen) >= 2, 60.0), seen
     finally:
-        ex.shutdown(timeout_sec=2.0)
-        t.join(5.0)
-        probe.destroy_node()
         host.send_signal(signal.SIGINT)
         err = host.stderr.read()
         code = host.wait(30)
-    assert seen == {"/left/cstomo_sensor: sensor": "topic", "/right/cstomo_sensor: sensor": "topic"}, seen
+    inputs = {name: kvs[-1].get("input", "") for name, kvs in seen.items()}
+    assert inputs == {"/left/cstomo_sensor: sensor": "topic", "/right/cstomo_sensor: sensor": "topic"}, inputs
     assert code == 0 and "Traceback" not in err, err
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import PIPE, wait_for
+from conftest import PIPE, diagnostics_seen, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -102,34 +102,13 @@ def test_help_lists_exactly_the_stream_outputs():
 
 
 def test_two_sensors_in_two_namespaces_have_distinct_diagnostics_names(tmp_path, warm_model):
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.node import Node
-
     specs = [(ns, dict(PIPE, input="topic", tare_file=str(tmp_path / f"{ns.strip('/')}.csv")))
              for ns in ("/left_knee", "/right_knee")]
     ctx, nodes, stop = _nodes(specs)
-    probe = Node("probe", context=ctx)
-    seen: dict[str, int] = {}
-    lock = threading.Lock()
-
-    def cb(msg):
-        with lock:
-            for s in msg.status:
-                seen[s.name] = seen.get(s.name, 0) + 1
-
-    probe.create_subscription(DiagnosticArray, "/diagnostics", cb, 10)
-    from rclpy.executors import SingleThreadedExecutor
-
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(probe)
-    t = threading.Thread(target=ex.spin, daemon=True)
-    t.start()
     try:
-        assert wait_for(lambda: len(seen) >= 2 and min(seen.values()) >= 2, 20.0), seen
+        with diagnostics_seen(ctx) as seen:
+            assert wait_for(lambda: len(seen) >= 2 and min(map(len, list(seen.values()))) >= 2, 20.0), seen
     finally:
-        ex.shutdown(timeout_sec=2.0)
-        t.join(5.0)
-        probe.destroy_node()
         stop()
     assert set(seen) == {"/left_knee/cstomo_sensor: sensor", "/right_knee/cstomo_sensor: sensor"}, seen
 
