@@ -139,7 +139,7 @@ def test_huge_k_reaches_analytic_limits_without_overflow():
     f = filter_factors(s, k, step, 0.0)
     assert np.all(np.isfinite(f))
     big = s >= 1e-2  # (1 - s^2)^k <= exp(-100): pseudo-inverse factor 1/s
-    np.testing.assert_allclose(f[big], 1.0 / s[big], rtol=1e-14)
+    np.testing.assert_allclose(f[big], 1.0 / s[big], rtol=1e-12)
     small = s <= 1e-6  # k step s^2 <= 1e-6: f = k step s (1 - k step s^2 / 2 + ...)
     np.testing.assert_allclose(f[small], k * step * s[small], rtol=1e-6)
     tiny = s <= 1e-7
@@ -148,14 +148,14 @@ def test_huge_k_reaches_analytic_limits_without_overflow():
     lam = 1e-3
     fd = filter_factors(s, k, 1.0 / (1.0 + lam), lam)
     np.testing.assert_allclose(fd, s / (s**2 + lam), rtol=1e-12)
-    np.testing.assert_allclose(filter_factors(s, math.inf, None, lam), s / (s**2 + lam), rtol=1e-15)
-    np.testing.assert_allclose(filter_factors(s, math.inf), 1.0 / s, rtol=1e-15)
+    np.testing.assert_allclose(filter_factors(s, math.inf, None, lam), s / (s**2 + lam), rtol=1e-12)
+    np.testing.assert_allclose(filter_factors(s, math.inf), 1.0 / s, rtol=1e-12)
 
 
 def test_tiny_step_is_exact_to_first_order():
     s = np.array([1.0, 1e-4])
     step, k = 1e-20, 1000
-    np.testing.assert_allclose(filter_factors(s, k, step), k * step * s, rtol=1e-14)
+    np.testing.assert_allclose(filter_factors(s, k, step), k * step * s, rtol=1e-12)
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.1])
@@ -303,9 +303,11 @@ def test_weight_power_zero_gives_the_plain_matrix_exactly(rank_deficient, svd):
     w = column_weight(J, 0.0)
     assert np.array_equal(w, np.ones(N_CELLS))
     weighted = LandweberSVD.from_jacobian(J, weight=w)
-    for k in (1, 37, 10**6):
-        assert np.array_equal(weighted.matrix(k, dtype=np.float64), svd.matrix(k, dtype=np.float64))
-    assert np.array_equal(landweber(J, np.eye(N_MEAS)[:, :3], 5, weight=w), landweber(J, np.eye(N_MEAS)[:, :3], 5))
+    for k in (1, 37, 10**6):  # equal to rounding, scaled to the matrix (BLAS kernels differ between machines)
+        R = svd.matrix(k, dtype=np.float64)
+        np.testing.assert_allclose(weighted.matrix(k, dtype=np.float64), R, rtol=0, atol=1e-12 * np.abs(R).max())
+    G = landweber(J, np.eye(N_MEAS)[:, :3], 5)
+    np.testing.assert_allclose(landweber(J, np.eye(N_MEAS)[:, :3], 5, weight=w), G, rtol=0, atol=1e-12 * np.abs(G).max())
 
 
 def test_weighted_huge_k_reaches_the_weighted_pseudo_inverse():

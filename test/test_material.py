@@ -36,7 +36,7 @@ def test_hand_value_at_theta_0_01():
     sigma, clipped = conductivity_of_theta(np.array([0.01]), MAT)
     assert 1.0 / sigma[0] == pytest.approx(rho, rel=1e-12)
     assert rho < RHO0  # compression raises the conductivity
-    assert phi_of_theta(0.01, MAT) == pytest.approx(phi, rel=1e-14)
+    assert phi_of_theta(0.01, MAT) == pytest.approx(phi, rel=1e-12)
     assert not clipped[0]
 
 
@@ -54,12 +54,12 @@ def test_dlog_rho_dtheta_at_rest_is_minus_12_by_finite_differences():
     s, _ = conductivity_of_theta(np.array([-h, h]), MAT)
     dlnrho = (math.log(1 / s[1]) - math.log(1 / s[0])) / (2 * h)
     assert dlnrho == pytest.approx(-12.0, rel=1e-8)
-    assert dlog_conductivity_dtheta(MAT) == pytest.approx(12.0, rel=1e-14)
+    assert dlog_conductivity_dtheta(MAT) == pytest.approx(12.0, rel=1e-12)
 
 
 def test_pressure_uses_bulk_modulus():
     # K = E / (3 (1 - 2 nu)) = 1e6 / 0.3
-    assert pressure_of_theta(0.003, MAT) == pytest.approx(0.003 * 1e6 / 0.3, rel=1e-14)
+    assert pressure_of_theta(0.003, MAT) == pytest.approx(0.003 * 1e6 / 0.3, rel=1e-12)
 
 
 @pytest.mark.parametrize("theta", [-1.0, -10.0, -np.inf, np.log(0.05 / 0.06), np.log(0.05 / 0.06) - 1e-12, -1e300])
