@@ -86,16 +86,19 @@ def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def check_writable(directory: str | os.PathLike) -> Path:
+CACHE_REMEDY = "set the parameter 'cache_dir' (or $CSTOMO_CACHE_DIR) to a writable directory"
+
+
+def check_writable(directory: str | os.PathLike, what: str = "cache directory", remedy: str = CACHE_REMEDY) -> Path:
     """``directory``, created if needed, after writing and removing a probe file in it; else a
-    :class:`~cstomo_sensor.errors.ConfigError` naming it and the cause (call this before a long
-    build, so an unwritable cache is reported at once, not after minutes of meshing)."""
+    :class:`~cstomo_sensor.errors.ConfigError` naming ``what``, the directory, the cause and the
+    ``remedy`` (call this before a long build, so an unwritable cache or tare file is reported at
+    once, not after minutes of meshing or at the first tare)."""
     d = Path(directory)
     try:
         d.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=d, prefix=".write_probe"):  # a name of its own: two sensors
             pass  # of one process check the same directory at once
     except OSError as err:
-        raise ConfigError(f"cache directory {d} is not writable ({err.strerror or err}): set the parameter "
-                          "'cache_dir' (or $CSTOMO_CACHE_DIR) to a writable directory") from err
+        raise ConfigError(f"{what} {d} is not writable ({err.strerror or err}): {remedy}") from err
     return d

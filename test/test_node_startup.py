@@ -20,7 +20,7 @@ def warm_model():
 def configure(ros, capfd, name: str, **params):
     """(transition result, reference source, tare path, stderr) of configuring a node with ``params``."""
     capfd.readouterr()
-    h = Harness(ros, dict(PIPE, input="topic", autostart=False, **params), name=name)
+    h = Harness(ros, {**PIPE, "input": "topic", "autostart": False, **params}, name=name)
     try:
         ret = h.node.trigger_configure()
         source, tare_path = h.node.reference_source, h.node.tare_path
@@ -41,6 +41,34 @@ def test_an_unwritable_cache_directory_is_named_before_any_build(ros, capfd, tmp
     assert ret == TransitionCallbackReturn.FAILURE
     line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
     assert "ERROR" in line and str(cache) in line and "not writable" in line and "cache_dir" in line, err
+
+
+def test_an_unwritable_tare_file_is_named_before_any_build(ros, capfd, tmp_path):
+    """A tare the node cannot save would be taken again, under whatever load, at every restart."""
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file where the tare's directory should be\n")
+    tare = blocker / "tare.csv"
+    ret, _, _, err = configure(ros, capfd, "ro_tare", cache_dir=str(tmp_path / "cache"), tare_file=str(tare))
+    assert ret == TransitionCallbackReturn.FAILURE
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert str(tare) in line and "not writable" in line and "tare_file" in line, err
+    assert not (tmp_path / "cache" / "models").exists()  # refused before the model was built
+
+
+@pytest.mark.parametrize("kind", ["a regular file", "a directory"])
+def test_a_port_that_is_a_file_or_a_directory_is_refused_once(ros, capfd, tmp_path, warm_model, kind):
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    port = tmp_path / "port"
+    port.write_text("not a board\n") if kind == "a regular file" else port.mkdir()
+    ret, _, _, err = configure(ros, capfd, "file_port", input="serial", port=str(port),
+                               tare_file=str(tmp_path / "tare.csv"))
+    assert ret == TransitionCallbackReturn.FAILURE
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert str(port) in line and kind in line and "serial device" in line, err
+    assert err.count(str(port)) == 1, err  # said once, not retried
 
 
 @pytest.mark.parametrize("text, what", [

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import stat
 import threading
 import time
 from collections import OrderedDict, deque
@@ -85,6 +87,19 @@ class DriverStats:
     bytes: int
 
 
+def check_port(url: str) -> None:
+    """Refuse (:class:`ConfigError`) a port that exists and is no device: a regular file or a
+    directory is a configuration error, said once, where a missing device is a board not yet plugged
+    in (opened again and again). URLs (``scheme://...``) are left to pyserial."""
+    if "://" in url or not os.path.exists(url):
+        return
+    mode = os.stat(url).st_mode
+    if not stat.S_ISCHR(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode) else "not a device"
+        raise ConfigError(f"port {url!r}: {kind}; expected a serial device (e.g. /dev/ttyACM0, a udev link "
+                          "such as /dev/cstomo) or a pyserial URL")
+
+
 def _set_low_latency(port: serial.SerialBase, url: str) -> None:
     """Best effort: set ASYNC_LOW_LATENCY (TIOCSSERIAL) on a real Linux tty; ignore failure."""
     setter = getattr(port, "set_low_latency_mode", None)  # pyserial's Linux ioctl wrapper
@@ -153,6 +168,7 @@ class BoardDriver:
         lo, hi = reconnect_backoff
         if not 0 < lo <= hi:
             raise ConfigError(f"{reconnect_backoff=}: expected (first, largest) seconds with 0 < first <= largest")
+        check_port(url)
         self.url = url
         self.protocol = protocol
         self._baudrate = baudrate

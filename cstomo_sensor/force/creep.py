@@ -49,8 +49,8 @@ MAX_STEPS = 10.0
 
 def creep_problem(c) -> str:
     """Why ``c`` is no creep coefficient ('' if it is one)."""
-    if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 <= c < MAX_CREEP:
-        return f"a fraction per decade, 0 <= c < {MAX_CREEP:g} (rubbers: 0.02..0.06; 0 = off)"
+    if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 <= c <= MAX_CREEP:
+        return f"a fraction per decade, 0 <= c <= {MAX_CREEP:g} (rubbers: 0.02..0.06; 0 = off)"
     return ""
 
 
@@ -101,7 +101,7 @@ class CreepCompensator:
     Parameters
     ----------
     coefficient : float
-        The rubber's creep per decade (0.02..0.06), 0 <= c < :data:`MAX_CREEP`.
+        The rubber's creep per decade (0.02..0.06), 0 <= c <= :data:`MAX_CREEP`.
     n_meas : int
         Measurements per frame.
     """

@@ -935,7 +935,8 @@ class FrameStream:
                 level = max(level, d_level)
                 msgs.append(d_msg)
         else:
-            kv.update(drift_change="not tracked (drift_tracking false)")
+            kv.update(drift_change="not tracked (drift_tracking false)" if not self.config.drift_tracking
+                      else "not tracked yet: no reference (tracking starts with the tare)")
         kv.update(creep=self.creep_text)
         return level, msgs, kv
 

@@ -40,7 +40,7 @@ from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
-from ..board.driver import BoardDriver
+from ..board.driver import BoardDriver, check_port
 from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
 from ..errors import ConfigError, CstomoError, FrameError
@@ -145,8 +145,16 @@ class CstomoSensorNode(LifecycleNode):
     def _configure(self) -> TransitionCallbackReturn:
         cfg = NodeConfig.from_parameters(lambda n: self.get_parameter(n).value)
         log = self.get_logger()
-        load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
+        geometry = load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
+        if cfg.input == "serial":
+            check_port(cfg.port)  # a file or a directory is no board: said once, not retried for ever
         check_writable(cfg.cache_path)  # at once, not after a long model build
+        # the tare must be saved: a node that cannot would re-tare under any load at every restart
+        self.tare_path = cfg.tare_path_for(geometry, self.get_namespace())
+        check_writable(self.tare_path.parent, f"the tare file {self.tare_path}: its directory",
+                       "set the parameter 'tare_file' to a path in a writable directory")
+        if self.tare_path.is_dir():
+            raise ConfigError(f"parameter 'tare_file'={str(self.tare_path)!r}: a directory; expected a file path")
 
         t0 = time.monotonic()
         pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
@@ -155,7 +163,6 @@ class CstomoSensorNode(LifecycleNode):
         log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration
                  else "calibration: none (the nominal model; `cstomo calibrate` fits one on known loads)")
         self.config, self.pipe = cfg, pipe
-        self.tare_path = cfg.tare_path_for(pipe.geometry, self.get_namespace())
         self.stream = FrameStream(pipe, cfg.stream, tare_file=self.tare_path,
                                   tare_comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
                                                f"(geometry {pipe.geometry.digest()})")

@@ -13,6 +13,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from ..board.wire import PROTOCOLS
 from ..cache import default_cache_dir
 from ..errors import ConfigError
+from ..force.creep import MAX_CREEP
 from ..force.device import tare_file_name
 from ..force.pipeline import PipelineConfig
 from ..force.stream import StreamConfig
@@ -69,7 +70,7 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
                          "zero holds; diagnostics show the tracked change (force/drift.py)", read_only=True),
     "creep_per_decade": _d("The rubber's creep per decade of time (0.02..0.06), compensated so a held load reads "
                            "constant (force/creep.py); a calibration file's fitted value wins; 0 = off (a calibration's too)",
-                           read_only=True, lo=0.0, hi=0.19),
+                           read_only=True, lo=0.0, hi=MAX_CREEP),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
