@@ -76,9 +76,9 @@ def test_the_nodes_start_up_error_names_the_command():
     assert "'skfem'" in msg and "scikit-fem" in msg and "pip install" in msg and "cstomo_sensor[full]" not in msg, msg
 
 
-def installed_files() -> dict[str, Path]:
-    """install path (``share/cstomo_sensor/...``) -> source file, from setup.py's own ``data_files``
-    (setup.py run with ``setup`` captured, in the repository root as a build runs it)."""
+def setup_keywords() -> dict:
+    """The keywords setup.py hands to ``setup`` (run with ``setup`` captured, in the repository root
+    as a build runs it)."""
     import runpy
 
     import setuptools
@@ -93,7 +93,12 @@ def installed_files() -> dict[str, Path]:
     finally:
         setuptools.setup = original
         os.chdir(cwd)
-    return {f"{dest}/{Path(src).name}": ROOT / src for dest, sources in got["data_files"] for src in sources}
+    return got
+
+
+def installed_files() -> dict[str, Path]:
+    """install path (``share/cstomo_sensor/...``) -> source file, from setup.py's ``data_files``."""
+    return {f"{dest}/{Path(src).name}": ROOT / src for dest, sources in setup_keywords()["data_files"] for src in sources}
 
 
 def scene_references(scene: Path) -> list[str]:
