@@ -30,13 +30,23 @@ def entry_points() -> set[str]:
 
 
 def commands(path: Path) -> list[tuple[int, str, bool]]:
-    """(line, command, inline) of every command of ``path`` that runs one of this package's tools."""
-    out, block, pending = [], False, ""
+    """(line, command, inline) of every command of ``path`` that runs one of this package's tools: the
+    lines of ``` blocks (``\\`` continued) and the inline code of the text between them (also when
+    it wraps onto the next line)."""
+    out, block, pending, prose = [], False, "", []
+
+    def inline_code():
+        text = "\n".join(line for _, line in prose)
+        out.extend((prose[0][0] + text.count("\n", 0, m.start()), " ".join(m[1].split()), True)
+                   for m in re.finditer(r"`([^`]+)`", text))
+        prose.clear()
+
     for n, line in enumerate(path.read_text().splitlines(), 1):
         if line.lstrip().startswith("```"):
+            if not block and prose:
+                inline_code()
             block = not block
-            continue
-        if block:
+        elif block:
             pending += line.strip().removeprefix("$ ")
             if pending.endswith("\\"):
                 pending = pending[:-1] + " "
@@ -44,7 +54,9 @@ def commands(path: Path) -> list[tuple[int, str, bool]]:
             out.append((n, pending, False))
             pending = ""
         else:
-            out += [(n, span, True) for span in re.findall(r"`([^`]+)`", line)]
+            prose.append((n, line))
+    if prose:
+        inline_code()
     return [(n, c, inline) for n, c, inline in out if _tool(_split(c)) is not None]
 
 
@@ -121,6 +133,7 @@ def _ros_args(words: list[str]) -> str | None:
     """Why the words after ``--ros-args`` are not the node's (None if they are)."""
     from cstomo_sensor.ros.params import PARAMETERS
 
+    words = [w for w in words if w != "..."]
     i = 0
     while i < len(words):
         flag = words[i]
@@ -177,9 +190,20 @@ def check(command: str, inline: bool) -> str | None:
     return _ros_args(ros)
 
 
+def package_files(command: str) -> list[str]:
+    """The package's files a command names by a relative path (``config/...``, ``scenes/...``, also as
+    ``name:=config/...``)."""
+    return [m[1] for w in _split(command) if (m := re.match(r"^(?:\w+:=)?((?:config|scenes)/\S+\.\w+)$", w))]
+
+
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
 def test_every_command_in_the_docs_names_real_commands_and_options(doc):
+    from test_packaging import installed_files
+
     wrong = [f"{doc.name}:{n}: {c}\n    {why}" for n, c, inline in commands(doc) if (why := check(c, inline))]
+    installed = installed_files()
+    wrong += [f"{doc.name}:{n}: {c}\n    {f} is not installed (share/cstomo_sensor/{f})" for n, c, _ in commands(doc)
+              for f in package_files(c) if f"share/cstomo_sensor/{f}" not in installed]
     assert not wrong, "\n".join(wrong)
 
 
@@ -197,6 +221,7 @@ def test_the_check_finds_what_does_not_exist():
     for c in good:
         assert check(c, inline=False) is None, (c, check(c, inline=False))
     assert check("cstomo estimate --reference", inline=True) is None  # prose: the flag alone
+    assert package_files("ros2 launch cstomo_sensor cstomo_sensor.launch.py sensors:=config/x.yaml") == ["config/x.yaml"]
     bad = {"cstomo calibrate --bagfile b --out d.yaml": "--bagfile is not an option of cstomo calibrate",
            "cstomo calibrate --bag b --ou d.yaml": "--ou is not an option",  # no abbreviations
            "cstomo estimate --reference": "expected one argument",  # a command to run must be complete
