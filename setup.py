@@ -18,6 +18,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml") + glob("config/*.rules") + glob("config/*.rviz")),
         ("share/" + package_name + "/config/sensors", glob("config/sensors/*.yaml")),
         ("share/" + package_name + "/scenes", glob("scenes/*.yaml")),
+        ("share/" + package_name + "/scenes/devices", glob("scenes/devices/*.yaml")),  # the scenes' own sensors
     ],
     python_requires=">=3.10",
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],

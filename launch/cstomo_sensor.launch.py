@@ -13,8 +13,10 @@ when given (their default, empty, keeps the file's value). The others are for th
 static_transform_publisher from that frame to the node's frame_id; ``sensors`` names a YAML list of
 sensors instead of the one of the arguments (docs/robot.md); ``rviz:=true`` starts RViz2 on
 ``rviz_config`` rewritten for the launched sensors' topics. What is started is decided by
-:func:`cstomo_sensor.tools.launching.launch_plan` (tested without launch); this file only turns the
-plan into actions. With ``sim:=true`` the simulated board, its link and the node's tare file live in
+:func:`cstomo_sensor.tools.launching.launch_plan` (tested without launch), which also refuses the
+launch, before anything starts, when an executable it would start is not installed (tf2_ros's
+static_transform_publisher, rviz2, the node, the simulated board); this file only turns the plan into
+actions. With ``sim:=true`` the simulated board, its link and the node's tare file live in
 a temporary directory of this launch, removed when it ends. Arguments are plain strings: nothing in
 them is evaluated.
 """
@@ -48,7 +50,8 @@ ARGUMENTS = {  # name: (default, description); None: a file of the installed pac
     "roll": ("", "with parent_frame: rotation about x, radians (default 0)"),
     "pitch": ("", "with parent_frame: rotation about y, radians (default 0)"),
     "yaw": ("", "with parent_frame: rotation about z, radians (default 0)"),
-    "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above"),
+    "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above; a relative "
+                    "path from the current directory, else from the installed package (config/sensors_example.yaml)"),
     "rviz": ("false", "true: also start RViz2 showing the wrench and the stress cloud"),
     "rviz_config": (None, "RViz2 configuration whose /cstomo_sensor/... displays are repeated per sensor"),
     "rviz_fixed_frame": ("", "RViz fixed frame (default: the first sensor's parent_frame, else its frame_id)"),
@@ -58,7 +61,7 @@ _DEFAULT_FILES = {"config": "cstomo_sensor.yaml", "rviz_config": "cstomo_sensor.
 
 def _setup(context):
     """The actions of the plan of the arguments' values (plain strings)."""
-    plan = launch_plan({name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS})
+    plan = launch_plan({name: LaunchConfiguration(name).perform(context) for name in ARGUMENTS}, check=True)
     actions = []
     if plan.work is not None:
         work = plan.work

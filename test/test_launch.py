@@ -392,8 +392,11 @@ def _load_launch_file(monkeypatch):
     import types
 
     class Rec:
+        made: list = []  # every action made, in order
+
         def __init__(self, *args, **kwargs):
             self.args, self.kwargs = args, kwargs
+            Rec.made.append(self)
 
     kinds = {}
     for kind in ("DeclareLaunchArgument", "ExecuteProcess", "OpaqueFunction", "RegisterEventHandler", "OnShutdown",
@@ -423,10 +426,29 @@ def _load_launch_file(monkeypatch):
     return module, kinds
 
 
+def _ament_prefix(root: Path, packages: dict[str, list[str]]) -> Path:
+    """A colcon install prefix holding ``packages`` (name -> its executables, stub scripts)."""
+    index = root / "share" / "ament_index" / "resource_index" / "packages"
+    index.mkdir(parents=True, exist_ok=True)
+    for package, names in packages.items():
+        (index / package).write_text("")
+        (root / "lib" / package).mkdir(parents=True, exist_ok=True)
+        for name in names:
+            exe = root / "lib" / package / name
+            exe.write_text("#!/bin/sh\n")
+            exe.chmod(0o755)
+    return root
+
+
+#: What a full launch (node, static transform, RViz) starts through launch_ros, by package.
+INSTALLED = {"cstomo_sensor": ["cstomo_sensor_node"], "tf2_ros": ["static_transform_publisher"], "rviz2": ["rviz2"]}
+
+
 def test_the_launch_file_turns_the_plan_into_its_actions(monkeypatch, tmp_path):
     import tempfile
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(_ament_prefix(tmp_path / "install", INSTALLED)))
     module, kinds = _load_launch_file(monkeypatch)
     ld = module.generate_launch_description()
     declared_args = {a.args[0]: a.kwargs["default_value"] for a in ld.args[0] if isinstance(a, kinds["DeclareLaunchArgument"])}
@@ -458,6 +480,77 @@ def test_the_launch_file_turns_the_plan_into_its_actions(monkeypatch, tmp_path):
     # the defaults: one node at the root, nothing else
     actions = setup.kwargs["function"](declared_args)
     assert [type(a).__name__ for a in actions] == ["LifecycleNode"] and actions[0].kwargs["parameters"] == [str(CONFIG), {}]
+
+
+def test_a_launch_missing_an_executable_is_refused_before_anything_starts(monkeypatch, tmp_path):
+    import re
+    import tempfile
+
+    from cstomo_sensor.errors import ConfigError
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("ROS_DISTRO", raising=False)
+    without_rviz = {k: v for k, v in INSTALLED.items() if k != "rviz2"}
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(_ament_prefix(tmp_path / "install", without_rviz)))
+    module, kinds = _load_launch_file(monkeypatch)
+    ld = module.generate_launch_description()
+    declared_args = {a.args[0]: a.kwargs["default_value"] for a in ld.args[0] if isinstance(a, kinds["DeclareLaunchArgument"])}
+    (setup,) = [a for a in ld.args[0] if isinstance(a, kinds["OpaqueFunction"])]
+    before = len(kinds["Node"].made)
+    args = dict(declared_args, sim="true", parent_frame="shank", rviz="true")
+    with pytest.raises(ConfigError) as err:
+        setup.kwargs["function"](args)
+    assert str(err.value) == "rviz:=true needs rviz2 (package 'rviz2': sudo apt install ros-$ROS_DISTRO-rviz2), not found"
+    assert len(kinds["Node"].made) == before  # no action made: no board, no node, no transform started
+    assert not list(tmp_path.glob("cstomo_launch_*"))  # nor its directory left
+    # every missing one at once, with the package to install
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(_ament_prefix(tmp_path / "empty", {})))
+    monkeypatch.setenv("ROS_DISTRO", "kilted")
+    with pytest.raises(ConfigError) as err:
+        setup.kwargs["function"](args)
+    assert str(err.value).split("; ") == [
+        "the node needs cstomo_sensor_node (package 'cstomo_sensor': colcon build in its workspace, then source "
+        "install/setup.sh), not found",
+        "parent_frame needs static_transform_publisher (package 'tf2_ros': sudo apt install ros-kilted-tf2-ros), not found",
+        "rviz:=true needs rviz2 (package 'rviz2': sudo apt install ros-kilted-rviz2), not found"]
+    assert len(kinds["Node"].made) == before and not list(tmp_path.glob("cstomo_launch_*"))
+    # a board that cannot be found is named too
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "install"))
+    from cstomo_sensor.tools import launching
+
+    monkeypatch.setattr(launching, "executable", lambda name: (_ for _ in ()).throw(launching.CstomoError(name)))
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    with pytest.raises(ConfigError, match=re.escape("sim:=true needs cstomo (package 'cstomo_sensor'")):
+        setup.kwargs["function"](dict(declared_args, sim="true"))
+    assert len(kinds["Node"].made) == before and not list(tmp_path.glob("cstomo_launch_*"))
+    # without launch's check (the tests' plans), the same plan is made
+    plan = launching.launch_plan(args)
+    assert plan.rviz is not None and plan.sensors[0].board[0] == "cstomo"
+    import shutil
+
+    shutil.rmtree(plan.work)
+
+
+def test_a_sensor_list_is_found_here_else_in_the_installed_package(monkeypatch, tmp_path):
+    from cstomo_sensor.errors import ConfigError
+
+    prefix = _ament_prefix(tmp_path / "install", {"cstomo_sensor": []})
+    (prefix / "share" / "cstomo_sensor" / "config").mkdir(parents=True)
+    listing = "config/sensors.yaml"
+    (prefix / "share" / "cstomo_sensor" / listing).write_text(
+        yaml.safe_dump({"sensors": [{"namespace": "installed", "frame_id": "f", "port": "/dev/x"}]}))
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(prefix))
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    monkeypatch.chdir(ws)  # a workspace root: no config/ here
+    assert [s.namespace for s in _plan(sensors=listing).sensors] == ["installed"]
+    (ws / "config").mkdir()
+    (ws / listing).write_text(yaml.safe_dump({"sensors": [{"namespace": "here", "frame_id": "f", "port": "/dev/x"}]}))
+    assert [s.namespace for s in _plan(sensors=listing).sensors] == ["here"]  # the current directory first
+    with pytest.raises(ConfigError) as err:
+        _plan(sensors="config/none.yaml")
+    assert str(err.value) == (f"sensors:=config/none.yaml: no such file: not {ws / 'config/none.yaml'} nor "
+                              f"{prefix / 'share/cstomo_sensor/config/none.yaml'}")
 
 
 def test_package_xml_declares_tf2_ros_for_the_static_transform():

@@ -130,10 +130,10 @@ def test_core_modules_load_no_heavy_or_ros_package_at_import():
 def test_cli_flags_take_their_defaults_and_choices_from_the_config():
     from cstomo_sensor.force.estimate import ESTIMATORS
     from cstomo_sensor.force.pipeline import PipelineConfig
-    from cstomo_sensor.tools import cli, replay
+    from cstomo_sensor.tools import cli
 
     d = PipelineConfig()
-    for parser in (cli.build_parser()._subparsers._group_actions[0].choices["estimate"], replay._parser()):
+    for parser in (cli.subcommand_parser(["estimate"])[0], cli.subcommand_parser(["replay"])[0]):
         args = parser.parse_args(["x", "--out", "o"] if parser.prog.endswith("replay") else
                                  ["--reference", "r", "--frames", "f", "--out", "o"])
         for k in ("sensor", "mesh_size", "iterations", "damping", "cache_dir", "estimator"):

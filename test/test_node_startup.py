@@ -228,3 +228,28 @@ def test_help_prints_usage_and_every_parameter_instead_of_starting():
     assert r.returncode == 0 and r.stdout.startswith("usage: cstomo_sensor_node"), r.stdout + r.stderr
     assert all(f"  {name} " in r.stdout for name in PARAMETERS), r.stdout
     assert "[INFO]" not in r.stdout + r.stderr  # nothing started
+
+
+def test_help_says_what_the_node_is_in_a_full_sentence():
+    from cstomo_sensor.ros.node import usage
+
+    first = usage().splitlines()[2]
+    assert first.startswith("cstomo_sensor_node: ") and first.endswith("."), first
+
+
+@pytest.mark.parametrize("ros_args, said", [
+    (["--params-file", "config/no_such.yaml"], "--params-file config/no_such.yaml: no such readable file in "),
+    (["-p"], "Couldn't parse trailing -p flag"),  # rcl's own refusal, in one line
+])
+def test_a_command_line_rcl_refuses_fails_in_one_line(monkeypatch, tmp_path, capfd, ros_args, said):
+    from cstomo_sensor.ros import host, node
+
+    monkeypatch.chdir(tmp_path)  # a workspace root: config/... is not there
+    for prog, main, own in (("cstomo_sensor_node", node.main, []), ("cstomo_sensor_host", host.main, ["/a"])):
+        capfd.readouterr()
+        assert main([prog, *own, "--ros-args", *ros_args]) == 2
+        err = capfd.readouterr().err
+        mine = [ln for ln in err.splitlines() if ln.startswith(f"{prog}: ")]
+        assert len(mine) == 1 and said in mine[0] and "Traceback" not in err, err
+        if "params-file" in said:  # the file was checked before rcl: rcl says nothing, the line names the fix
+            assert err.count("\n") == 1 and node.INSTALLED_CONFIG in err, err

@@ -4,6 +4,7 @@ cstomo_sensor/errors.py OPTIONAL_MODULES)."""
 from __future__ import annotations
 
 import ast
+import os
 import re
 import sys
 import xml.etree.ElementTree as ET
@@ -73,3 +74,56 @@ def test_the_nodes_start_up_error_names_the_command():
     err = ModuleNotFoundError("No module named 'skfem'", name="skfem")
     msg = failure_cause(err)
     assert "'skfem'" in msg and "scikit-fem" in msg and "pip install" in msg and "cstomo_sensor[full]" not in msg, msg
+
+
+def setup_keywords() -> dict:
+    """The keywords setup.py hands to ``setup`` (run with ``setup`` captured, in the repository root
+    as a build runs it)."""
+    import runpy
+
+    import setuptools
+
+    got = {}
+    cwd = os.getcwd()
+    original = setuptools.setup
+    try:
+        os.chdir(ROOT)
+        setuptools.setup = lambda **kw: got.update(kw)
+        runpy.run_path(str(ROOT / "setup.py"))
+    finally:
+        setuptools.setup = original
+        os.chdir(cwd)
+    return got
+
+
+def installed_files() -> dict[str, Path]:
+    """install path (``share/cstomo_sensor/...``) -> source file, from setup.py's ``data_files``."""
+    return {f"{dest}/{Path(src).name}": ROOT / src for dest, sources in setup_keywords()["data_files"] for src in sources}
+
+
+def scene_references(scene: Path) -> list[str]:
+    """The files a scene names by a relative path (resolved from the scene's folder): its sensor file
+    and its timeline's load script."""
+    import yaml
+
+    doc = yaml.safe_load(scene.read_text())
+    refs = [doc.get("sensor", ""), (doc.get("timeline") or {}).get("load_script", "")]
+    return [str(r) for r in refs if r and Path(str(r)).suffix and not Path(str(r)).is_absolute()]
+
+
+def test_every_scene_and_what_it_refers_to_is_installed():
+    from cstomo_sensor.model.geometry import preset_names
+
+    files = installed_files()
+    share = "share/cstomo_sensor"
+    scenes = sorted(ROOT.glob("scenes/**/*.yaml"))
+    assert scenes and all(f"{share}/{s.relative_to(ROOT)}" in files for s in scenes), sorted(files)
+    presets = {Path(k).stem for k in files if k.startswith(f"{share}/config/sensors/")}
+    assert presets == set(preset_names()), presets
+    for key, src in files.items():
+        if not key.startswith(f"{share}/scenes/"):
+            continue
+        for ref in scene_references(src):
+            target = os.path.normpath(str(Path(key).parent / ref))
+            assert target in files, f"{key} refers to {ref}: {target} is not installed"
+    assert any(scene_references(s) for s in scenes)  # the check checks something: device_a names its device

@@ -30,7 +30,7 @@ from rclpy.task import Future
 
 from ..errors import ConfigError
 from . import log as ros_log
-from .node import CstomoSensorNode, own_args
+from .node import CstomoSensorNode, init_ros, own_args
 
 
 def usage() -> str:
@@ -67,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"cstomo_sensor_host: {err}\n\n{usage()}", file=sys.stderr)
         return 2
-    rclpy.init(args=argv)
+    if not init_ros("cstomo_sensor_host", argv):
+        return 2
     nodes: list[CstomoSensorNode] = []
     try:
         for ns in namespaces:

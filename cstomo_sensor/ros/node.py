@@ -1,5 +1,6 @@
-"""``cstomo_sensor_node``: the managed (lifecycle) ROS 2 node of the sensor: a thin ROS adapter over
-the sensor's :class:`~cstomo_sensor.force.stream.FrameStream`.
+"""``cstomo_sensor_node``: the sensor's managed (lifecycle) ROS 2 node, publishing the joint's force.
+
+A thin ROS adapter over the sensor's :class:`~cstomo_sensor.force.stream.FrameStream`.
 
 configure: read the parameters into one frozen :class:`~.params.NodeConfig`, load (or build) the
 :class:`~cstomo_sensor.force.pipeline.Pipeline`, make the frame stream (reference, tare, masks,
@@ -19,6 +20,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import math
+import os
 import signal
 import sys
 import threading
@@ -490,13 +492,37 @@ def own_args(argv: list[str] | None) -> tuple[list[str], list[str]]:
     return argv, argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
 
 
+#: The parameter file of an install, as a shell finds it from any directory.
+INSTALLED_CONFIG = "$(ros2 pkg prefix cstomo_sensor)/share/cstomo_sensor/config/cstomo_sensor.yaml"
+
+
+def init_ros(prog: str, argv: list[str]) -> bool:
+    """``rclpy.init`` on an entry point's command line; False, having said why in one line on stderr
+    (no traceback), when it cannot: a ``--params-file`` that cannot be read (checked first, as rcl's
+    own error names neither the directory nor the installed file), or arguments rcl refuses."""
+    ros = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
+    for flag, path in zip(ros, ros[1:]):
+        if flag == "--params-file" and not os.access(path, os.R_OK):
+            where = "" if os.path.isabs(path) else f" in {os.getcwd()}"
+            print(f"{prog}: --params-file {path}: no such readable file{where} (the installed one: "
+                  f"{INSTALLED_CONFIG})", file=sys.stderr)
+            return False
+    try:
+        rclpy.init(args=argv)
+    except RCLError as err:
+        print(f"{prog}: {err}", file=sys.stderr)
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
     argv, own = own_args(argv)
     if "-h" in own or "--help" in own:
         print(usage())
         return 0
-    rclpy.init(args=argv)
+    if not init_ros("cstomo_sensor_node", argv):
+        return 2
     try:
         node = CstomoSensorNode()
     except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused

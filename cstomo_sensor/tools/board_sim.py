@@ -13,7 +13,8 @@ from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, is_timeline_scene
 
 
-def _parser() -> argparse.ArgumentParser:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
     p.add_argument("--sensor", required=True, help="sensor preset name or YAML path")
     src = p.add_mutually_exclusive_group(required=True)
@@ -45,7 +46,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent
     # left it ignored, as a shell does for a background job)
     previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}

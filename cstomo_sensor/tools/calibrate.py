@@ -136,7 +136,8 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
     return np.array(frames)[i], np.array(forces)[j], len(frames), len(forces)
 
 
-def _parser() -> argparse.ArgumentParser:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo calibrate", description=__doc__.splitlines()[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n", 1)[1])
     add_pipeline_args(p)
@@ -287,7 +288,7 @@ def cv_table(cal) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    a = _parser().parse_args(argv)
+    a = parser().parse_args(argv)
     try:
         return run(a)
     except (CstomoError, OSError) as err:

@@ -218,6 +218,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def subcommand_parser(argv: list[str]) -> tuple[argparse.ArgumentParser, list[str]]:
+    """(the parser that parses ``cstomo ARGV``'s options, the arguments after its subcommand words):
+    ``["model", "build", "--sensor", "disc"]`` gives ``cstomo model build``'s parser and ``["--sensor",
+    "disc"]``. Raises :class:`ConfigError` for a subcommand that does not exist."""
+    argv = list(argv)
+    if argv and argv[0] in OWN_PARSERS:
+        return import_module(OWN_PARSERS[argv[0]], __package__).parser(), argv[1:]
+    p = build_parser()
+    while True:
+        subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            return p, argv
+        if not argv or argv[0] not in subs[0].choices:
+            given = repr(argv[0]) if argv else "nothing"
+            raise ConfigError(f"{p.prog}: {given} is no subcommand; expected one of {sorted(subs[0].choices)}")
+        p = subs[0].choices[argv.pop(0)]
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing

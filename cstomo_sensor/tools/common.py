@@ -74,12 +74,25 @@ def local_ros_env(domain_base: int) -> None:
 PACKAGE = "cstomo_sensor"
 
 
+def package_prefixes(package: str = PACKAGE) -> list[Path]:
+    """The ``AMENT_PREFIX_PATH`` prefixes that hold ``package`` (its ament index entry), in order."""
+    return [Path(prefix) for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
+            if prefix and (Path(prefix) / "share" / "ament_index" / "resource_index" / "packages" / package).is_file()]
+
+
+def package_executable(package: str, name: str) -> str | None:
+    """``<prefix>/lib/<package>/<name>`` of the first prefix holding ``package``, where ``ros2 run`` and
+    launch_ros's nodes find an executable, or None if it is not there."""
+    prefixes = package_prefixes(package)
+    place = prefixes[0] / "lib" / package / name if prefixes else None
+    return str(place) if place is not None and place.is_file() and os.access(place, os.X_OK) else None
+
+
 def executable(name: str) -> str:
     """Path of one of the package's console scripts: in a colcon install ``<prefix>/lib/cstomo_sensor/``
     (prefixes from ``AMENT_PREFIX_PATH`` that hold the package), else beside the running interpreter
     (a virtual environment), else on ``PATH``. Raises :class:`CstomoError` naming where it looked."""
-    places = [Path(prefix) / "lib" / PACKAGE / name for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)
-              if prefix and (Path(prefix) / "share" / "ament_index" / "resource_index" / "packages" / PACKAGE).is_file()]
+    places = [prefix / "lib" / PACKAGE / name for prefix in package_prefixes()]
     places.append(Path(sys.executable).parent / name)
     for place in places:
         if place.is_file() and os.access(place, os.X_OK):
@@ -89,6 +102,17 @@ def executable(name: str) -> str:
         return found
     raise CstomoError(f"executable {name!r} not found in {[str(p) for p in places]} nor on PATH: "
                       "install the package (pip install . or colcon build) and source its set-up")
+
+
+def package_file(path: str) -> tuple[Path | None, list[Path]]:
+    """(the file ``path``, or None; the places looked): ``path`` as given (a relative one from the
+    current directory), else relative to the installed package's share directory
+    (``<prefix>/share/cstomo_sensor/``), so ``config/sensors_example.yaml`` names the installed
+    example from anywhere."""
+    given = Path(path).expanduser()
+    places = [given] if given.is_absolute() else [Path.cwd() / given] + [p / "share" / PACKAGE / given
+                                                                         for p in package_prefixes()]
+    return next((p for p in places if p.is_file()), None), places
 
 
 def config_parameter(config_file: str | Path, name: str) -> object | None:

@@ -52,14 +52,19 @@ def _fmt(f: np.ndarray) -> str:
     return f"{m:6.2f} N  el {np.degrees(el):6.1f}  az {np.degrees(az):7.1f}"
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo demo", description=__doc__.splitlines()[0])
     p.add_argument("--sensor", default=DEFAULTS.sensor)
     p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
     p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held (the last one, with --load-script)")
     p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")
-    a = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
     local_ros_env(150)
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM ends the demo as Ctrl-C does
     try:

@@ -13,7 +13,9 @@ from __future__ import annotations
 import copy
 import difflib
 import math
+import os
 import re
+import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,10 +23,10 @@ from pathlib import Path
 import yaml
 
 from ..cache import default_cache_dir
-from ..errors import ConfigError
+from ..errors import ConfigError, CstomoError
 from ..force.device import tare_file_name
 from ..model.geometry import load_sensor
-from .common import DEFAULTS, config_parameter, executable
+from .common import DEFAULTS, PACKAGE, config_parameter, executable, package_executable, package_file
 
 NODE_NAME = "cstomo_sensor"  # the node's name in every namespace (the parameter file's key)
 #: The sensor's pose in its parent frame: metres and radians (roll about x, pitch about y, yaw about z).
@@ -200,12 +202,44 @@ def _sim_board(work: Path, sensor: str, script: str | None) -> tuple[list[str], 
         script = str(work / "load.csv")
         (work / "load.csv").write_text(SIM_LOAD)
     link = str(work / "board")
-    cmd = [executable("cstomo"), "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
+    try:
+        program = executable("cstomo")
+    except CstomoError:
+        program = "cstomo"  # not installed: check_executables says so
+    cmd = [program, "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
            "--load-script", script]
     return cmd, link, str(work / "tare.csv")
 
 
-def launch_plan(args: dict[str, str]) -> LaunchPlan:
+#: How to install each package whose executables a launch starts ({distro}: $ROS_DISTRO).
+INSTALL = {"tf2_ros": "sudo apt install ros-{distro}-tf2-ros", "rviz2": "sudo apt install ros-{distro}-rviz2",
+           PACKAGE: "colcon build in its workspace, then source install/setup.sh"}
+
+
+def check_executables(plan: LaunchPlan) -> None:
+    """Refuse a plan that would start an executable that is not installed, before anything starts:
+    raises :class:`ConfigError` naming every missing one, what needs it and the package to install.
+    Nodes are found as launch_ros finds them (``lib/<package>/`` of the first ``AMENT_PREFIX_PATH``
+    prefix holding the package: :func:`.common.package_executable`); a simulated board's command
+    is run as the plan gives it."""
+    needs = {}  # (what needs it, package, executable) -> found
+    for sensor in plan.sensors:
+        needs[("the node", PACKAGE, "cstomo_sensor_node")] = package_executable(PACKAGE, "cstomo_sensor_node")
+        if sensor.board is not None:
+            needs[("sim:=true", PACKAGE, "cstomo")] = shutil.which(sensor.board[0])
+        if sensor.transform is not None:
+            found = package_executable("tf2_ros", "static_transform_publisher")
+            needs[("parent_frame", "tf2_ros", "static_transform_publisher")] = found
+    if plan.rviz is not None:
+        needs[("rviz:=true", "rviz2", "rviz2")] = package_executable("rviz2", "rviz2")
+    distro = os.environ.get("ROS_DISTRO") or "$ROS_DISTRO"
+    missing = [f"{why} needs {name} (package '{package}': {INSTALL[package].format(distro=distro)}), not found"
+               for (why, package, name), found in needs.items() if not found]
+    if missing:
+        raise ConfigError("; ".join(missing))
+
+
+def launch_plan(args: dict[str, str], check: bool = False) -> LaunchPlan:
     """The plan of a launch from its arguments (strings, never evaluated; a missing one is empty).
 
     One sensor from the arguments: ``port``, ``sensor``, ``estimator``, ``frame_id``,
@@ -219,8 +253,10 @@ def launch_plan(args: dict[str, str]) -> LaunchPlan:
     Several sensors with ``sensors:=FILE`` (:func:`read_sensor_list`); the one-sensor arguments
     must then be empty. ``rviz`` true adds RViz2 on a configuration written for these sensors from
     ``rviz_config`` (:func:`rviz_config`), fixed frame ``rviz_fixed_frame``, else the first sensor's
-    parent frame, else its frame_id. Raises :class:`ConfigError` naming the argument or entry at fault
-    (nothing is started then, and no temporary directory is left).
+    parent frame, else its frame_id. With ``check`` (the launch file), every executable of the plan
+    must be installed (:func:`check_executables`). Raises :class:`ConfigError` naming the argument or
+    entry at fault, or what is not installed (nothing is started then, and no temporary directory is
+    left).
     """
     work = _Work()
     try:
@@ -235,13 +271,14 @@ def launch_plan(args: dict[str, str]) -> LaunchPlan:
             path = work() / "cstomo_sensor.rviz"
             path.write_text(rviz_config(Path(template).read_text(), sensors, _frame("rviz_fixed_frame", fixed)))
             rviz_args = ["-d", str(path)]
+        plan = LaunchPlan(tuple(sensors), rviz_args, work.path)
+        if check:
+            check_executables(plan)
     except BaseException:
         if work.path is not None:
-            import shutil
-
             shutil.rmtree(work.path, ignore_errors=True)
         raise
-    return LaunchPlan(tuple(sensors), rviz_args, work.path)
+    return plan
 
 
 def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
@@ -251,6 +288,10 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
         given = [k for k in SENSOR_ARGUMENTS if args.get(k) and not (k == "sim" and _bool("sim", args[k]) is False)]
         if given:
             raise ConfigError(f"sensors:={listing} names every sensor: give {given} in its entries, not as arguments")
+        found, places = package_file(listing)
+        if found is None:
+            raise ConfigError(f"sensors:={listing}: no such file: not {' nor '.join(map(str, places))}")
+        listing = str(found)
         plans = [_entry_plan(entry, f"{listing}: sensor {i + 1} ({entry['namespace']}): ", config, work)
                  for i, entry in enumerate(read_sensor_list(listing))]
         _check_independent(listing, plans)

@@ -218,14 +218,18 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
     return paths
 
 
-def main(argv: list[str] | None = None) -> int:
-
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo render", description=__doc__.splitlines()[0])
     p.add_argument("--sensor", default=DEFAULT_SENSOR, help="preset name or geometry YAML path (default %(default)s)")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
     p.add_argument("--scene", default=None, help=f"scene file (default {DEFAULT_SCENE.name})")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
-    a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:
         render(a.sensor, a.out, a.scene, a.cache_dir or None)
     except (CstomoError, OSError) as err:

@@ -193,7 +193,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                          sum(r.foreign_load for r in rows))
 
 
-def _parser() -> argparse.ArgumentParser:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo replay", description=__doc__.split("\n\n")[0])
     p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
@@ -217,7 +218,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``cstomo replay IN_BAG --out OUT_BAG [...]``; prints a one-line summary."""
-    args = _parser().parse_args(argv)
+    args = parser().parse_args(argv)
     from rosbags.rosbag2 import ReaderError, WriterError  # optional: the [full] extra
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -21,7 +21,8 @@ from .table import run
 from .weight import choose_weight
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo bench", description=__doc__.splitlines()[0])
     g = p.add_mutually_exclusive_group()
     g.add_argument("--smoke", action="store_true", help="default setting only, 2 scenes (under a minute, warm caches)")
@@ -46,6 +47,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --heldout: loads held 10 frames each through the frame stream, after a one-frame "
                         "reference with the noise assumed, given or estimated from the frames, and a 50-frame tare")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser()
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
     if a.one_frame_reference and not a.heldout:
         p.error("--one-frame-reference goes with --heldout N")

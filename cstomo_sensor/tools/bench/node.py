@@ -375,7 +375,8 @@ def sensors_markdown(rows: list[dict]) -> str:
     return _table(head, keys, rows)
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo bench-node", description=__doc__.splitlines()[0])
     p.add_argument("--rates", type=float, nargs="+", default=[100.0, 1000.0], help="board frame rates, Hz")
     p.add_argument("--stress", type=int, nargs="+", default=[0, 1], help="stress_field_every values (0 = off)")
@@ -389,6 +390,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=".", help="directory for the tables and the processes' logs")
     p.add_argument("--sensor", default=DEFAULTS.sensor)
     p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = parser()
     a = p.parse_args(argv)
     if min(a.sensors) < 1:
         p.error("--sensors: at least 1")
