@@ -32,10 +32,12 @@ from functools import cache
 
 import numpy as np
 
-#: Creep counts from this many seconds after a change of load.
-CREEP_T0 = 0.1
-#: The coefficient assumed without a calibration: the middle of the documented 2..6 % per decade.
-DEFAULT_CREEP = 0.04
+from ..model.material import CREEP_T0, TYPICAL_CREEP_PER_DECADE
+
+#: The coefficient assumed without a calibration: the middle of the documented 2..6 % per decade,
+#: the simulated board's default rubber too (model/material.py declares both; CREEP_T0: creep counts
+#: from this many seconds after a change of load).
+DEFAULT_CREEP = TYPICAL_CREEP_PER_DECADE
 #: Seconds between frames without stamps (as the drift tracker's).
 DEFAULT_PERIOD = 0.01
 #: The largest coefficient taken (rubbers: 0.02..0.06); the compensation feeds back its own output,

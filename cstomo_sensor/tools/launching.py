@@ -20,6 +20,7 @@ from pathlib import Path
 
 import yaml
 
+from ..board.sim import DEFAULT_RATE_HZ
 from ..cache import default_cache_dir
 from ..errors import ConfigError
 from ..force.device import tare_file_name
@@ -200,7 +201,7 @@ def _sim_board(work: Path, sensor: str, script: str | None) -> tuple[list[str], 
         script = str(work / "load.csv")
         (work / "load.csv").write_text(SIM_LOAD)
     link = str(work / "board")
-    cmd = [executable("cstomo"), "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
+    cmd = [executable("cstomo"), "board-sim", "--sensor", str(sensor), "--rate", f"{DEFAULT_RATE_HZ:g}", "--link", link,
            "--load-script", script]
     return cmd, link, str(work / "tare.csv")
 
