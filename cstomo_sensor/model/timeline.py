@@ -756,8 +756,21 @@ class Timeline:
         return times, out, self.spec.force(times), self.state(times)
 
     def frame(self, t: float, rng: np.random.Generator) -> np.ndarray:
-        """One noisy frame at time t (the simulated board's voltage source)."""
-        return add_noise(self.voltages([t])[0], self.reference, self.snr_db, rng)
+        """One noisy frame at time t (the simulated board's voltage source): :meth:`voltages` of one
+        time, without its array bookkeeping (a fifth of the cost at every board frame)."""
+        t = min(max(float(t), 0.0), self.spec.duration)
+        kt, _, kv = self.knots
+        sl = self._segments[int(np.searchsorted(self.steps[0], t, side="right"))]
+        ts, vs = kt[sl], kv[sl]
+        if len(ts) == 1:
+            v = vs[0]
+        else:
+            j = min(max(int(np.searchsorted(ts, t, side="right")) - 1, 0), len(ts) - 2)
+            w = (t - ts[j]) / (ts[j + 1] - ts[j])
+            v = vs[j] * (1 - w) + vs[j + 1] * w
+        d = self.spec.drive
+        v = v * (1.0 + (d.points[0][1] if len(d.points) == 1 else float(d(t))))
+        return add_noise(v, self.reference, self.snr_db, rng)
 
     def truth(self, t: float) -> np.ndarray:
         """The applied socket force at time t, N."""
