@@ -31,6 +31,16 @@ def test_one_declaration_of_the_typical_creep_and_of_the_simulated_boards_rate_a
     assert float(cmd[cmd.index("--rate") + 1]) == DEFAULT_RATE_HZ and "--creep" not in cmd
 
 
+@pytest.mark.parametrize("c", ["-0.01", "1", "nan"])
+def test_a_creep_that_is_no_fraction_per_decade_is_refused_naming_the_option(tmp_path, capsys, c):
+    from cstomo_sensor.tools import board_sim
+
+    script = tmp_path / "load.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n")
+    assert board_sim.main(["--load-script", str(script), "--creep", c, "--link", str(tmp_path / "b")]) == 2
+    assert "--creep" in capsys.readouterr().err
+
+
 def test_the_demo_judges_a_line_against_the_load_at_its_frames_time():
     """At a load change (20 N down at 3 s, then 20 N at 30 deg at 5 s): the wrench of a frame measured
     just after the change is judged against the new load (the demo's own clock, which lags the

@@ -91,6 +91,10 @@ def _interrupt(*_: object) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if not 0 <= args.creep < 1:  # NaN too
+        print(f"cstomo board-sim: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
+              "(rubbers: 0.02..0.06; 0: no creep)", file=sys.stderr)
+        return 2
     try:
         faults = FaultConfig(
             bit_flip=args.bit_flip, drop=args.drop, truncate=args.truncate, garbage=args.garbage,
