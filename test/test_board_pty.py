@@ -267,7 +267,8 @@ def test_bad_arguments_raise_config_error(kw):
 
 def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     """``cstomo board-sim`` end to end; the real VoltageSource is another module's job, so a
-    stand-in module provides ``VoltageSource.from_args`` here."""
+    stand-in module provides ``VoltageSource.from_args`` here (a rubber that does not creep,
+    ``--creep 0``: a creeping one is a Timeline, test_creep_defaults.py)."""
     from cstomo_sensor.tools import board_sim
 
     seen = {}
@@ -282,7 +283,7 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     link = tmp_path / "board"
     with BoardDriver(str(link), reconnect_backoff=(0.01, 0.02)) as driver:
         argv = ["--sensor", "cuboid_joint", "--load-script", "x.csv", "--rate", "300", "--duration", "0.6",
-                "--link", str(link), "--snr", "40", "--saturate-channel", "3"]
+                "--link", str(link), "--snr", "40", "--saturate-channel", "3", "--creep", "0"]
         assert board_sim.main(argv) == 0
         frames = drain(driver, quiet=0.2)
     captured = capsys.readouterr()

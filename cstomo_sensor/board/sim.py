@@ -43,6 +43,8 @@ from .wire import (
 log = logging.getLogger(__name__)
 
 FIRMWARE = "cstomo-sim 1.0"
+#: The simulated board's frame rate when none is given (``cstomo board-sim --rate``, the launch's ``sim:=true``).
+DEFAULT_RATE_HZ = 200.0
 _RESYNC_S = 0.1  # a board more than this late skips the missed slots instead of bursting
 
 
@@ -196,7 +198,7 @@ class SimulatedBoard:
         source: VoltageSourceLike,
         *,
         protocol: Literal["binary", "text"] = "binary",
-        rate_hz: float = 200.0,
+        rate_hz: float = DEFAULT_RATE_HZ,
         duration: float | None = None,
         link: str | os.PathLike | None = None,
         faults: FaultConfig = FaultConfig(),
@@ -346,6 +348,12 @@ class SimulatedBoard:
                 continue
             self._emit(due - self._script_t0)
             self._k += 1
+
+    @property
+    def script_start(self) -> float | None:
+        """``time.monotonic()`` of the load script's t = 0 (None before it started): a frame measured at
+        script time t was due at ``script_start + t`` (its ``board_time_us`` is its write time)."""
+        return self._script_t0
 
     def _start_script(self, t0: float) -> None:
         self._script_t0 = t0

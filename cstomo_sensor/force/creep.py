@@ -10,9 +10,12 @@ the change measured is
 
 with ``y`` the change of the load as it is now. :class:`CreepCompensator` removes the integral. The
 kernel is written as a sum of exponentials (:func:`creep_modes`: 15 time constants from 0.01 s to
-a day, weights fitted once; the kernel to 0.07 of a decade beyond 0.3 s, i.e. 0.3 % of a load at 4 %
-per decade), so the integral is ``c sum_k w_k s_k(t)``, each ``s_k`` the change low-passed with time
-constant ``tau_k``: a few vectors updated per frame, whatever the history's length.
+a day offered, weights fitted once with non-negative weights, which keeps 11, from 0.32 s; the kernel
+to 0.07 of a decade beyond 0.3 s, i.e. 0.3 % of a load at 4 % per decade, 0.03 of a decade beyond 1 s
+and 0.005 at 20 s; within the first 0.2 s after a change, where the law is flat until 0.1 s and then
+kinks, it runs up to 0.17 of a decade ahead: 0.7 % of the change at 4 %, for a few frames), so the
+integral is ``c sum_k w_k s_k(t)``, each ``s_k`` the change low-passed with time constant ``tau_k``: a few
+vectors updated per frame, whatever the history's length.
 
 It acts on the normalised change (what the estimator, the stress field and the drift tracker see),
 before them all: a held load's force and field read constant, and the rest after a long load reads
@@ -32,10 +35,12 @@ from functools import cache
 
 import numpy as np
 
-#: Creep counts from this many seconds after a change of load.
-CREEP_T0 = 0.1
-#: The coefficient assumed without a calibration: the middle of the documented 2..6 % per decade.
-DEFAULT_CREEP = 0.04
+from ..model.material import CREEP_T0, TYPICAL_CREEP_PER_DECADE
+
+#: The coefficient assumed without a calibration: the middle of the documented 2..6 % per decade,
+#: the simulated board's default rubber too (model/material.py declares both; CREEP_T0: creep counts
+#: from this many seconds after a change of load).
+DEFAULT_CREEP = TYPICAL_CREEP_PER_DECADE
 #: Seconds between frames without stamps (as the drift tracker's).
 DEFAULT_PERIOD = 0.01
 #: The largest coefficient taken (rubbers: 0.02..0.06); the compensation feeds back its own output,

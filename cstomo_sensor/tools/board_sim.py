@@ -1,26 +1,53 @@
 """``cstomo board-sim``: the simulated board (:class:`~cstomo_sensor.board.sim.SimulatedBoard`) on a
-pseudo-terminal, playing a scene or a load script of an honestly simulated device."""
+pseudo-terminal, playing a scene or a load script of an honestly simulated device.
+
+A load script's rubber creeps (``--creep``, default :data:`~cstomo_sensor.model.material.TYPICAL_CREEP_PER_DECADE`,
+the node's default compensation): the script is played as a :class:`~cstomo_sensor.model.timeline.Timeline`
+of its loads with that creep and nothing else changing, over ``--duration`` (else the script's last
+time plus :data:`SCRIPT_HOLD_S`; after that the device holds its last state: the last load no longer
+creeps). ``--creep 0`` plays each load exactly (:class:`~cstomo_sensor.model.simulate.VoltageSource`).
+"""
 from __future__ import annotations
 
 import argparse
 import signal
 import sys
+import time
 
-from ..board.sim import FaultConfig, SimulatedBoard
+import numpy as np
+
+from ..board.sim import DEFAULT_RATE_HZ, FaultConfig, SimulatedBoard
 from ..errors import CstomoError
-from ..model.geometry import DEFAULT_SNR_DB, load_sensor
+from ..frames_io import read_load_script
+from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
+from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
-from ..model.timeline import Timeline, is_timeline_scene
+from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
+
+#: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
+#: board then runs until stopped, the last load held without further creep after this): an hour,
+#: 4.6 decades from 0.1 s; the knots of an hour's hold cost about 5 s of solves once (cached).
+SCRIPT_HOLD_S = 3600.0
 
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
-    p.add_argument("--sensor", required=True, help="sensor preset name or YAML path")
+    p.add_argument("--sensor", default=DEFAULT_SENSOR, help="sensor preset name or YAML path (default %(default)s)")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="scene YAML file")
-    src.add_argument("--load-script", help="load script CSV (time,fx,fy,fz)")
-    p.add_argument("--rate", type=float, required=True, help="frames per second")
+    src.add_argument("--scene", help="scene YAML file: a timeline scene's rubber creeps as its timeline's creep: "
+                                     "says; a scene's list of loads (foreign loads too) holds each load exactly, "
+                                     "1 s each (--creep does not apply to scenes)")
+    src.add_argument("--load-script", help="load script CSV (time,fx,fy,fz; socket forces); its rubber creeps "
+                                           "(--creep)")
+    p.add_argument("--creep", type=float, default=TYPICAL_CREEP_PER_DECADE, metavar="C",
+                   help="the load script's rubber creep per decade of time from 0.1 s after each change of load "
+                        "(default %(default)g: the typical rubber, the node's default creep_per_decade, so the "
+                        "node with its defaults reads a held load constant; real rubbers 0.02..0.06; 0: a rubber "
+                        "that does not creep, each load held exactly). The script is simulated as a timeline over "
+                        f"--duration, else its last time + {SCRIPT_HOLD_S:g} s, after which the last load holds "
+                        "without further creep; the first run solves its knots (about 40 ms each), cached")
+    p.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ, help="frames per second (default %(default)g)")
     p.add_argument("--duration", type=float, help="seconds to run (default: until SIGINT/SIGTERM)")
     p.add_argument("--protocol", default="binary", help="binary (default) or text")
     p.add_argument("--link", help="symlink kept pointing at the current pty")
@@ -65,6 +92,10 @@ def _interrupt(*_: object) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if not 0 <= args.creep < 1:  # NaN too
+        print(f"cstomo board-sim: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
+              "(rubbers: 0.02..0.06; 0: no creep)", file=sys.stderr)
+        return 2
     try:
         faults = FaultConfig(
             bit_flip=args.bit_flip, drop=args.drop, truncate=args.truncate, garbage=args.garbage,
@@ -75,6 +106,9 @@ def _main(args: argparse.Namespace) -> int:
         layers = load_sensor(args.sensor).layers
         if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
             source = Timeline.from_scene(args.scene, snr_db=args.snr).prepare()
+        elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline
+            source = script_timeline(args.load_script, args.creep, sensor=args.sensor, duration=args.duration,
+                                     snr_db=args.snr, seed=args.seed)
         else:
             source = VoltageSource.from_args(
                 sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
@@ -94,7 +128,10 @@ def _main(args: argparse.Namespace) -> int:
         while not board.join(0.1):  # the main thread stays free for the signal handlers
             if board.script_started.is_set() and not streaming:
                 streaming = True
-                print("streaming", flush=True)  # the load script's t = 0 (NodeWithBoard.wait_streaming)
+                # the load script's t = 0 (NodeWithBoard.wait_streaming), on the system clock (the node's
+                # ROS clock, its wrenches' stamps): a frame of script time t is stamped about t0 + t
+                t0 = time.time() - (time.monotonic() - board.script_start)
+                print(f"streaming t0={t0:.6f}", flush=True)
     finally:
         board.close()
         for sig, handler in previous.items():
@@ -103,3 +140,19 @@ def _main(args: argparse.Namespace) -> int:
     for line in st.describe():
         print(line, file=sys.stderr)
     return 0
+
+
+def script_timeline(load_script, creep: float = TYPICAL_CREEP_PER_DECADE, *, sensor: str = DEFAULT_SENSOR,
+                    duration: float | None = None, snr_db: float | None = None, seed: int = 0,
+                    cache_dir=None) -> Timeline:
+    """A load script played by a rubber creeping by ``creep`` per decade (module docstring): a
+    :class:`Timeline` of the script's loads and nothing else changing, over ``duration`` (else the
+    last time + :data:`SCRIPT_HOLD_S`), its knots solved (or read from the cache) now. Noise at
+    ``snr_db`` (None: :data:`DEFAULT_SNR_DB`, as a load script without creep)."""
+    times, forces = read_load_script(load_script)
+    last = float(times[-1]) if len(times) else 0.0
+    spec = TimelineSpec(duration=float(duration) if duration is not None and duration > 0 else last + SCRIPT_HOLD_S,
+                        creep=float(creep), load_times=tuple(np.asarray(times, float)),
+                        load_forces=tuple(map(tuple, np.asarray(forces, float))))
+    return Timeline(spec, sensor, snr_db=DEFAULT_SNR_DB if snr_db is None else snr_db, seed=seed,
+                    cache_dir=cache_dir).prepare()

@@ -188,12 +188,19 @@ class NodeWithBoard:
             raise CstomoError(f"board-sim failed to start ({first!r})")
         return first.split(":", 1)[1].strip()
 
-    def wait_streaming(self) -> None:
-        """Block until the board's load script starts (the node has connected and sent START).
-        Raises :class:`CstomoError` if the board ends first."""
+    def wait_streaming(self) -> float | None:
+        """Block until the board's load script starts (the node has connected and sent START); the
+        script's t = 0 on the system clock (the node's ROS clock, so a wrench stamped s measured the
+        script at s - t0), None if the board did not say. Raises :class:`CstomoError` if the board
+        ends first."""
         line = self.board.stdout.readline().strip()
-        if line != "streaming":
+        word, _, rest = line.partition(" ")
+        if word != "streaming":
             raise CstomoError(f"board-sim ended before streaming ({line!r})")
+        try:
+            return float(rest.partition("t0=")[2])
+        except ValueError:
+            return None
 
     def stop(self) -> None:
         interrupt([self.node, self.board])  # one after the other: the node ends before its board

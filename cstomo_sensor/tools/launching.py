@@ -22,6 +22,7 @@ from pathlib import Path
 
 import yaml
 
+from ..board.sim import DEFAULT_RATE_HZ
 from ..cache import default_cache_dir
 from ..errors import ConfigError, CstomoError
 from ..force.device import tare_file_name
@@ -206,7 +207,7 @@ def _sim_board(work: Path, sensor: str, script: str | None) -> tuple[list[str], 
         program = executable("cstomo")
     except CstomoError:
         program = "cstomo"  # not installed: check_executables says so
-    cmd = [program, "board-sim", "--sensor", str(sensor), "--rate", "200", "--link", link,
+    cmd = [program, "board-sim", "--sensor", str(sensor), "--rate", f"{DEFAULT_RATE_HZ:g}", "--link", link,
            "--load-script", script]
     return cmd, link, str(work / "tare.csv")
 
