@@ -23,7 +23,7 @@ def test_one_declaration_of_the_typical_creep_and_of_the_simulated_boards_rate_a
     from cstomo_sensor.tools import board_sim
     from cstomo_sensor.tools.launching import _sim_board
 
-    a = board_sim._parser().parse_args(["--load-script", "x.csv"])
+    a = board_sim.parser().parse_args(["--load-script", "x.csv"])
     assert a.creep == TYPICAL_CREEP_PER_DECADE == DEFAULT_CREEP == StreamConfig().creep_per_decade
     assert held_load_creep().creep == TYPICAL_CREEP_PER_DECADE
     assert a.sensor == PipelineConfig().sensor and a.rate == DEFAULT_RATE_HZ
