@@ -1,5 +1,5 @@
 """``~/wrench_filtered``: the first-order low-pass (force/filter.py) against the continuous filter it
-states (step response, -3 dB at the cutoff, noise), its restarts, and the real node on a pty board
+states (step response, -3 dB at the cutoff, noise), its restarts, and the real node on a simulated board
 (reset on tare and after a reconnect, noise reduction and step delay on a held load)."""
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def test_a_bad_cutoff_is_named(bad):
         LowPass(bad)
 
 
-# --- the real node, a simulated board on a pty ------------------------------------------------------
+# --- the real node, a simulated board (virtual link) ------------------------------------------------
 
 class HeldLoad:
     """The committed bag's unloaded frames for ``unloaded_for`` s, then its frames of the held 20 N

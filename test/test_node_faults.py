@@ -3,7 +3,7 @@
 The frame path drops a frame whose flags exclude every measurement, keeps the processor's mask and
 the pipeline's in step, counts every dropped frame in /diagnostics and goes on; a tare is a
 transaction (done on its own steady frames within its deadline, or cancelled/refused with nothing
-changed). Real rclpy and a simulated board on a real pty, as in test_node.py.
+changed). Real rclpy and a simulated board on a virtual link, as in test_node.py.
 """
 from __future__ import annotations
 
