@@ -3,6 +3,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import board_link
 
 from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
@@ -45,10 +46,12 @@ def drain(driver, quiet=0.3):
     return out
 
 
-def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, rate=RATE, **driver_kw):
-    """Connect a driver to a fresh board, stream for ``duration``, return everything that arrived."""
-    src = CountingSource()
-    board = SimulatedBoard(src, protocol=protocol, rate_hz=rate, duration=duration, link=tmp_path / "board",
+def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, rate=RATE, src=None,
+        virtual=False, **driver_kw):
+    """Connect a driver to a fresh board (on a pty, linked in tmp_path; ``virtual``: on a virtual link),
+    stream for ``duration``, return everything that arrived."""
+    src = src or CountingSource()
+    board = SimulatedBoard(src, protocol=protocol, rate_hz=rate, duration=duration, link=board_link(tmp_path, pty=not virtual),
                            faults=faults, seed=1)
     driver = BoardDriver(board.device, protocol=protocol, queue_size=queue_size, **driver_kw)
     try:
