@@ -129,3 +129,12 @@ def test_one_recording_decodes_alike_over_the_virtual_link_and_a_pty(tmp_path):
         assert np.array_equal(a.contact_ok, b.contact_ok)
     assert np.flatnonzero(~v[0].contact_ok).tolist() == [5] and np.flatnonzero(v[0].saturated).tolist() == [17]
     assert vst.seq_gaps > 0 and vst.corrupt == pst.corrupt == 0
+
+
+def test_the_board_sim_command_refuses_a_virtual_link(capsys):
+    """``cstomo board-sim`` runs in its own process: a virtual link there no host could open."""
+    from cstomo_sensor.tools import board_sim
+
+    with pytest.raises(SystemExit) as err:
+        board_sim.main(["--sensor", "cuboid_joint", "--load-script", "x.csv", "--rate", "10", "--link", "virtual://b"])
+    assert err.value.code == 2 and "a virtual link lives in one process" in capsys.readouterr().err

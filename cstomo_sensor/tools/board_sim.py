@@ -6,6 +6,7 @@ import argparse
 import signal
 import sys
 
+from ..board.links import is_virtual
 from ..board.sim import FaultConfig, SimulatedBoard
 from ..errors import CstomoError
 from ..model.geometry import DEFAULT_SNR_DB, load_sensor
@@ -45,7 +46,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if is_virtual(args.link):
+        parser.error(f"--link {args.link}: a virtual link lives in one process, no other could open it; give a path")
     # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent
     # left it ignored, as a shell does for a background job)
     previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
