@@ -244,7 +244,7 @@ class SimulatedBoard:
 
     def _open_link(self) -> None:
         self._link = open_link(self.link)
-        self._master = self._link.fd
+        self._master, self._device = self._link.fd, self._link.device
         self._first_seq.append(-1)
         self._streaming = self.protocol == "text"
         self._decoder.reset()
@@ -260,7 +260,7 @@ class SimulatedBoard:
     def device(self) -> str:
         """What a driver opens: the link if given (a symlink's path or ``virtual://NAME``), else the
         current pty slave."""
-        return self.link or self._link.device
+        return self._device
 
     # --- control -----------------------------------------------------------------------------
 
