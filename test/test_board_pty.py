@@ -221,6 +221,7 @@ def test_duplicates_late_frames_and_corruption_are_counted_per_frame():
     assert (st.duplicates, st.reordered, st.corrupt, st.seq_gaps, st.resyncs) == (1, 1, 1, 0, 1), st
 
 
+@pytest.mark.slow
 def test_a_one_frame_per_second_board_is_not_reopened(tmp_path):
     """The stall timeout follows the board's frame period: a 1 Hz board with a 0.3 s stall floor
     streams for 4.5 s on one connection, every frame in order (before: reopened every 0.3 s, START
@@ -296,6 +297,7 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     assert not link.exists()
 
 
+@pytest.mark.slow
 def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
     """A 400 Hz board is replaced on the same link by a 1 Hz one: after at most one stall (the old
     period no longer holds; it is measured again) the driver stays connected and reads every frame."""

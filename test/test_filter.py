@@ -88,6 +88,7 @@ class HeldLoad:
         return np.zeros(3) if t < self.unloaded_for else np.array([0.0, 0.0, -20.0])
 
 
+@pytest.mark.slow
 def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_load(ros, tmp_path, source,
                                                                                      warm_model):
     """Board at 100 frames/s: unloaded (tare at start), a step to a held 20 N, an unplug of 0.3 s,

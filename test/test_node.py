@@ -147,7 +147,7 @@ def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refus
 
 # --- end to end: simulated board (virtual link; once a pty) -> node -> subscriber ---------------------
 
-@pytest.mark.parametrize("pty", [False, True], ids=["virtual", "pty"])
+@pytest.mark.parametrize("pty", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "pty"])
 def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model, pty):
     """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared
     with the scripted force of its frame (found by its stamp). Once over the in-process virtual link
@@ -255,6 +255,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         h.close()
 
 
+@pytest.mark.slow
 def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path, source, warm_model):
     from geometry_msgs.msg import WrenchStamped
 

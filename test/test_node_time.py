@@ -72,6 +72,7 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
 
 
 @pytest.mark.parametrize("how", ["replug", "restart"])
+@pytest.mark.slow
 def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_path, source, warm_model, how):
     """replug: the board's link disappears for 3.3 s and comes back (its clock and counter go on);
     restart: the board is killed and a new one (clock and counter from zero) appears on the same link
@@ -114,7 +115,8 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
     assert int(v["reconnects"]) >= 1
 
 
-@pytest.mark.parametrize("drop, level", [(0.0, 0), (0.05, 1), (0.4, 2)])
+@pytest.mark.parametrize("drop, level", [pytest.param(0.0, 0, marks=pytest.mark.slow), (0.05, 1),
+                                         pytest.param(0.4, 2, marks=pytest.mark.slow)])
 def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, source, warm_model, drop, level):
     """A board that loses a fraction of its frames (measured, never sent: sequence gaps): none is OK,
     5 % is WARN (above LOSS_WARN = 1 % over the last 5 s), 40 % is ERROR (above LOSS_ERROR = 20 %);
@@ -140,6 +142,7 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
         assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
 
 
+@pytest.mark.slow
 def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path, source, warm_model):
     """The node with a 1 frame/s board and stale_timeout 0.3 s: one connection and a wrench per frame
     (the data is stale between frames, and the diagnostics say so: stale_timeout is below the

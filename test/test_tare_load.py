@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 from conftest import PIPE, start, wait_for
 
+pytestmark = pytest.mark.slow  # the loaded device's frames (~12 s set-up) and node runs of 4-6 s
+
 RATE = 100.0  # frames/s of the simulated board
 MAGNITUDES = np.arange(0.0, 11.0)  # N: the table a ramp interpolates (voltages are smooth in the load)
 
