@@ -251,6 +251,7 @@ def test_cli_estimate_flags_the_foreign_scene(tmp_path):
     assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
 
 
+@pytest.mark.slow
 def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path, warm_model):
     """Topic mode: a tare on unloaded frames, then frames of the side press: ~/consistency above the
     threshold, /diagnostics WARN 'foreign load', the wrench still published."""
