@@ -5,6 +5,7 @@ import contextlib
 import os
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,13 @@ os.environ.setdefault("CSTOMO_CACHE_DIR", str(ROOT / ".cache" / "test"))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 CALLER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")  # a domain the caller chose: every test and tool keeps it
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "slow: a test (or module) of seconds to a minute on a loaded 2-core host: colcon install, launch, "
+        "bench, node runs with long board scripts, calibration and honest-simulation set-ups; "
+        "`pytest -m 'not slow'` runs the fast subset")
+
 
 # Mesh sizes of the test suite (metres): the model that reconstructs, and an independent finer
 # mesh that simulates the truth (docs/physics.md#honest-simulation).
@@ -190,12 +198,20 @@ def warm_model():
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
 
-def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, name="cstomo_sensor", **params):
-    """A simulated board on a pty (link in tmp_path) and the node reading it; returns (harness, board)."""
+def board_link(tmp_path, pty: bool = False) -> str:
+    """A fresh link for a simulated board: ``virtual://<unique name>`` (in-process, board/links.py),
+    or with ``pty`` a symlink in ``tmp_path`` to a real pseudo-terminal."""
+    return str(tmp_path / "board") if pty else f"virtual://{Path(tmp_path).name}-{uuid.uuid4().hex[:8]}"
+
+
+def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, name="cstomo_sensor", pty=False, **params):
+    """A simulated board (on a virtual link; ``pty``: on a pty linked in tmp_path) and the node reading
+    it, its ``port`` the board's link (``board.device``: a board that replaces it takes the same
+    ``link``); returns (harness, board)."""
     from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
 
-    board = SimulatedBoard(source, rate_hz=rate, link=tmp_path / "board", faults=faults or FaultConfig(), seed=2)
-    p = dict(PIPE, port=str(tmp_path / "board"), tare_file=str(tmp_path / "tare.csv"), stale_timeout=0.3)
+    board = SimulatedBoard(source, rate_hz=rate, link=board_link(tmp_path, pty), faults=faults or FaultConfig(), seed=2)
+    p = dict(PIPE, port=board.device, tare_file=str(tmp_path / "tare.csv"), stale_timeout=0.3)
     p.update(params)
     h = Harness(ros, p, name=name)
     assert wait_for(lambda: h.state() == "active", 20.0), h.state()

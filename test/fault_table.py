@@ -72,7 +72,7 @@ def run(ros, tmp, bag, name, kwargs, window, harm):
     from cstomo_sensor.board.sim import SimulatedBoard
 
     src = Recorded(bag, window if isinstance(window, tuple) else (math.inf, math.inf), harm)
-    h, board = start(ros, tmp, src, rate=RATE, tare_on_start=True, tare_frames=5, **kwargs)
+    h, board = start(ros, tmp, src, rate=RATE, tare_on_start=True, tare_frames=5, pty=True, **kwargs)
     boards, sources = [board], [src]
     try:
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
@@ -86,7 +86,7 @@ def run(ros, tmp, bag, name, kwargs, window, harm):
             board.close()
             time.sleep(3.3)
             sources.append(Recorded(bag))
-            boards.append(SimulatedBoard(sources[-1], rate_hz=RATE, link=tmp / "board", seed=5).start())
+            boards.append(SimulatedBoard(sources[-1], rate_hz=RATE, link=board.device, seed=5).start())
             back = boards[-1].stats().generation_opened[0]
             time.sleep(RUN - T_FAULT - 3.3)
         else:

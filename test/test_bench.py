@@ -5,6 +5,8 @@ import csv
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # the benchmark's smoke run (~33 s) and rendering
+
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):

@@ -14,6 +14,8 @@ pytest.importorskip("rclpy")
 
 from cstomo_sensor.tools.bench.node import COLUMNS, cpu_seconds, markdown, memory_mb  # noqa: E402
 
+pytestmark = pytest.mark.slow  # bench-node runs real node and board processes (~30 s)
+
 
 def test_proc_readers_on_self():
     assert cpu_seconds(os.getpid()) > 0

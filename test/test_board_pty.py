@@ -3,6 +3,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import board_link
 
 from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
@@ -45,10 +46,12 @@ def drain(driver, quiet=0.3):
     return out
 
 
-def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, rate=RATE, **driver_kw):
-    """Connect a driver to a fresh board, stream for ``duration``, return everything that arrived."""
-    src = CountingSource()
-    board = SimulatedBoard(src, protocol=protocol, rate_hz=rate, duration=duration, link=tmp_path / "board",
+def run(tmp_path, faults=FaultConfig(), protocol="binary", duration=1.0, queue_size=4096, rate=RATE, src=None,
+        virtual=False, **driver_kw):
+    """Connect a driver to a fresh board (on a pty, linked in tmp_path; ``virtual``: on a virtual link),
+    stream for ``duration``, return everything that arrived."""
+    src = src or CountingSource()
+    board = SimulatedBoard(src, protocol=protocol, rate_hz=rate, duration=duration, link=board_link(tmp_path, pty=not virtual),
                            faults=faults, seed=1)
     driver = BoardDriver(board.device, protocol=protocol, queue_size=queue_size, **driver_kw)
     try:
@@ -218,6 +221,7 @@ def test_duplicates_late_frames_and_corruption_are_counted_per_frame():
     assert (st.duplicates, st.reordered, st.corrupt, st.seq_gaps, st.resyncs) == (1, 1, 1, 0, 1), st
 
 
+@pytest.mark.slow
 def test_a_one_frame_per_second_board_is_not_reopened(tmp_path):
     """The stall timeout follows the board's frame period: a 1 Hz board with a 0.3 s stall floor
     streams for 4.5 s on one connection, every frame in order (before: reopened every 0.3 s, START
@@ -294,6 +298,7 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     assert not link.exists()
 
 
+@pytest.mark.slow
 def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
     """A 400 Hz board is replaced on the same link by a 1 Hz one: after at most one stall (the old
     period no longer holds; it is measured again) the driver stays connected and reads every frame."""

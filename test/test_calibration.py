@@ -23,6 +23,8 @@ from cstomo_sensor.force.device import reference_of
 from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
 from cstomo_sensor.model.simulate import Load, Scene, add_noise
 
+pytestmark = pytest.mark.slow  # calibration effort: the held-out device's frames (~47 s) and node runs
+
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 
 

@@ -21,6 +21,8 @@ pytest.importorskip("ament_package", reason="ros-kilted-ament-package is in the 
 pytest.importorskip("colcon_ros", reason="colcon-ros is in the test extra")
 rclpy = pytest.importorskip("rclpy")
 
+pytestmark = pytest.mark.slow  # a colcon build and the installed node, board and demo (~15 s)
+
 ROOT = Path(__file__).resolve().parent.parent
 SKIP = shutil.ignore_patterns(".git", ".venv", ".cache", "build", "install", "log", "out", "__pycache__",
                               "*.egg-info", ".pytest_cache", ".ruff_cache")

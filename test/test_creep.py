@@ -65,6 +65,7 @@ def _magnitudes(pipe, held, creep, tracking=True):
     return times, mag
 
 
+@pytest.mark.slow
 def test_a_held_load_reads_constant_and_its_recovery_reads_zero(warm_model, held):
     """The issue's aim: 20 N held 10 minutes reads within 1 % of its value 1 s after it was applied
     (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades). 5 s after its removal the
@@ -86,6 +87,7 @@ def test_a_held_load_reads_constant_and_its_recovery_reads_zero(warm_model, held
             assert late / early - 1 > 0.05 and after > 0.3, rows
 
 
+@pytest.mark.slow
 def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibration_file(warm_model, held, tmp_path):
     from cstomo_sensor.force.calibration import DeviceCalibration
     from cstomo_sensor.force.stream import FrameStream, StreamConfig

@@ -22,6 +22,8 @@ from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
 from cstomo_sensor.force.stream import FrameStream
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
+pytestmark = pytest.mark.slow  # the scaled devices' frames (~15 s set-up)
+
 
 @pytest.fixture(scope="module")
 def pipes():

@@ -59,6 +59,7 @@ def _zero_reading(pipe, device, change, tracking, ramp_s=300.0, rate=20.0):
 
 
 @pytest.mark.parametrize("change", [-0.01, 0.01])
+@pytest.mark.slow
 def test_a_one_percent_change_reads_no_force(warm_model, device, change):
     untracked, _ = _zero_reading(warm_model, device, change, tracking=False)
     tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
@@ -69,12 +70,14 @@ def test_a_one_percent_change_reads_no_force(warm_model, device, change):
 
 
 @pytest.mark.parametrize("change", [-0.10, 0.10])
+@pytest.mark.slow
 def test_a_ten_percent_change_reads_within_the_aim(warm_model, device, change):
     tracked, stream = _zero_reading(warm_model, device, change, tracking=True)
     assert stream.drift.change == pytest.approx(change, abs=2e-3)
     assert tracked <= ZERO_AIM, (change, tracked)
 
 
+@pytest.mark.slow
 def test_a_ten_percent_change_is_tracked_and_warned(warm_model, device):
     """What holds at 10 %: the scale is followed, the zero stays within 0.6 N (1/300 of what it was),
     the diagnostics say the change in % and kelvin and advise a re-tare."""
@@ -86,6 +89,7 @@ def test_a_ten_percent_change_is_tracked_and_warned(warm_model, device):
         assert any("re-tare" in m for m in msgs), msgs
 
 
+@pytest.mark.slow
 def test_loads_read_the_same_through_a_change(warm_model, device):
     """Loads held 0.3 s with rests between them, the device 1 % changed: the angle and magnitude errors
     with tracking are those without any change (within 1.25x / 1.5x, the issue's aims for a warm-up)."""
@@ -113,6 +117,7 @@ def test_loads_read_the_same_through_a_change(warm_model, device):
     assert ang0 <= 1.1 * base_ang and mag0 <= 1.25 * base_mag, (ang0, mag0, base_ang, base_mag)
 
 
+@pytest.mark.slow
 def test_an_all_zero_frame_does_not_move_the_scale(warm_model, device):
     """A failing board's frame is implausible and never taken for a change of the device."""
     ref, *_ = device

@@ -1,5 +1,5 @@
 """``~/wrench_filtered``: the first-order low-pass (force/filter.py) against the continuous filter it
-states (step response, -3 dB at the cutoff, noise), its restarts, and the real node on a pty board
+states (step response, -3 dB at the cutoff, noise), its restarts, and the real node on a simulated board
 (reset on tare and after a reconnect, noise reduction and step delay on a held load)."""
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def test_a_bad_cutoff_is_named(bad):
         LowPass(bad)
 
 
-# --- the real node, a simulated board on a pty ------------------------------------------------------
+# --- the real node, a simulated board (virtual link) ------------------------------------------------
 
 class HeldLoad:
     """The committed bag's unloaded frames for ``unloaded_for`` s, then its frames of the held 20 N
@@ -88,6 +88,7 @@ class HeldLoad:
         return np.zeros(3) if t < self.unloaded_for else np.array([0.0, 0.0, -20.0])
 
 
+@pytest.mark.slow
 def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_load(ros, tmp_path, source,
                                                                                      warm_model):
     """Board at 100 frames/s: unloaded (tare at start), a step to a held 20 N, an unplug of 0.3 s,

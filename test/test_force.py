@@ -104,6 +104,7 @@ def _hot(model, x, frac=0.5):
     ("disc_square_offcentre.yaml", [(0.008, 0.0)]),
     ("cylinder_two_heads_fig8.yaml", [(-0.008, 0.0), (0.008, 0.0)]),
 ])
+@pytest.mark.slow
 def test_patch_loads_imaged_at_the_loaded_place(scene, checks):
     from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
     from cstomo_sensor.model.geometry import load_sensor
@@ -128,6 +129,7 @@ def test_patch_loads_imaged_at_the_loaded_place(scene, checks):
         assert (hot[:, 0] < -4e-3).any() and (hot[:, 0] > 4e-3).any()
 
 
+@pytest.mark.slow
 def test_cli_simulate_then_estimate(tmp_path):
     from cstomo_sensor.frames_io import read_forces
     from cstomo_sensor.tools.cli import main

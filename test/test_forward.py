@@ -116,6 +116,7 @@ def test_mirror_symmetry_maps_reference_frame_onto_itself(cuboid_forward, cuboid
     assert 2 * e < 0.1 * np.abs(V).max()  # and the bound itself is tight
 
 
+@pytest.mark.slow
 def test_reference_frame_converges_with_mesh_size(cuboid):
     """Against a 2 mm reference (electrodes 0.4 mm), refining everything together (electrodes at
     h / 5): the error falls from 6 to 3 mm by at least 1.25x (measured 2.2-3.5x over three sets of
@@ -151,6 +152,7 @@ def test_cache_key_changes_with_every_mesh_input(cuboid):
     assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3, refine_socket=False))) != base
 
 
+@pytest.mark.slow
 def test_meshing_leaves_nothing_in_the_working_directory(tmp_path, monkeypatch):
     """pytetwild (fTetWild) writes ``__tracked_surface.stl`` into its working directory: a mesh built
     from here (the disc at 5 mm: a few seconds, not shipped, an empty cache) leaves the directory

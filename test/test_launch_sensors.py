@@ -19,6 +19,8 @@ from conftest import PIPE, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
+pytestmark = pytest.mark.slow  # two nodes and boards as processes (~17 s)
+
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "config" / "cstomo_sensor.yaml"
 

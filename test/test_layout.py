@@ -115,6 +115,12 @@ def test_no_import_cycles():
     assert not cycles, cycles
 
 
+def test_pyserial_is_imported_only_by_the_driver_and_its_url_handler():
+    """``serial`` (pyserial) stays in board/driver.py and the ``virtual://`` handler it registers."""
+    users = sorted(m for m, (_, outer) in GRAPH.items() if "serial" in outer)
+    assert users == ["cstomo_sensor.board.driver", "cstomo_sensor.board.protocol_virtual"], users
+
+
 def test_core_modules_load_no_heavy_or_ros_package_at_import():
     """Importing every core module loads neither rclpy nor pyvista, pytetwild or scikit-fem (they
     load only in the code that meshes, renders, solves elasticity or runs the node)."""

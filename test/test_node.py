@@ -1,5 +1,5 @@
-"""cstomo_sensor_node with real rclpy and a simulated board on a real pseudo-terminal (the harness
-and the local-only DDS set-up are in conftest.py)."""
+"""cstomo_sensor_node with real rclpy and a simulated board on an in-process virtual link (one test
+also on a real pseudo-terminal; the harness and the local-only DDS set-up are in conftest.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -145,17 +145,19 @@ def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refus
         h.close()
 
 
-# --- end to end: simulated board on a pty -> node -> subscriber ------------------------------------
+# --- end to end: simulated board (virtual link; once a pty) -> node -> subscriber ---------------------
 
-def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model):
+@pytest.mark.parametrize("pty", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "pty"])
+def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model, pty):
     """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared
-    with the scripted force of its frame (found by its stamp)."""
+    with the scripted force of its frame (found by its stamp). Once over the in-process virtual link
+    and once over a real pseudo-terminal (the node's one test of the pty path)."""
     from geometry_msgs.msg import WrenchStamped
     from std_msgs.msg import Float64
 
     h, board = None, None
     try:
-        h, board = start(ros, tmp_path, source, tare_on_start=True, tare_frames=10)
+        h, board = start(ros, tmp_path, source, tare_on_start=True, tare_frames=10, pty=pty)
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         el = h.record("/cstomo_sensor/force_elevation", Float64)
         t_start = h.node.get_clock().now().nanoseconds
@@ -253,6 +255,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         h.close()
 
 
+@pytest.mark.slow
 def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path, source, warm_model):
     from geometry_msgs.msg import WrenchStamped
 
@@ -311,7 +314,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     assert down[0] == 2 and "disconnected" in down[1]
     level, message, v = diag(dg[-1][1])
     # a bit-flipped frame fails its CRC: it is lost, and counted once (as corrupt, not also as a
-    # sequence gap); a garbage burst loses no frame (a resync); at most a frame or two in the pty at the cut
+    # sequence gap); a garbage burst loses no frame (a resync); at most a frame or two in the link at the cut
     inj = board.stats().injected
     lost = int(v["corrupt"]) + int(v["seq_gaps"])
     assert int(v["corrupt"]) > 0 and lost <= inj["bit_flip"] + inj.get("overrun", 0) + 2, (v, inj)

@@ -3,7 +3,7 @@
 The frame path drops a frame whose flags exclude every measurement, keeps the processor's mask and
 the pipeline's in step, counts every dropped frame in /diagnostics and goes on; a tare is a
 transaction (done on its own steady frames within its deadline, or cancelled/refused with nothing
-changed). Real rclpy and a simulated board on a real pty, as in test_node.py.
+changed). Real rclpy and a simulated board on a virtual link, as in test_node.py.
 """
 from __future__ import annotations
 
@@ -122,6 +122,7 @@ def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
 # --- the node ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_frames_without_usable_channels_are_counted_and_the_node_keeps_publishing(ros, tmp_path, source, warm_model):
     """The board loses every contact for 0.5 s, then saturates every channel for 0.5 s: those frames
     are dropped and counted (WARN with the reason), the frame thread lives on and the good frames
@@ -163,6 +164,7 @@ def test_frames_without_usable_channels_are_counted_and_the_node_keeps_publishin
     assert level == 0, message
 
 
+@pytest.mark.slow
 def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_returns_loaded(
         ros, tmp_path, source, warm_model):
     """~/tare called while the board is unplugged fails after its deadline and is cancelled: when the

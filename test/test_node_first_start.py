@@ -2,7 +2,7 @@
 from the model's reference frame (a real device is never the nominal one:
 docs/physics.md#real-devices). It tares on its first frames, says so in the log and in /diagnostics, and only then
 publishes; the forces at zero load are then near zero. Real node, real rclpy, a simulated board
-(an honestly simulated device, not the model's mesh) on a pty (harness in conftest.py)."""
+(an honestly simulated device, not the model's mesh) on a virtual link (harness in conftest.py)."""
 from __future__ import annotations
 
 import numpy as np

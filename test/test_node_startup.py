@@ -188,6 +188,7 @@ def _default(name):
     return tuple(v) if isinstance(v, list) else v
 
 
+@pytest.mark.slow
 def test_ctrl_c_twice_at_shutdown_prints_no_traceback(warm_model):
     """Ctrl-C, and a second one while the node shuts down (as a launch or an impatient user sends):
     exit 0 without a KeyboardInterrupt traceback from the joins (before: 3 runs in 5 printed one)."""

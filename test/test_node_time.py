@@ -1,6 +1,6 @@
 """Issue 14, time and recovery: a step of the host's ROS clock does not blank the output (frames are
 judged late on the monotonic clock), and the node publishes again within a second of a replugged or
-restarted board. Real rclpy, a simulated board on a real pty (conftest.start)."""
+restarted board. Real rclpy, a simulated board on a virtual link (conftest.start)."""
 from __future__ import annotations
 
 import threading
@@ -72,10 +72,11 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
 
 
 @pytest.mark.parametrize("how", ["replug", "restart"])
+@pytest.mark.slow
 def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_path, source, warm_model, how):
-    """replug: the board's pty disappears for 3.3 s and comes back (its clock and counter go on);
+    """replug: the board's link disappears for 3.3 s and comes back (its clock and counter go on);
     restart: the board is killed and a new one (clock and counter from zero) appears on the same link
-    3.3 s later. The time from the board being back (its pty linked) to the first new wrench is under
+    3.3 s later. The time from the board being back (its link open) to the first new wrench is under
     1 s (before issue 14 the doubling reconnect backoff retried at 3.15 s, then 5.15 s: 1.85 s). The diagnostics' last
     error clears and the status returns to OK."""
     from geometry_msgs.msg import WrenchStamped
@@ -96,7 +97,7 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
         else:
             board.close()
             time.sleep(3.3)
-            boards.append(SimulatedBoard(source, rate_hz=100.0, link=tmp_path / "board", seed=5))
+            boards.append(SimulatedBoard(source, rate_hz=100.0, link=board.device, seed=5))
             back = boards[-1].stats().generation_opened[0]
             boards[-1].start()
         assert wait_for(lambda: any(t > back for t, _ in wr), 5.0), "no wrench after the board came back"
@@ -114,7 +115,8 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
     assert int(v["reconnects"]) >= 1
 
 
-@pytest.mark.parametrize("drop, level", [(0.0, 0), (0.05, 1), (0.4, 2)])
+@pytest.mark.parametrize("drop, level", [pytest.param(0.0, 0, marks=pytest.mark.slow), (0.05, 1),
+                                         pytest.param(0.4, 2, marks=pytest.mark.slow)])
 def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, source, warm_model, drop, level):
     """A board that loses a fraction of its frames (measured, never sent: sequence gaps): none is OK,
     5 % is WARN (above LOSS_WARN = 1 % over the last 5 s), 40 % is ERROR (above LOSS_ERROR = 20 %);
@@ -140,6 +142,7 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
         assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
 
 
+@pytest.mark.slow
 def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path, source, warm_model):
     """The node with a 1 frame/s board and stale_timeout 0.3 s: one connection and a wrench per frame
     (the data is stale between frames, and the diagnostics say so: stale_timeout is below the

@@ -74,6 +74,7 @@ def test_pair_level_and_bad_input():
 
 
 @pytest.mark.parametrize("snr", [60.0, 40.0])
+@pytest.mark.slow
 def test_estimate_within_20_percent_of_the_simulated_noise(device, warm_model, snr):
     ref1, frames = _held(device, snr, seed=int(snr))
     want = _std(device[0], snr)
@@ -92,6 +93,7 @@ def test_estimate_within_20_percent_of_the_simulated_noise(device, warm_model, s
     assert abs(snr_said - snr) < 20 * math.log10(1.2), text
 
 
+@pytest.mark.slow
 def test_one_frame_reference_at_40_db_flags_socket_loads_only_before_the_estimate(device, warm_model):
     ref1, frames = _held(device, 40.0, seed=4)
     flagged = {}
@@ -110,6 +112,7 @@ def test_one_frame_reference_at_40_db_flags_socket_loads_only_before_the_estimat
     assert stream.noise is None  # the file's estimate stays
 
 
+@pytest.mark.slow
 def test_distinct_loads_are_not_taken_for_noise(device, warm_model):
     ref, loaded = device
     rng = np.random.default_rng(8)
@@ -121,6 +124,7 @@ def test_distinct_loads_are_not_taken_for_noise(device, warm_model):
     assert text.startswith(NOISE_ASSUMED) and "not a time series" in text, text
 
 
+@pytest.mark.slow
 def test_a_measured_noise_stays(device, warm_model):
     ref, _ = device
     rng = np.random.default_rng(9)
@@ -146,6 +150,7 @@ def test_set_noise_refuses_a_level_no_board_has(warm_model):
     assert pipe.noise_source == NOISE_ASSUMED
 
 
+@pytest.mark.slow
 def test_cli_estimate_says_and_uses_the_estimated_noise(device, tmp_path, capsys):
     from conftest import MODEL_H
 
@@ -166,6 +171,7 @@ def test_cli_estimate_says_and_uses_the_estimated_noise(device, tmp_path, capsys
     assert [r.split(",")[-1] for r in lines[1:]] == ["0"] * len(frames)  # no socket frame flagged
 
 
+@pytest.mark.slow
 def test_a_refused_estimate_is_said_once_not_every_evaluation(device, warm_model, caplog):
     """A board whose frames repeat exactly (a quantised ADC at a quiet moment, a stuck converter): the
     estimate is 0 V, no board's noise, and refused; 10 s of frames say so once, not 10 times a second."""

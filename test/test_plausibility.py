@@ -61,6 +61,7 @@ def test_one_channel_far_out_and_max_force(pipe, bag_frames):
     assert low.process(bag_frames[5]).valid  # unloaded
 
 
+@pytest.mark.slow
 def test_honest_loads_up_to_40_n_at_40_db_stay_valid(pipe, cuboid_truth):
     """Independent finer mesh, mismatched electrodes, 40 dB noise on the frame and on a single-frame
     reference (the worst tare): every load of 5..40 N at elevations 15..90 deg is valid."""

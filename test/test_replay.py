@@ -189,6 +189,7 @@ def _write_raw_bag(path, inputs):
             w.write(c, t, serialize_message(msg))
 
 
+@pytest.mark.slow
 def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe):
     """The bag's frames as the node records them (stamped; a tare at the start, a flagged measurement
     in frames 30..35, an all-zero frame) are played with their timing by a test publisher into

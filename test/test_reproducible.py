@@ -77,6 +77,7 @@ def test_the_default_meshes_need_no_pytetwild(tmp_path):
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow
 def test_two_cold_builds_of_the_default_model_are_bit_identical(cuboid, tmp_path):
     """Model (R, S, reference, k) and calibration set, from two empty caches, one of them in another
     process with another BLAS thread count: equal to rounding (tolerances scaled to each array; BLAS

@@ -54,6 +54,7 @@ def device31(pipe):
     return truth, socket, top, side
 
 
+@pytest.mark.slow
 def test_scene_field_correlates_with_the_truth_on_the_planar_cases(pipe):
     scene = Scene.load(SCENES / "cuboid_planar_60db.yaml")
     ref, frames, forces = simulate(scene)
@@ -105,6 +106,7 @@ def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
     assert max(errs) < 0.1, errs
 
 
+@pytest.mark.slow
 def test_the_calibration_and_the_scene_field_share_one_mechanics(cuboid, cuboid_model, tmp_path, monkeypatch):
     """At a cold start the socket solves run once (socket_mechanics, cached) and serve both the
     calibration set and the scene field, whose directions are the calibration's; a stale mechanics
@@ -164,6 +166,7 @@ def test_patch_faces_are_checked(cuboid):
         elasticity.solve_patch_load(m.points, m.tets, cyl, SIDE["patches"], 10.0)
 
 
+@pytest.mark.slow
 def test_side_face_patch_resultant_and_place(cuboid):
     m = build_mesh(cuboid, MeshSpec(h=4e-3, h_electrode=4e-3))
     sol = elasticity.solve_patch_load(m.points, m.tets, cuboid, SIDE["patches"], 10.0)
@@ -175,6 +178,7 @@ def test_side_face_patch_resultant_and_place(cuboid):
     assert Load.from_dict(SIDE).force == (0.0, -10.0, 0.0)
 
 
+@pytest.mark.slow
 def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe, device31):
     truth, socket, top_press, side_press = device31
     rng = np.random.default_rng(7)
@@ -194,6 +198,7 @@ def test_foreign_loads_trip_the_flag_and_socket_loads_do_not(pipe, device31):
     assert np.mean(top) >= 0.95, np.mean(top)
 
 
+@pytest.mark.slow
 def test_reference_noise_counts_in_the_statistic(pipe, device31):
     """The tare is a mean of n noisy frames: its noise (variance noise^2 / n) is in every change, so the
     statistic whitens by noise * sqrt(1 + 1/n) (Pipeline._update_consistency). Under noise alone (frames
@@ -234,6 +239,7 @@ def test_reference_noise_counts_in_the_statistic(pipe, device31):
         np.testing.assert_allclose(pipe.consistency.noise, frame_noise * np.sqrt(1 + 1 / n), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_cli_estimate_flags_the_foreign_scene(tmp_path):
     from cstomo_sensor.tools.cli import main
 
@@ -246,6 +252,7 @@ def test_cli_estimate_flags_the_foreign_scene(tmp_path):
     assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
 
 
+@pytest.mark.slow
 def test_node_publishes_the_statistic_and_warns_on_a_foreign_load(ros, tmp_path, warm_model):
     """Topic mode: a tare on unloaded frames, then frames of the side press: ~/consistency above the
     threshold, /diagnostics WARN 'foreign load', the wrench still published."""

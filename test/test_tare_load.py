@@ -3,7 +3,7 @@
 A tare under a held 5 N load, during a 2 N/s ramp, or pending across an outage after which the board
 returns loaded is refused, and the reference and the saved file stay as they were; ``~/tare_forced``
 takes a loaded tare and says what it overrode; a tare after a uniform 1 % resistivity change (a warmer
-device, no load) is accepted. The node runs on a simulated board on a pty, as in test_node_faults.py;
+device, no load) is accepted. The node runs on a simulated board (virtual link), as in test_node_faults.py;
 the loads are the honest simulation's (cstomo_sensor.model.simulate.Truth, the committed bag's device:
 seed 7), vertical (the load most alike a uniform change), 60 dB noise.
 """
@@ -15,6 +15,8 @@ import time
 import numpy as np
 import pytest
 from conftest import PIPE, start, wait_for
+
+pytestmark = pytest.mark.slow  # the loaded device's frames (~12 s set-up) and node runs of 4-6 s
 
 RATE = 100.0  # frames/s of the simulated board
 MAGNITUDES = np.arange(0.0, 11.0)  # N: the table a ramp interpolates (voltages are smooth in the load)

@@ -61,6 +61,7 @@ def test_a_drive_change_scales_every_voltage_exactly(truth):
     np.testing.assert_allclose(state.drive, 1 + d, rtol=0, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_creep_of_a_held_20N_load_follows_the_log_law_and_recovers(truth):
     c = 0.04
     tl = Timeline(held_load_creep(20.0, on=1.0, off=31.0, duration=60.0, creep=c), truth=truth, snr_db=None)

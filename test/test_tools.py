@@ -16,6 +16,7 @@ from cstomo_sensor.inverse.reconstruction import ReconSpec
 from cstomo_sensor.tools.cli import main as cstomo
 
 
+@pytest.mark.slow
 def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     pytest.importorskip("rclpy")
     script = tmp_path / "load.csv"
@@ -44,6 +45,7 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
         assert "nothing read it" in board, board
 
 
+@pytest.mark.slow
 def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
     """Ctrl-C in the middle of a held load: exit 0, the summary, no traceback, and the node's wait
     for the board's link (which appears only after the board has computed its loads) logged once,
@@ -96,6 +98,7 @@ def test_bench_heldout_on_three_forces(tmp_path):
             assert float(r["angle_med"]) < 10.0 and float(r["mag_pct_med"]) < 20.0, r
 
 
+@pytest.mark.slow
 def test_bench_frame_cost_times_both_estimators_with_and_without_tracking(tmp_path):
     """``cstomo bench --frame-cost`` (one round here): a row per estimator and tracking, every frame of
     the stream timed, the host's load stated. No timing assertions."""

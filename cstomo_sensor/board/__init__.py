@@ -1,5 +1,6 @@
 """Board I/O: the wire protocol (:mod:`.wire`), the serial driver (:mod:`.driver`) and a simulated
-board on a pseudo-terminal (:mod:`.sim`). Only :mod:`.driver` imports pyserial."""
+board (:mod:`.sim`) on a pseudo-terminal or an in-process virtual link (:mod:`.links`, opened as
+``virtual://NAME``). Only :mod:`.driver` and its URL handler :mod:`.protocol_virtual` import pyserial."""
 from .wire import (
     Ack,
     DataFrame,

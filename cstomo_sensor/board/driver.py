@@ -25,6 +25,9 @@ from .wire import PROTOCOLS, DataFrame, Decoder, Error, Identify, Identity, Star
 
 log = logging.getLogger(__name__)
 
+if __package__ not in serial.protocol_handler_packages:  # virtual://NAME: .protocol_virtual, an in-process board
+    serial.protocol_handler_packages.append(__package__)
+
 #: The board has stalled when no byte came for this many of its frame periods (and at least the
 #: driver's ``stall_timeout``): a 1 frame/s board is not reopened every second.
 STALL_PERIODS = 3.0
@@ -118,7 +121,8 @@ class BoardDriver:
     ----------
     url : str
         Anything :func:`serial.serial_for_url` opens: a device path, ``socket://host:port``,
-        ``rfc2217://host:port``, ``loop://``.
+        ``rfc2217://host:port``, ``loop://``, and ``virtual://NAME``: a simulated board in this
+        process (:mod:`.protocol_virtual`).
     protocol : {'binary', 'text'}
         Wire format (docs/protocol.md). In binary mode the driver sends IDENTIFY and START on
         every (re)connect.

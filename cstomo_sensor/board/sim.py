@@ -1,4 +1,5 @@
-"""A simulated board on a real pseudo-terminal, speaking docs/protocol.md, with fault injection.
+"""A simulated board on a real pseudo-terminal or an in-process virtual link (:mod:`.links`),
+speaking docs/protocol.md, with fault injection.
 
 The board answers host commands (binary mode), streams frames from a voltage ``source`` at a fixed
 rate (absolute-time schedule, board clock in monotonic microseconds) and can inject the faults of
@@ -11,7 +12,6 @@ import os
 import select
 import threading
 import time
-import tty
 from collections import Counter
 from dataclasses import dataclass
 from typing import Literal, Protocol
@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..model.pattern import MeasurementPattern
+from .links import PtyLink, VirtualLink, open_link
 from .wire import (
     DRIVE_CURRENT_A,
     N_ELECTRODES,
@@ -69,8 +70,8 @@ class FaultConfig:
     stall_at, stall_for : float or None, float
         The board neither sends nor listens during [stall_at, stall_at + stall_for).
     disconnect_at, reappear_after : float or None, float
-        The pty closes at ``disconnect_at`` and a new one appears ``reappear_after`` s later (the
-        link is re-pointed to it); the board then waits for START again (binary mode).
+        The link (pty or virtual) closes at ``disconnect_at`` and a new one appears ``reappear_after`` s
+        later (a symlink is re-pointed to it, a virtual name registered again); the board then waits for START again (binary mode).
     saturate_channel : int or None
         Value index (0-based) whose channel saturates: flag set, value clipped to +-``full_scale``.
     dead_electrode : int or None
@@ -130,13 +131,13 @@ class SimStats:
     next_seq : int
         Sequence number the next frame will carry (frames measured so far).
     generation_first_seq : tuple of int
-        Per pty (0: the first, 1: after a disconnect, ...) the seq of the first frame sent on it,
+        Per link (0: the first, 1: after a disconnect, ...) the seq of the first frame sent on it,
         -1 while none was.
     generation_opened : tuple of float
-        Per pty, the ``time.monotonic()`` at which it appeared (a replug's "board is back").
+        Per link, the ``time.monotonic()`` at which it appeared (a replug's "board is back").
     injected : dict
         Count of each injected fault by name (``bit_flip``, ``drop``, ``nan``, ...), and
-        ``overrun`` for frames the pty had no room for.
+        ``overrun`` for frames the link had no room for.
     """
 
     sent: int
@@ -161,15 +162,15 @@ INJECTED_MEANING = {
     "garbage": "bursts of random bytes before a frame (injected)",
     "nan": "frames with one value NaN (injected)",
     "stall": "stalls: neither sending nor listening (injected)",
-    "disconnect": "disconnects: the pty closed and a new one appeared (injected)",
-    "overrun": "frames not written whole: the pty was full because nothing read it (a host that "
+    "disconnect": "disconnects: the link closed and a new one appeared (injected)",
+    "overrun": "frames not written whole: the link was full because nothing read it (a host that "
                "stopped before the board, as `cstomo demo` stops the node first at its end, or stalled); "
                "not an injected fault",
 }
 
 
 class SimulatedBoard:
-    """A board on a pseudo-terminal, ready when constructed; :meth:`run` or :meth:`start` it.
+    """A board on a pseudo-terminal or a virtual link, ready when constructed; :meth:`run` or :meth:`start` it.
 
     Parameters
     ----------
@@ -184,7 +185,8 @@ class SimulatedBoard:
     duration : float or None
         Seconds of the load script to stream (from its start, see ``source``); None runs until :meth:`stop`.
     link : str or None
-        Path of a symlink kept pointing at the current pty (removed while disconnected).
+        Path of a symlink kept pointing at the current pty (removed while disconnected), or
+        ``virtual://NAME``: an in-process link (no pty) the driver opens by that URL (:mod:`.links`).
     faults : FaultConfig
         Faults to inject.
     seed : int
@@ -236,39 +238,31 @@ class SimulatedBoard:
         self._opened: list[float] = []
         self._injected: Counter[str] = Counter()
         self._current = DRIVE_CURRENT_A
-        self._master = self._slave = -1
-        self._open_pty()
+        self._link: PtyLink | VirtualLink | None = None
+        self._master = -1
+        self._open_link()
 
-    # --- pty ---------------------------------------------------------------------------------
+    # --- link ----------------------------------------------------------------------------
 
-    def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)
-        os.set_blocking(master, False)
-        self._master, self._slave = master, slave
-        self._slave_path = os.ttyname(slave)
+    def _open_link(self) -> None:
+        self._link = open_link(self.link)
+        self._master, self._device = self._link.fd, self._link.device
         self._first_seq.append(-1)
         self._streaming = self.protocol == "text"
         self._decoder.reset()
-        if self.link:
-            tmp = f"{self.link}.{os.getpid()}.tmp"
-            os.symlink(self._slave_path, tmp)
-            os.replace(tmp, self.link)
         self._opened.append(time.monotonic())
         log.info("board on %s", self.device)
 
-    def _close_pty(self) -> None:
-        if self.link and os.path.islink(self.link):
-            os.unlink(self.link)
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                os.close(fd)
-        self._master = self._slave = -1
+    def _close_link(self) -> None:
+        if self._link is not None:
+            self._link.close()
+        self._link, self._master = None, -1
 
     @property
     def device(self) -> str:
-        """Path a driver opens: the link if given, else the current pty slave."""
-        return self.link or self._slave_path
+        """What a driver opens: the link if given (a symlink's path or ``virtual://NAME``), else the
+        current pty slave."""
+        return self._device
 
     # --- control -----------------------------------------------------------------------------
 
@@ -290,11 +284,11 @@ class SimulatedBoard:
         self._stop.set()
 
     def close(self) -> None:
-        """Stop, wait for the thread, close the pty and remove the link; idempotent."""
+        """Stop, wait for the thread, close the pty (or virtual link) and remove the link; idempotent."""
         self.stop()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
-        self._close_pty()
+        self._close_link()
 
     def __enter__(self) -> SimulatedBoard:
         return self
@@ -325,10 +319,10 @@ class SimulatedBoard:
             if f.disconnect_at is not None and not disconnected and now >= f.disconnect_at:
                 disconnected = True
                 self._injected["disconnect"] += 1
-                self._close_pty()
+                self._close_link()
                 if self._stop.wait(f.reappear_after):
                     break
-                self._open_pty()
+                self._open_link()
                 self._resync()
                 continue
             if f.stall_at is not None and f.stall_at <= now < f.stall_at + f.stall_for:
@@ -373,7 +367,7 @@ class SimulatedBoard:
         except BlockingIOError:
             return
         except OSError as err:  # EIO: no process holds the slave open (not with ours open)
-            log.debug("pty read: %s", err)
+            log.debug("link read: %s", err)
             return
         if self.protocol == "text":
             return
@@ -409,7 +403,7 @@ class SimulatedBoard:
         return Error(kind, ErrorCode.UNKNOWN_COMMAND, f"not a command: type 0x{kind:02x}")
 
     def _write(self, data: bytes, patience: float = 0.05) -> int:
-        """Write into the pty, waiting up to ``patience`` s for room; returns the bytes written."""
+        """Write into the link, waiting up to ``patience`` s for room; returns the bytes written."""
         done, deadline = 0, time.monotonic() + patience
         while done < len(data):
             try:
@@ -419,7 +413,7 @@ class SimulatedBoard:
                 if left <= 0 or not select.select([], [self._master], [], left)[1]:
                     break
             except OSError as err:
-                log.debug("pty write: %s", err)
+                log.debug("link write: %s", err)
                 break
         return done
 

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from ..board.links import is_virtual
 from ..board.sim import DEFAULT_RATE_HZ, FaultConfig, SimulatedBoard
 from ..errors import CstomoError
 from ..frames_io import read_load_script
@@ -73,7 +74,10 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
-    args = parser().parse_args(argv)
+    p = parser()
+    args = p.parse_args(argv)
+    if is_virtual(args.link):
+        p.error(f"--link {args.link}: a virtual link lives in one process, no other could open it; give a path")
     # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent
     # left it ignored, as a shell does for a background job)
     previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
