@@ -17,13 +17,6 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 CALLER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")  # a domain the caller chose: every test and tool keeps it
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 
-def pytest_configure(config):
-    config.addinivalue_line(
-        "markers", "slow: a test (or module) of seconds to a minute on a loaded 2-core host: colcon install, launch, "
-        "bench, node runs with long board scripts, calibration and honest-simulation set-ups; "
-        "`pytest -m 'not slow'` runs the fast subset")
-
-
 # Mesh sizes of the test suite (metres): the model that reconstructs, and an independent finer
 # mesh that simulates the truth (docs/physics.md#honest-simulation).
 MODEL_H = 4.0e-3
