@@ -10,7 +10,7 @@ export PYTHONDONTWRITEBYTECODE := 1
 # BLAS threads fight over 2 cores on the small products of this project: one thread is faster.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: test demo venv bench clean
+.PHONY: test test-fast demo venv bench clean
 
 venv: $(STAMP)
 
@@ -23,6 +23,10 @@ $(STAMP): setup.py requirements-ros.txt
 
 test: $(STAMP)
 	$(VPY) -m pytest -q --durations=15 test
+
+# the fast subset: every test not marked slow (setup.cfg)
+test-fast: $(STAMP)
+	$(VPY) -m pytest -q -m "not slow" test
 
 demo: $(STAMP)
 	$(VENV)/bin/cstomo demo
