@@ -312,6 +312,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
         h.close()
     down = next(diag(m) for _, m in dg if diag(m)[2].get("connected") == "False")
     assert down[0] == 2 and "disconnected" in down[1]
+    assert all(diag(m)[1].count("board disconnected") <= 1 for _, m in dg), [diag(m)[1] for _, m in dg]  # said once
     level, message, v = diag(dg[-1][1])
     # a bit-flipped frame fails its CRC: it is lost, and counted once (as corrupt, not also as a
     # sequence gap); a garbage burst loses no frame (a resync); at most a frame or two in the link at the cut

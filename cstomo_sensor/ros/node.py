@@ -406,7 +406,7 @@ class CstomoSensorNode(LifecycleNode):
         kv["stale_reason"] = reason
         if reason:
             level = ERROR if ds is not None and not ds.connected else max(level, WARN)
-            msgs.insert(0, f"stale: {reason}")
+            msgs = [f"stale: {reason}"] + [m for m in msgs if m != "board disconnected"]  # the reason says it
         status.level = bytes([level])  # diagnostic_msgs' levels are bytes
         status.message = "; ".join(msgs) or ("streaming" if self._active else "inactive")
         status.values = [KeyValue(key=k, value=str(v)) for k, v in kv.items()]
