@@ -849,12 +849,6 @@ class FrameStream:
         else:
             self._drop_log(logging.WARNING, f"dropped frame: {reason}")
 
-    def reset_filter(self) -> None:
-        """Restart the filtered wrench from the next frame (the board reconnected)."""
-        if self.filter is not None:
-            with self.lock:
-                self.filter.reset()
-
     # --- health ----------------------------------------------------------------------------------
 
     def health(self, now: float, board_losses: dict[str, int] | None = None) -> tuple[int, list[str], dict]:
