@@ -310,6 +310,25 @@ def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, s
 
 
 @pytest.mark.slow
+def test_a_tare_on_a_1_frame_per_s_board_completes(ros, tmp_path, source, warm_model):
+    """Issue 27 item 3: the tare's deadline follows the measured frame period (1 s here): 4 frames,
+    8.3 s; the old rule (0.1 s per frame) cancelled it after 2.7 s."""
+    h, board = start(ros, tmp_path, Unloaded(source), rate=1.0, tare_frames=4)
+    try:
+        board.start()
+        assert wait_for(lambda: h.node.processor.counts.frames >= 3, 10.0)
+        t0 = time.monotonic()
+        r = h.call_tare(timeout=15.0)
+        print(f"~/tare on a 1 frame/s board ({time.monotonic() - t0:.1f} s): {r.message}")
+        assert r.success, r.message
+        assert h.node.processor.frame_period == pytest.approx(1.0, rel=0.2)
+        assert h.node.reference_source.startswith("tare saved") and h.node.pipe.reference_frames == 4
+    finally:
+        board.close()
+        h.close()
+
+
+@pytest.mark.slow
 def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path, source, warm_model):
     from geometry_msgs.msg import WrenchStamped
 

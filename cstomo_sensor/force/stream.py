@@ -101,6 +101,14 @@ LOSS_ERROR = 0.2
 #: A repeated per-frame message (a dropped frame, a corrupt input) is logged at most once per this
 #: many seconds, with the count of the ones left out.
 LOG_EVERY = 5.0
+#: A tare's deadline (:meth:`FrameStream.tare_deadline`): its frames at this many times the frame
+#: period, plus ``stale_timeout`` and :data:`TARE_GRACE` s; the period is measured over the latest
+#: :data:`PERIOD_FRAMES` frames (at least 3), else the nominal rate's, else
+#: :data:`TARE_ASSUMED_PERIOD` s with no margin.
+TARE_PERIOD_MARGIN = 1.5
+TARE_GRACE = 2.0
+TARE_ASSUMED_PERIOD = 0.1
+PERIOD_FRAMES = 32
 
 
 @dataclass(frozen=True)
@@ -228,6 +236,7 @@ class _Counts:
         self.foreign = 0
         self.period_foreign = 0
         self.last_frame: float | None = None  # time.monotonic() of the latest frame
+        self.arrivals: deque[float] = deque(maxlen=PERIOD_FRAMES)  # ... and of the ones before it
 
 
 class _Throttle:
@@ -432,9 +441,26 @@ class FrameStream:
         self._tare_forced = False
         return taken
 
+    @property
+    def frame_period(self) -> float:
+        """The frames' period (s) as they arrive, over the latest :data:`PERIOD_FRAMES` (an outage
+        among them lengthens it); nan before 3 frames."""
+        with self.counts_lock:
+            t = self.counts.arrivals
+            return (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 3 else math.nan
+
+    def tare_deadline(self, rate_hz: float = 0.0) -> float:
+        """Seconds a tare of ``tare_frames`` frames may take (:data:`TARE_PERIOD_MARGIN`): from the
+        measured :attr:`frame_period`, else the nominal ``rate_hz`` (0: unknown)."""
+        period = self.frame_period
+        if not period > 0 and rate_hz > 0:
+            period = 1.0 / rate_hz
+        per_frame = TARE_PERIOD_MARGIN * period if period > 0 else TARE_ASSUMED_PERIOD
+        return self.config.tare_frames * per_frame + self.config.stale_timeout + TARE_GRACE
+
     def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
         """A tare transaction: start a tare on the next frames and wait up to ``timeout`` s
-        for it to end (accepted or refused); if it has not ended by then it is
+        (:meth:`tare_deadline`) for it to end (accepted or refused); if it has not ended by then it is
         cancelled (decided under the frame lock: a tare cannot end while it is cancelled). An
         accepted tare is saved outside the frame lock (frames keep flowing): the transaction waits up
         to ``timeout`` s more for the save, and the outcome's ``note`` says when it is still under
@@ -852,6 +878,7 @@ class FrameStream:
             c.frames += 1
             c.period_frames += 1
             c.last_frame = time.monotonic()
+            c.arrivals.append(c.last_frame)
             late = age_ns > self.config.stale_timeout * 1e9
             c.late += late
         if late or not process:
