@@ -2,12 +2,15 @@
 also on a real pseudo-terminal; the harness and the local-only DDS set-up are in conftest.py)."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from conftest import BAG_RATE, PIPE, BagSource, Harness, diag, diag_records, start, wait_for
 
 from cstomo_sensor.board.clock import ClockMapper
 from cstomo_sensor.errors import ConfigError
+from cstomo_sensor.frames_io import read_frames
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -219,8 +222,6 @@ class Unloaded:
 
 
 def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source, warm_model):
-    from cstomo_sensor.frames_io import read_frames
-
     # a tare needs a steady joint (issue 14): the bag's load steps at 0.4 s, inside a 50-frame tare
     h, board = start(ros, tmp_path, Unloaded(source), rate=100.0)
     try:
@@ -252,6 +253,78 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         np.testing.assert_allclose(h.node.pipe.estimator.noise * h.node.pipe._y_scale,
                                    np.maximum(noise[0], 0.1 * np.median(noise)), rtol=1e-8)
     finally:
+        h.close()
+
+
+def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, source, warm_model, monkeypatch):
+    """Issue 27 item 3: the tare file is written outside the frame lock. Its write hangs (a hung disk:
+    the real writer, held until released): the new reference is in use and the wrenches keep coming
+    at the board's rate; the service answers once its deadline has passed again, saying the save is
+    under way; the file appears when the write is released (before the fix no wrench came while it
+    hung)."""
+    import threading
+
+    from geometry_msgs.msg import WrenchStamped
+
+    import cstomo_sensor.force.stream as stream_module
+
+    h, board = start(ros, tmp_path, Unloaded(source), rate=100.0, tare_frames=5)
+    tare_file = tmp_path / "tare.csv"
+    writing, release = threading.Event(), threading.Event()
+    write = stream_module.write_reference
+
+    def hung(*args, **kwargs):
+        writing.set()
+        release.wait(15.0)
+        write(*args, **kwargs)
+
+    try:
+        wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
+        board.start()
+        assert wait_for(lambda: h.node.reference_source.startswith("tare saved"), 10.0), h.node.reference_source
+        saved, ref = tare_file.read_bytes(), h.node.pipe.reference.copy()
+        monkeypatch.setattr(stream_module, "write_reference", hung)
+        answer = []
+        caller = threading.Thread(target=lambda: answer.append(h.call_tare()), daemon=True)
+        caller.start()
+        assert writing.wait(10.0)
+        n0 = len(wr)
+        time.sleep(2.0)
+        n = len(wr) - n0
+        print(f"{n} wrenches in the first 2 s the tare file's write hung")
+        assert n > 0.7 * 100.0 * 2.0, n  # the board's 100 frames/s: not a frame stopped (before: none)
+        assert wait_for(lambda: answer, 10.0)
+        print(f"~/tare: {answer[0].message}")
+        assert answer[0].success and "still being saved to" in answer[0].message, answer[0].message
+        assert not np.array_equal(h.node.pipe.reference, ref)  # the new tare is in use while it is written
+        assert tare_file.read_bytes() == saved
+        assert h.node.reference_source.startswith("tare, being saved to")
+        release.set()
+        assert wait_for(lambda: h.node.reference_source.startswith("tare saved"), 5.0), h.node.reference_source
+        assert tare_file.read_bytes() != saved
+        np.testing.assert_allclose(read_frames(tare_file)[0], h.node.pipe.reference, rtol=1e-8)
+    finally:
+        release.set()
+        board.close()
+        h.close()
+
+
+@pytest.mark.slow
+def test_a_tare_on_a_1_frame_per_s_board_completes(ros, tmp_path, source, warm_model):
+    """Issue 27 item 3: the tare's deadline follows the measured frame period (1 s here): 4 frames,
+    8.3 s; the old rule (0.1 s per frame) cancelled it after 2.7 s."""
+    h, board = start(ros, tmp_path, Unloaded(source), rate=1.0, tare_frames=4)
+    try:
+        board.start()
+        assert wait_for(lambda: h.node.processor.counts.frames >= 3, 10.0)
+        t0 = time.monotonic()
+        r = h.call_tare(timeout=15.0)
+        print(f"~/tare on a 1 frame/s board ({time.monotonic() - t0:.1f} s): {r.message}")
+        assert r.success, r.message
+        assert h.node.processor.frame_period == pytest.approx(1.0, rel=0.2)
+        assert h.node.reference_source.startswith("tare saved") and h.node.pipe.reference_frames == 4
+    finally:
+        board.close()
         h.close()
 
 

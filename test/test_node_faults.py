@@ -119,6 +119,40 @@ def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     assert ended[-1].ok and not proc.taring and pipe.reference is not None
 
 
+def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, source, tmp_path, monkeypatch):
+    """Issue 27 item 3: an accepted tare is the reference at once and is saved by a thread of its own,
+    outside the frame lock; a failed save is logged, in the outcome's note and in the diagnostics until
+    a tare is saved."""
+    import cstomo_sensor.force.stream as stream_module
+    from cstomo_sensor.force.stream import FrameStream
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    ended = []
+    proc = FrameStream(pipe, on_tare=ended.append, tare_file=tmp_path / "tare.csv")
+    write = stream_module.write_reference
+    monkeypatch.setattr(stream_module, "write_reference", full)
+    proc.start_tare(5)
+    for v in source.frames[:5]:
+        proc.process(v)
+    assert proc.ready
+    assert wait_for(lambda: ended, 5.0)
+    assert ended[-1].ok and "not saved to" in ended[-1].note and "No space left" in ended[-1].note, ended[-1]
+    level, msgs, kv = proc.health(time.monotonic())
+    assert level >= 1 and ended[-1].note in msgs and kv["tare_unsaved"] == ended[-1].note, (level, msgs)
+    assert proc.reference_source.startswith("tare, not saved to") and not (tmp_path / "tare.csv").exists()
+    monkeypatch.setattr(stream_module, "write_reference", write)
+    proc.start_tare(5)
+    for v in source.frames[:5]:
+        proc.process(v)
+    assert wait_for(lambda: len(ended) == 2, 5.0)
+    assert ended[-1].ok and ended[-1].note == "" and (tmp_path / "tare.csv").is_file()
+    level, msgs, kv = proc.health(time.monotonic())
+    assert kv["tare_unsaved"] == "" and not any("not saved" in m for m in msgs), msgs
+    assert proc.reference_source.startswith("tare saved to")
+
+
 # --- the node ------------------------------------------------------------------------------------------
 
 

@@ -147,9 +147,3 @@ class CreepCompensator:
         self._s += d
         np.dot(self._cw, self._s, out=self.offset)
 
-    def reset(self) -> None:
-        """A new reference: no history."""
-        self._s[:] = 0.0
-        self.offset[:] = 0.0
-        self._t = None
-        self._period, self._steps = DEFAULT_PERIOD, 0

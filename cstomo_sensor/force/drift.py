@@ -240,11 +240,6 @@ class DriftTracker:
         self.P = 0.5 * (P + P.T)
         return True
 
-    def reset(self) -> None:
-        """A new reference (a tare): no change since."""
-        self.scale, self.rate, self.P, self._t = 1.0, 0.0, np.zeros((self.m + 1, self.m + 1)), None
-        self._set_gradient(np.zeros(self.m - 1))
-
     @property
     def kelvin_text(self) -> str:
         """The tracked change as a temperature change of the rubber at :data:`RESISTIVITY_PER_K`."""

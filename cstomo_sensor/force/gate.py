@@ -43,7 +43,7 @@ class PlausibilityGate:
 
     Built from the estimator's calibration set ``forces`` (n, 3) N and ``y`` (n, n_meas), the model
     (its reference and scale) and ``max_force`` (N). :meth:`follow` sets the device's reference, its
-    scale and the mask; :meth:`change` judges a change, :meth:`force` an estimate.
+    scale and the mask; :meth:`change_quiet` judges a change, :meth:`force` an estimate.
     """
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, model: ReconstructionModel, max_force: float) -> None:
@@ -69,14 +69,10 @@ class PlausibilityGate:
             w = np.where(scale > 0, y_scale / scale, np.inf)  # an all-zero reference: nothing passes
         self._w = np.where(keep, w, 0.0)
 
-    def change(self, y: np.ndarray) -> str:
-        """'' if the change ``y`` (n_meas,) passes, else why not."""
-        with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: rejected below
-            return self.change_quiet(y)
-
     def change_quiet(self, y: np.ndarray) -> str:
-        """:meth:`change` for a caller already inside ``np.errstate(over="ignore", invalid="ignore")``
-        (the pipeline's per-frame block: one context instead of two)."""
+        """'' if the change ``y`` (n_meas,) passes, else why not; for a caller inside
+        ``np.errstate(over="ignore", invalid="ignore")`` (huge finite values are rejected here: the
+        pipeline's per-frame block)."""
         g = np.multiply(y, self._w, out=self._g)
         g2 = float(g.dot(g))
         if not g2 <= self.norm_bound**2:  # NaN/inf too

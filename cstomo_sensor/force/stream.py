@@ -101,6 +101,14 @@ LOSS_ERROR = 0.2
 #: A repeated per-frame message (a dropped frame, a corrupt input) is logged at most once per this
 #: many seconds, with the count of the ones left out.
 LOG_EVERY = 5.0
+#: A tare's deadline (:meth:`FrameStream.tare_deadline`): its frames at this many times the frame
+#: period, plus ``stale_timeout`` and :data:`TARE_GRACE` s; the period is measured over the latest
+#: :data:`PERIOD_FRAMES` frames (at least 3), else the nominal rate's, else
+#: :data:`TARE_ASSUMED_PERIOD` s with no margin.
+TARE_PERIOD_MARGIN = 1.5
+TARE_GRACE = 2.0
+TARE_ASSUMED_PERIOD = 0.1
+PERIOD_FRAMES = 32
 
 
 @dataclass(frozen=True)
@@ -228,6 +236,7 @@ class _Counts:
         self.foreign = 0
         self.period_foreign = 0
         self.last_frame: float | None = None  # time.monotonic() of the latest frame
+        self.arrivals: deque[float] = deque(maxlen=PERIOD_FRAMES)  # ... and of the ones before it
 
 
 class _Throttle:
@@ -256,10 +265,12 @@ class FrameStream:
         The per-frame core (its reference and mask are set here).
     config : StreamConfig
     on_tare : callable or None
-        Called with the :class:`TareOutcome` when a tare ends, accepted or refused.
+        Called with the :class:`TareOutcome` when a tare ends, accepted or refused, outside the frame
+        lock (an accepted tare with a ``tare_file``: once written, by the thread that writes it).
     tare_file : path or None
-        Where an accepted tare is saved (frames file and its noise beside it), and read back by
-        :meth:`init_reference`; None: not saved.
+        Where an accepted tare is saved (frames file and its noise beside it, atomically, by a thread
+        of its own: frames never wait for the disk), and read back by :meth:`init_reference`; None:
+        not saved.
     tare_comment : str
         The first comment line of a saved tare (sensor, geometry digest).
 
@@ -311,8 +322,12 @@ class FrameStream:
         self._tare_forced = False
         self._tare_mask = np.zeros(pipe.n_meas, bool)
         self._tare_left = self._tare_n = 0
-        self._tare_done = threading.Event()
+        self._tare_done = threading.Event()  # the transaction's tare ended and was reported (saved)
         self._tare_ended: TareOutcome | None = None
+        self._ended: deque[tuple[TareOutcome, int]] = deque()  # ended, to save (the save's number) and report
+        self._saves = 0  # accepted tares handed to a writer thread
+        self._save_lock = threading.Lock()  # one write at a time
+        self.tare_unsaved = ""  # why the latest accepted tare was not saved ('' when it was)
         self.reference_source = "none"
         self.tare_taken = ""    # when the reference in use was tared
         self.tare_refused = ""  # the latest refused tare: when and why
@@ -415,6 +430,7 @@ class FrameStream:
                 taken = self._tare_n - self._tare_left
                 self._tare_left = 0
                 self._end_tare(TareOutcome(None, taken, 0.0, TARE_RECONNECTED))
+        self._finish_tares()
 
     def cancel_tare(self) -> int:
         """Drop a pending tare (the reference stays as it is); returns the frames it had taken.
@@ -425,13 +441,32 @@ class FrameStream:
         self._tare_forced = False
         return taken
 
+    @property
+    def frame_period(self) -> float:
+        """The frames' period (s) as they arrive, over the latest :data:`PERIOD_FRAMES` (an outage
+        among them lengthens it); nan before 3 frames."""
+        with self.counts_lock:
+            t = self.counts.arrivals
+            return (t[-1] - t[0]) / (len(t) - 1) if len(t) >= 3 else math.nan
+
+    def tare_deadline(self, rate_hz: float = 0.0) -> float:
+        """Seconds a tare of ``tare_frames`` frames may take (:data:`TARE_PERIOD_MARGIN`): from the
+        measured :attr:`frame_period`, else the nominal ``rate_hz`` (0: unknown)."""
+        period = self.frame_period
+        if not period > 0 and rate_hz > 0:
+            period = 1.0 / rate_hz
+        per_frame = TARE_PERIOD_MARGIN * period if period > 0 else TARE_ASSUMED_PERIOD
+        return self.config.tare_frames * per_frame + self.config.stale_timeout + TARE_GRACE
+
     def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
-        """A tare transaction: start a tare on the next frames and wait up to ``timeout`` s for it to
-        end (accepted or refused); if it has not ended by then it is cancelled (decided under the
-        frame lock: a tare cannot end while it is cancelled). ``forced``: the load checks
-        (:mod:`.tare`) do not refuse it; the outcome says what they would have refused (the
-        steadiness and the other checks still apply). Returns (the outcome or None if cancelled, the
-        frames it had taken)."""
+        """A tare transaction: start a tare on the next frames and wait up to ``timeout`` s
+        (:meth:`tare_deadline`) for it to end (accepted or refused); if it has not ended by then it is
+        cancelled (decided under the frame lock: a tare cannot end while it is cancelled). An
+        accepted tare is saved outside the frame lock (frames keep flowing): the transaction waits up
+        to ``timeout`` s more for the save, and the outcome's ``note`` says when it is still under
+        way. ``forced``: the load checks (:mod:`.tare`) do not refuse it; the outcome says what they
+        would have refused (the steadiness and the other checks still apply). Returns (the outcome or
+        None if cancelled, the frames it had taken)."""
         with self.lock:
             self._tare_done.clear()
             self._tare_ended = None
@@ -439,9 +474,15 @@ class FrameStream:
             self._tare_forced = bool(forced)
         self._tare_done.wait(timeout)
         with self.lock:
-            ended, self._tare_ended = self._tare_ended, None
+            ended = self._tare_ended
             taken = self.cancel_tare() if ended is None else ended.frames
-        return ended, taken
+        if ended is None:
+            return None, taken
+        if not self._tare_done.wait(timeout):
+            return replace(ended, note=f"tare in use, still being saved to {self.tare_file} (a slow disk?): "
+                                       "the diagnostics' reference says when it is saved"), taken
+        with self.lock:
+            return self._tare_ended, taken
 
     @property
     def taring(self) -> bool:
@@ -507,6 +548,8 @@ class FrameStream:
                            overridden="; ".join(problems))
 
     def _end_tare(self, outcome: TareOutcome) -> None:
+        """A tare ended (under the frame lock): an accepted one is the reference from the next frame.
+        Saving it and reporting it (:meth:`_finish_tares`) wait until the lock is released."""
         when = time.strftime("%H:%M:%S")
         self._tare_forced = False
         if outcome.ok:
@@ -522,7 +565,7 @@ class FrameStream:
                 log.warning("forced tare: %s", f"overrode: {outcome.overridden}" if outcome.overridden else
                             "the load checks passed anyway")
             (log.warning if report.warn else log.info)("tare: %s", report.message)
-            outcome = replace(outcome, note=self._save(outcome))
+            self.reference_source = "tare" if self.tare_file is None else f"tare, being saved to {self.tare_file}"
             if self.filter is not None:
                 self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
         else:
@@ -532,30 +575,60 @@ class FrameStream:
                 self.start_tare(self._tare_n)
             else:
                 log.warning("%s; the previous reference stays", outcome.reason)
+        if outcome.ok and self.tare_file is not None:
+            self._saves += 1
         self._tare_ended = outcome
-        self._tare_done.set()
-        if self.on_tare is not None:
-            self.on_tare(outcome)
+        self._ended.append((outcome, self._saves if outcome.ok else 0))
 
-    def _save(self, outcome: TareOutcome) -> str:
-        """Write an accepted tare to ``tare_file`` (atomically) with its noise beside it; returns ''
-        or why it was not saved."""
-        path = self.tare_file
-        self.reference_source = "tare"
-        if path is None:
-            return ""
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            write_reference(path, outcome.reference, outcome.noise, frames=outcome.frames,
-                            comment=f"{self.tare_comment}: mean of {outcome.frames} frames, "
-                                    f"{time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
-        except OSError as err:
-            note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
-            log.error("%s", note)
-            return note
-        self.reference_source = f"tare saved to {path}"
-        log.info("tare saved to %s", path)
-        return ""
+    def _finish_tares(self) -> None:
+        """Save and report the tares that ended, outside the frame lock (called by :meth:`process`,
+        :meth:`push` and :meth:`reconnected` once they released it): an accepted tare is written by a
+        thread of its own, so frames keep flowing while a slow or hung disk writes it."""
+        while self._ended:
+            try:
+                outcome, seq = self._ended.popleft()
+            except IndexError:  # another thread took it
+                return
+            if seq:
+                threading.Thread(target=self._save, args=(outcome, seq), name="cstomo_tare_save", daemon=True).start()
+            else:
+                self._report(outcome)
+
+    def _report(self, outcome: TareOutcome, note: str = "") -> None:
+        """The end of a tare, final (``note``: why an accepted one was not saved): to the :meth:`tare`
+        transaction waiting for it and to ``on_tare``."""
+        final = replace(outcome, note=note) if note else outcome
+        with self.lock:
+            if self._tare_ended is outcome:
+                self._tare_ended = final
+                self._tare_done.set()
+        if self.on_tare is not None:
+            self.on_tare(final)
+
+    def _save(self, outcome: TareOutcome, seq: int) -> None:
+        """Write an accepted tare to ``tare_file`` (atomically) with its noise beside it, then report it
+        with '' or why it was not saved as its ``note`` (logged at ERROR and shown in the diagnostics
+        until a tare is saved). The writer thread of :meth:`_finish_tares`; ``seq``: a later tare
+        replaces an earlier one whose write has not started."""
+        path, note = self.tare_file, ""
+        with self._save_lock:
+            if seq == self._saves:
+                try:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    write_reference(path, outcome.reference, outcome.noise, frames=outcome.frames,
+                                    comment=f"{self.tare_comment}: mean of {outcome.frames} frames, "
+                                            f"{time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+                except OSError as err:
+                    note = f"tare in use but not saved to {path} ({err}): fix tare_file and tare again"
+                    log.error("%s", note)
+                else:
+                    log.info("tare saved to %s", path)
+                if seq == self._saves:  # still the newest tare
+                    self.tare_unsaved = note
+                    self.reference_source = f"tare, not saved to {path}" if note else f"tare saved to {path}"
+            else:
+                note = f"tare in use, not saved: a later tare replaced it in {path}"
+        self._report(outcome, note)
 
     def _new_drift(self) -> None:
         """A drift tracker (``drift_tracking``) and a creep compensator for the reference just set."""
@@ -747,6 +820,15 @@ class FrameStream:
         counted in ``implausible``; a run of them is logged once when it starts and once when it ends.
         A valid frame updates the drift tracker (``t``: its time in seconds; None: 10 ms after the
         previous one). :meth:`push` is this with the accounting, the filter and the stamps."""
+        try:
+            with self.lock:
+                return self._process(values, saturated, contact_ok, t)
+        finally:
+            self._finish_tares()
+
+    def _process(self, values: np.ndarray, saturated: np.ndarray | None, contact_ok: np.ndarray | None,
+                 t: float | None) -> FrameResult | None:
+        """:meth:`process` under the frame lock (the tares it ends are saved and reported after it)."""
         if self._tare_left:
             mask = self._mask_of(saturated, contact_ok)[0]
             v = check_frame(values, self.pipe.n_meas, "tare frame", used=~mask)
@@ -796,19 +878,22 @@ class FrameStream:
             c.frames += 1
             c.period_frames += 1
             c.last_frame = time.monotonic()
+            c.arrivals.append(c.last_frame)
             late = age_ns > self.config.stale_timeout * 1e9
             c.late += late
         if late or not process:
             return None
         try:
             with self.lock:
-                result = self.process(values, saturated, contact_ok, stamp_ns * 1e-9 if stamp_ns else None)
+                result = self._process(values, saturated, contact_ok, stamp_ns * 1e-9 if stamp_ns else None)
                 filtered = None
                 if result is not None and result.valid and self.filter is not None:
                     filtered = self.filter(result.force, stamp_ns * 1e-9)
         except Exception as err:  # noqa: BLE001 - the frame boundary: counted, logged, reported
             self.drop(err)
             return None
+        finally:
+            self._finish_tares()
         with self.counts_lock:
             c.reject_reason = ""  # frames go through again
             if result is None:
@@ -848,12 +933,6 @@ class FrameStream:
                                           f"this trace):\n{''.join(traceback.format_exception(err))}")
         else:
             self._drop_log(logging.WARNING, f"dropped frame: {reason}")
-
-    def reset_filter(self) -> None:
-        """Restart the filtered wrench from the next frame (the board reconnected)."""
-        if self.filter is not None:
-            with self.lock:
-                self.filter.reset()
 
     # --- health ----------------------------------------------------------------------------------
 
@@ -912,7 +991,10 @@ class FrameStream:
                         "sensor or an electrode changed; forces still published")
         kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
                   processing_time_max_ms=f"{proc_max * 1e3:.3f}")
-        kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused)
+        kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused, tare_unsaved=self.tare_unsaved)
+        if self.tare_unsaved:
+            level = max(level, WARN)
+            msgs.append(self.tare_unsaved)
         pipe = self.pipe
         if self.taring and pipe.reference is None:
             level = max(level, WARN)

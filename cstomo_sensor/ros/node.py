@@ -268,7 +268,7 @@ class CstomoSensorNode(LifecycleNode):
             response.success, response.message = False, "not configured"
             return response
         n = cfg.tare_frames
-        wait = cfg.stale_timeout + n * 0.1 + 2.0
+        wait = stream.tare_deadline(cfg.rate_hz)
         outcome, taken = stream.tare(wait, forced=forced)
         unchanged = f"the reference ({self.reference_source}) and {self.tare_path} are unchanged"
         name = "~/tare_forced" if forced else "~/tare"
