@@ -110,6 +110,58 @@ def fit_creep(times, magnitudes, min_time: float = 1.0) -> float:
     return c
 
 
+#: A load of a calibration recording counts for the creep's fit when held this long after it was
+#: applied (s): from 1 s (settled) to 5 s the strain creeps by 0.7 of a decade, 2.8 % of the load's change
+#: at 4 % per decade.
+HELD_FOR = 5.0
+#: ... and the fit takes this many such loads at least.
+MIN_HELD = 3
+
+
+def fit_creep_loads(times, readings, load, starts, min_time: float = 1.0) -> tuple[float, int]:
+    """(creep coefficient, loads it was fitted on) of a recording of loads held in turn.
+
+    ``readings`` (n, 3): the uncompensated forces of frames at ``times`` (s, in time order), each on
+    held load ``load`` (n,) (0, 1, ... in the order they were applied; -1: none, the load changing),
+    load j applied at ``starts[j]`` (s; before the first, the tare's zero). By the law (module
+    docstring, superposed in the force: the strain, and so the estimate, is positively homogeneous in
+    it), the reading of a frame of load j is ``b_j + c sum_(k <= j) phi(t - starts[k]) (b_k - b_(k-1))``
+    with ``b`` the loads' readings without creep (b_-1 = 0); ``c`` is fitted by least squares on the
+    frames from ``min_time`` after their load was applied, ``b`` the loads' means without the fitted
+    creep (three rounds: ``b`` starts at the readings' medians). Raises ValueError, the reason in one
+    line, when fewer than :data:`MIN_HELD` loads are held :data:`HELD_FOR` s."""
+    t, m = np.asarray(times, float), np.asarray(readings, float)
+    lab, st = np.asarray(load, int), np.asarray(starts, float)
+    ok = (lab >= 0) & np.isfinite(m).all(axis=1)
+    last = np.full(len(st), -np.inf)
+    np.maximum.at(last, lab[ok], t[ok])
+    held = last - st >= HELD_FOR
+    if held.sum() < MIN_HELD:
+        raise ValueError(f"{int(held.sum())} of its {len(st)} loads and rests held {HELD_FOR:g} s or more "
+                         f"({MIN_HELD} needed)")
+    use = ok & (t - st[np.maximum(lab, 0)] >= min_time)
+    t, m, lab = t[use], m[use], lab[use]
+    b = np.array([np.median(m[lab == j], axis=0) if np.any(lab == j) else np.zeros(3) for j in range(len(st))])
+    phi = np.log10(np.maximum(t[:, None] - st[None, :], CREEP_T0) / CREEP_T0) * (np.arange(len(st))[None, :] <= lab[:, None])
+    n = np.bincount(lab, minlength=len(st))[:, None]
+    c = 0.0
+    for _ in range(3):
+        x = phi @ np.diff(np.vstack([np.zeros((1, 3)), b]), axis=0)  # (n, 3) the creep per unit of c
+        dm, dx = m - _means(m, lab, n)[lab], x - _means(x, lab, n)[lab]  # each load's own mean out (b_j)
+        c = float(np.sum(dm * dx) / max(np.sum(dx * dx), 1e-300))
+        b = np.where(n > 0, _means(m - c * x, lab, n), b)
+    if creep_problem(c):
+        raise ValueError(f"fitted creep {c:.3g} per decade: expected {creep_problem(c)}; were the loads held still?")
+    return c, int(held.sum())
+
+
+def _means(v: np.ndarray, lab: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """(loads, 3) the mean of the rows of ``v`` by load (0 for a load without rows)."""
+    out = np.zeros((len(n), v.shape[1]))
+    np.add.at(out, lab, v)
+    return out / np.maximum(n, 1)
+
+
 def creep_kernel(tau) -> np.ndarray:
     """The kernel at ``tau`` (s since a change): what :class:`CreepCompensator` removes per unit of
     change, 0 for 0.1 s, then the fitted sum (:func:`creep_modes`)."""
