@@ -65,16 +65,20 @@ def test_a_held_change_that_creeps_by_the_law_is_compensated_from_its_first_fram
     assert np.max(np.abs(out[t >= off])) < 2e-4
 
 
-@pytest.fixture(scope="module")
-def held(warm_model):
-    """A 20 N load pressed into the socket at 1 s, held 10 minutes, removed; 10 frames/s, 60 dB, creep 4 %."""
+def _held(warm_model, snr_db):
     from cstomo_sensor.model.timeline import Timeline, held_load_creep
 
     tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, off=601.0, duration=631.0), warm_model.geometry.name,
-                  snr_db=60, seed=31).prepare()
+                  snr_db=snr_db, seed=31).prepare()
     rng = np.random.default_rng(7)
     times, frames, forces, _ = tl.frames(10.0, rng=rng)
     return times, frames, tl.tare(20, rng)
+
+
+@pytest.fixture(scope="module")
+def held(warm_model):
+    """A 20 N load pressed into the socket at 1 s, held 10 minutes, removed; 10 frames/s, 60 dB, creep 4 %."""
+    return _held(warm_model, 60)
 
 
 def _magnitudes(pipe, held, creep, tracking=True):
@@ -82,7 +86,7 @@ def _magnitudes(pipe, held, creep, tracking=True):
 
     times, frames, tare = held
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1) if tare.std() > 0 else None, 20, "tare")
     mag = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):
         out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
@@ -91,26 +95,43 @@ def _magnitudes(pipe, held, creep, tracking=True):
     return times, mag
 
 
+def _readings(times, mag):
+    """(1 s after the load was applied, its last 10 s, 5 s after its removal): medians."""
+    return (np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)]), np.nanmedian(mag[(times >= 590) & (times < 600.9)]),
+            np.nanmedian(mag[(times >= 606) & (times <= 607)]))
+
+
 @pytest.mark.slow
 def test_a_held_load_reads_constant_and_its_recovery_reads_zero(warm_model, held):
     """The issue's aim: 20 N held 10 minutes reads within 1 % of its value 1 s after it was applied
-    (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades). 5 s after its removal the
-    recovering strain reads 0.56 N uncompensated, 0.2-0.26 N compensated: the change is not proportional
-    to the strain at small strains (the material law), so the recovery is removed only in part."""
+    (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades), and 5 s after its removal
+    the rest reads at most 0.5 N (uncompensated 0.63 N, compensated 0.20-0.23 N: the noise's own floor,
+    a magnitude of noise alone reads 0.17 N there on the same device without creep, docs/node.md#creep)."""
     rows = []
     for creep, tracking in ((0.04, True), (0.04, False), (0.0, True)):
-        times, mag = _magnitudes(warm_model, held, creep, tracking)
-        early = np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)])
-        late = np.nanmedian(mag[(times >= 590) & (times < 600.9)])
-        after = np.nanmedian(mag[(times >= 606) & (times <= 607)])
+        early, late, after = _readings(*_magnitudes(warm_model, held, creep, tracking))
         print(f"creep {creep}, tracking {tracking}: {early:.2f} N -> {late:.2f} N, 5 s after removal {after:.3f} N")
         rows.append((creep, tracking, early, late, after))
     uncompensated = rows[-1][4]
     for creep, _tracking, early, late, after in rows:
         if creep:
-            assert abs(late / early - 1) < 0.01 and after < 0.5 * uncompensated, rows
+            assert abs(late / early - 1) < 0.01 and after <= 0.5 and after < 0.5 * uncompensated, rows
         else:
             assert late / early - 1 > 0.05 and after > 0.3, rows
+
+
+@pytest.mark.slow
+def test_without_noise_the_compensated_hold_is_flat_to_a_tenth_of_a_percent(warm_model):
+    """The same hold without noise, tracking off (what the compensation alone does): 600 s against 1 s
+    within 0.2 % (measured: -0.02 % with this `linear` pipeline, -0.09 % before the kernel followed the
+    law from 0.1 s; the default `model` -0.09 %, before -0.17 %, of which -0.07 % is the change's
+    non-linearity in the strain), and below 0.05 N at rest 5 s after the removal (measured 0.03 N; 1.7 N
+    uncompensated)."""
+    held = _held(warm_model, None)
+    early, late, after = _readings(*_magnitudes(warm_model, held, 0.04, tracking=False))
+    print(f"noise-free, compensated: {early:.3f} N -> {late:.3f} N ({100 * (late / early - 1):+.3f} %), "
+          f"5 s after removal {after:.3f} N")
+    assert abs(late / early - 1) < 0.002 and after < 0.05, (early, late, after)
 
 
 @pytest.mark.slow
