@@ -17,6 +17,11 @@ load plateau (the reference force steady within 0.3 N for 3 wrenches or more): f
 or taken while the load changed, are not used. The recipe: docs/calibration.md. The reference: ``--reference``, else the paired frames under
 less than ``--unloaded-below`` N. Writes DEVICE.yaml and, beside it, DEVICE.cv.csv, the cross-validated
 accuracy before and after calibration, which it also prints.
+
+The rubber's creep per decade goes into the file too, fitted on the recording's loads held 5 s or more
+(3 at least; a bag's frames have their stamps, a frames file its ``--rate``; the rows of a forces file
+under ``--unloaded-below`` N are its rests), else on ``--creep-hold``, else given by
+``--creep-per-decade``; one line says which, or why none (docs/calibration.md#the-creep).
 """
 from __future__ import annotations
 
