@@ -32,23 +32,53 @@ def test_a_stamp_that_goes_back_or_jumps_does_not_corrupt_the_history():
 
 
 def test_the_kernel_is_the_documented_law():
-    """The sum of exponentials against log10(max(t, 0.1) / 0.1) written out here: within 0.07 of a
-    decade from 0.3 s to a day (0.3 % of a load at 4 % per decade)."""
-    t = np.logspace(np.log10(0.3), np.log10(86400), 300)
-    assert np.max(np.abs(creep_kernel(t) - np.log10(t / 0.1))) < 0.07
+    """The kernel against log10(max(t, 0.1) / 0.1) written out here: zero until 0.1 s (the law is flat
+    there), then within 0.003 of a decade to 1e5 s (0.012 % of a load at 4 % per decade); the former
+    kernel, without the delay, ran up to 0.17 of a decade ahead within 0.2 s of a change."""
+    t = np.concatenate([np.linspace(0.0, 0.1, 11), np.logspace(-1, 5, 600)])
+    law = np.log10(np.maximum(t, 0.1) / 0.1)
+    assert np.max(np.abs(creep_kernel(t) - law)) < 0.003
+    assert np.all(creep_kernel(t[t <= 0.1]) == 0.0)
     assert CREEP_T0 == 0.1
+
+
+@pytest.mark.parametrize("rate", [10.0, 100.0, 25.0])
+def test_a_held_change_that_creeps_by_the_law_is_compensated_from_its_first_frame(rate):
+    """A change of 1 that creeps at 4 % per decade by the law itself (from the frame that shows it),
+    held 10 minutes and removed: compensated within 0.08 % of it at every frame from its first (0.66 %
+    with the former kernel), 0.02 % after its removal, at 10, 100 and 25 frames/s."""
+    from cstomo_sensor.force.creep import CreepCompensator
+
+    c = 0.04
+    t = np.arange(0.0, 620.0, 1.0 / rate)
+    on, off = t[np.searchsorted(t, 1.0 - 1e-9)], t[np.searchsorted(t, 601.0 - 1e-9)]
+    phi = lambda tau: np.where(tau >= 0, np.log10(np.maximum(tau, 0.1) / 0.1), 0.0)  # noqa: E731
+    measured = (t >= on) * 1.0 - (t >= off) * 1.0 + c * (phi(t - on) - phi(t - off))
+    comp = CreepCompensator(c, 2)
+    out = np.empty_like(t)
+    for k in range(len(t)):
+        y = measured[k] - comp.offset
+        out[k] = y[0]
+        comp.observe(y, t[k])
+    truth = ((t >= on) & (t < off)) * 1.0
+    assert np.max(np.abs(out - truth)) < 8e-4, (t[np.argmax(np.abs(out - truth))], np.max(np.abs(out - truth)))
+    assert np.max(np.abs(out[t >= off])) < 2e-4
+
+
+def _held(warm_model, snr_db):
+    from cstomo_sensor.model.timeline import Timeline, held_load_creep
+
+    tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, off=601.0, duration=631.0), warm_model.geometry.name,
+                  snr_db=snr_db, seed=31).prepare()
+    rng = np.random.default_rng(7)
+    times, frames, forces, _ = tl.frames(10.0, rng=rng)
+    return times, frames, tl.tare(20, rng)
 
 
 @pytest.fixture(scope="module")
 def held(warm_model):
     """A 20 N load pressed into the socket at 1 s, held 10 minutes, removed; 10 frames/s, 60 dB, creep 4 %."""
-    from cstomo_sensor.model.timeline import Timeline, held_load_creep
-
-    tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, off=601.0, duration=631.0), warm_model.geometry.name,
-                  snr_db=60, seed=31).prepare()
-    rng = np.random.default_rng(7)
-    times, frames, forces, _ = tl.frames(10.0, rng=rng)
-    return times, frames, tl.tare(20, rng)
+    return _held(warm_model, 60)
 
 
 def _magnitudes(pipe, held, creep, tracking=True):
@@ -56,7 +86,7 @@ def _magnitudes(pipe, held, creep, tracking=True):
 
     times, frames, tare = held
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1) if tare.std() > 0 else None, 20, "tare")
     mag = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):
         out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
@@ -65,26 +95,43 @@ def _magnitudes(pipe, held, creep, tracking=True):
     return times, mag
 
 
+def _readings(times, mag):
+    """(1 s after the load was applied, its last 10 s, 5 s after its removal): medians."""
+    return (np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)]), np.nanmedian(mag[(times >= 590) & (times < 600.9)]),
+            np.nanmedian(mag[(times >= 606) & (times <= 607)]))
+
+
 @pytest.mark.slow
 def test_a_held_load_reads_constant_and_its_recovery_reads_zero(warm_model, held):
     """The issue's aim: 20 N held 10 minutes reads within 1 % of its value 1 s after it was applied
-    (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades). 5 s after its removal the
-    recovering strain reads 0.56 N uncompensated, 0.2-0.26 N compensated: the change is not proportional
-    to the strain at small strains (the material law), so the recovery is removed only in part."""
+    (uncompensated: 10 % more, the strain's 4 % per decade over 2.8 decades), and 5 s after its removal
+    the rest reads at most 0.5 N (uncompensated 0.63 N, compensated 0.20-0.23 N: the noise's own floor,
+    a magnitude of noise alone reads 0.17 N there on the same device without creep, docs/node.md#creep)."""
     rows = []
     for creep, tracking in ((0.04, True), (0.04, False), (0.0, True)):
-        times, mag = _magnitudes(warm_model, held, creep, tracking)
-        early = np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)])
-        late = np.nanmedian(mag[(times >= 590) & (times < 600.9)])
-        after = np.nanmedian(mag[(times >= 606) & (times <= 607)])
+        early, late, after = _readings(*_magnitudes(warm_model, held, creep, tracking))
         print(f"creep {creep}, tracking {tracking}: {early:.2f} N -> {late:.2f} N, 5 s after removal {after:.3f} N")
         rows.append((creep, tracking, early, late, after))
     uncompensated = rows[-1][4]
     for creep, _tracking, early, late, after in rows:
         if creep:
-            assert abs(late / early - 1) < 0.01 and after < 0.5 * uncompensated, rows
+            assert abs(late / early - 1) < 0.01 and after <= 0.5 and after < 0.5 * uncompensated, rows
         else:
             assert late / early - 1 > 0.05 and after > 0.3, rows
+
+
+@pytest.mark.slow
+def test_without_noise_the_compensated_hold_is_flat_to_a_tenth_of_a_percent(warm_model):
+    """The same hold without noise, tracking off (what the compensation alone does): 600 s against 1 s
+    within 0.2 % (measured: -0.02 % with this `linear` pipeline, -0.09 % before the kernel followed the
+    law from 0.1 s; the default `model` -0.09 %, before -0.17 %, of which -0.07 % is the change's
+    non-linearity in the strain), and below 0.05 N at rest 5 s after the removal (measured 0.03 N; 1.7 N
+    uncompensated)."""
+    held = _held(warm_model, None)
+    early, late, after = _readings(*_magnitudes(warm_model, held, 0.04, tracking=False))
+    print(f"noise-free, compensated: {early:.3f} N -> {late:.3f} N ({100 * (late / early - 1):+.3f} %), "
+          f"5 s after removal {after:.3f} N")
+    assert abs(late / early - 1) < 0.002 and after < 0.05, (early, late, after)
 
 
 @pytest.mark.slow
@@ -112,3 +159,66 @@ def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibrati
     assert "not compensated" in FrameStream(warm_model, StreamConfig(creep_per_decade=0.0)).health(1e9)[2]["creep"]
     with pytest.raises(ValueError, match="decade of time"):
         held_creep(warm_model, frames[on][:50], 10.0)
+
+
+@pytest.fixture(scope="module")
+def recording(warm_model):
+    """A calibration recording as the recipe asks for it, on the honest device creeping at 4 % per
+    decade: 8 loads (8-30 N, elevations 30-90 deg) each held 6 s with 1 s unloaded between, 20
+    frames/s, 60 dB; (tare, frames, applied forces)."""
+    from cstomo_sensor.model.timeline import Timeline, TimelineSpec
+
+    rng = np.random.default_rng(5)
+    mag, el, az = rng.uniform(8, 30, 8), np.radians(rng.uniform(30, 90, 8)), rng.uniform(-np.pi, np.pi, 8)
+    loads = np.column_stack([mag * np.cos(el) * np.cos(az), mag * np.cos(el) * np.sin(az), -mag * np.sin(el)])
+    times, forces = [], []
+    for k, f in enumerate(loads):
+        times += [1.0 + 7.0 * k, 7.0 + 7.0 * k]
+        forces += [tuple(f), (0.0, 0.0, 0.0)]
+    spec = TimelineSpec(duration=57.0, creep=0.04, load_times=tuple(times), load_forces=tuple(forces))
+    tl = Timeline(spec, warm_model.geometry.name, snr_db=60, seed=31).prepare()
+    _, frames, applied, _ = tl.frames(20.0, rng=np.random.default_rng(3))
+    return tl.tare(20, np.random.default_rng(4)), frames, applied
+
+
+@pytest.mark.slow
+def test_calibrate_fits_the_creep_from_the_recordings_held_loads_and_says_when_it_cannot(recording, tmp_path, capsys):
+    """``cstomo calibrate --rate 20`` on the recording: the creep fitted on its 8 loads held 6 s is
+    within 15 % of the truth's 4 % per decade (measured: 3.74 %; 3.6-4.2 % over five noise draws),
+    written into the file (its rests, 0 N rows of the forces file, are the creep's history, not loads);
+    without --rate (a frames file has no time), or with each load's frames listed for its first 3 s
+    only (fewer than 3 held 5 s), it says why in one line and writes none; --creep-per-decade overrides."""
+    from cstomo_sensor.force.calibration import DeviceCalibration
+    from cstomo_sensor.frames_io import write_forces, write_frames
+    from cstomo_sensor.tools.calibrate import main
+
+    tare, frames, applied = recording
+    write_frames(tmp_path / "ref.csv", tare)
+    write_frames(tmp_path / "frames.csv", frames)
+    write_forces(tmp_path / "forces.csv", applied)
+    write_frames(tmp_path / "short.csv", frames)
+    t = np.arange(len(frames)) / 20.0
+    since = (t - 1.0) % 7.0  # each load from 1 + 7 k s for 6 s: listed for its first 3 s only
+    rows = np.flatnonzero((np.linalg.norm(applied, axis=1) == 0) | (since < 3.0))
+    with open(tmp_path / "short_forces.csv", "w") as f:
+        f.write("frame,fx,fy,fz\n" + "".join(f"{k},{x:.9g},{y:.9g},{z:.9g}\n" for k, (x, y, z) in zip(rows, applied[rows])))
+    common = ["--mesh-size", "0.004", "--grid", "6", "6", "3", "--estimator", "linear", "--reference", str(tmp_path / "ref.csv")]
+    runs = {"fit": ["--rate", "20"], "no rate": [], "given": ["--rate", "20", "--creep-per-decade", "0.03"],
+            "short": ["--rate", "20"]}
+    said = {}
+    for name, extra in runs.items():
+        f = "short" if name == "short" else "frames"
+        forces = "short_forces" if name == "short" else "forces"
+        assert main([*common, "--frames", str(tmp_path / f"{f}.csv"), "--forces", str(tmp_path / f"{forces}.csv"),
+                     *extra, "--out", str(tmp_path / f"{name.replace(' ', '_')}.yaml")]) == 0
+        said[name] = [line for line in capsys.readouterr().out.splitlines() if line.startswith("creep:")]
+        assert len(said[name]) == 1, (name, said[name])
+    c = DeviceCalibration.load(tmp_path / "fit.yaml").creep_per_decade
+    assert c == pytest.approx(0.04, rel=0.15), said["fit"]
+    assert "fitted on the 8 loads (or rests) of the recording held 5 s or more" in said["fit"][0]
+    assert "no time: give --rate" in said["no rate"][0]
+    assert "0 of its 17 loads and rests held 5 s or more (3 needed)" in said["short"][0], said["short"]
+    for name in ("no rate", "short"):
+        assert DeviceCalibration.load(tmp_path / f"{name.replace(' ', '_')}.yaml").creep_per_decade is None
+    assert DeviceCalibration.load(tmp_path / "given.yaml").creep_per_decade == 0.03
+    assert "as given" in said["given"][0]

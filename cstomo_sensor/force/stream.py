@@ -1032,7 +1032,7 @@ class FrameStream:
         if cal is not None and getattr(cal, "creep_per_decade", None) is not None:
             return f"{c:.2%} per decade, from the calibration {cal.path}"
         return (f"{c:.2%} per decade, assumed (creep_per_decade; a rubber's is 2..6 %: fit it with "
-                "cstomo calibrate --creep-hold, docs/calibration.md)")
+                "cstomo calibrate from held loads, docs/calibration.md#the-creep)")
 
     def _loss_level(self, now: float, frames: int, losses: dict) -> tuple[int, str]:
         """The level and message of the frames lost or dropped over the last :data:`LOSS_WINDOW` s

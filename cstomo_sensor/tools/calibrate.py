@@ -17,19 +17,25 @@ load plateau (the reference force steady within 0.3 N for 3 wrenches or more): f
 or taken while the load changed, are not used. The recipe: docs/calibration.md. The reference: ``--reference``, else the paired frames under
 less than ``--unloaded-below`` N. Writes DEVICE.yaml and, beside it, DEVICE.cv.csv, the cross-validated
 accuracy before and after calibration, which it also prints.
+
+The rubber's creep per decade goes into the file too, fitted on the recording's loads held 5 s or more
+(3 at least; a bag's frames have their stamps, a frames file its ``--rate``; the rows of a forces file
+under ``--unloaded-below`` N are its rests), else on ``--creep-hold``, else given by
+``--creep-per-decade``; one line says which, or why none (docs/calibration.md#the-creep).
 """
 from __future__ import annotations
 
 import argparse
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
 from ..force.calibration import calibrate
+from ..force.creep import HELD_FOR, MIN_HELD
 from ..force.device import read_reference, reference_of
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
@@ -96,11 +102,13 @@ def pair_on_plateaus(t_frames: np.ndarray, t_wrench: np.ndarray, forces: np.ndar
     return i[ok], j[ok]
 
 
-def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance: float = STAMP_TOLERANCE):
+def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance: float = STAMP_TOLERANCE,
+             timing: bool = False):
     """(frames (n, 208), forces (n, 3), frames read, wrenches read) of a rosbag2 recording: frames
     paired with the reference wrench on the same load plateau (:func:`pair_on_plateaus`), by the
     frame's own stamp (the node's stamped raw frames; the bag's receive time for a legacy
-    Float32MultiArray recording) and the wrench's header stamp."""
+    Float32MultiArray recording) and the wrench's header stamp. ``timing``: a fifth item, the
+    :class:`HeldLoads` of the pairs (their stamps, plateaus and the plateaus' starts: the creep's fit)."""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
@@ -132,8 +140,55 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
     if not frames or not forces:
         raise ConfigError(f"bag {path}: {len(frames)} messages on {voltages_topic}, {len(forces)} on {wrench_topic}; "
                           "expected both")
-    i, j = pair_on_plateaus(np.array(tf), np.array(tw), np.array(forces), tolerance)
-    return np.array(frames)[i], np.array(forces)[j], len(frames), len(forces)
+    tw, forces = np.array(tw), np.array(forces)
+    i, j = pair_on_plateaus(np.array(tf), tw, forces, tolerance)
+    out = np.array(frames)[i], forces[j], len(frames), len(forces)
+    if not timing:
+        return out
+    label = plateaus(tw, forces)
+    order = np.argsort(tw)
+    return (*out, HeldLoads(np.array(tf)[i], label[j], plateau_starts(tw[order], label[order])))
+
+
+@dataclass
+class HeldLoads:
+    """When the frames of a calibration recording were measured (``times``, s, in time order), the
+    held load (plateau) each is on (``load``, numbered in time order; -1 none) and when each load was
+    applied (``starts``, s): what the creep's fit needs (force/creep.py fit_creep_loads)."""
+
+    times: np.ndarray
+    load: np.ndarray
+    starts: np.ndarray
+
+
+def plateau_starts(t: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """When each plateau's load was applied: midway between the previous plateau's last sample and its
+    own first (the load changed in between; the first plateau: its first sample). ``t`` in time order,
+    ``label`` numbered from 0 in time order (-1: none)."""
+    n = label.max() + 1 if len(label) else 0
+    first, last = np.full(n, np.inf), np.full(n, -np.inf)
+    on = label >= 0
+    np.minimum.at(first, label[on], t[on])
+    np.maximum.at(last, label[on], t[on])
+    return np.concatenate([first[:1], 0.5 * (last[:-1] + first[1:])]) if n else first
+
+
+def file_loads(idx: np.ndarray, forces: np.ndarray, rate: float) -> HeldLoads:
+    """:class:`HeldLoads` of a forces file's rows (frame numbers ``idx``, in any order) of a frames file
+    recorded at ``rate`` frames/s: a plateau is a run of consecutive frames whose force stays within
+    :data:`PLATEAU_TOLERANCE` of the run's first (the frames left out of the forces file: the changes)."""
+    order = np.argsort(idx, kind="stable")
+    k, f = idx[order], forces[order]
+    label = np.empty(len(k), int)
+    n, start = -1, 0
+    for i in range(len(k)):
+        if i == 0 or k[i] != k[i - 1] + 1 or np.linalg.norm(f[i] - f[start]) > PLATEAU_TOLERANCE:
+            n, start = n + 1, i
+        label[i] = n
+    t = k / rate
+    out = np.empty(len(k), int)
+    out[order] = label
+    return HeldLoads(idx / rate, out, plateau_starts(t, label))
 
 
 def parser() -> argparse.ArgumentParser:
@@ -150,10 +205,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--stamp-tolerance", type=float, default=STAMP_TOLERANCE, metavar="S",
                    help="largest stamp difference of a frame and its wrench (default %(default)g s)")
     p.add_argument("--unloaded-below", type=float, default=UNLOADED_BELOW, metavar="N",
-                   help="with --bag and no --reference: frames under this force are the reference (default %(default)g)")
+                   help="with --bag and no --reference: frames under this force are the reference; with --frames: "
+                        "rows of the forces file under it are rests, the creep's history, not loads (default %(default)g)")
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="frames per second of --frames when it is one recording in time order: its loads held "
+                        f"{HELD_FOR:g} s or more give the creep (a bag's frames carry their stamps)")
     p.add_argument("--creep-per-decade", type=float, metavar="C",
                    help="the rubber's creep per decade, written into the file (default: fitted with --creep-hold, "
-                        "else none: the node's creep_per_decade applies)")
+                        f"else on the recording's loads held {HELD_FOR:g} s or more, {MIN_HELD} at least; else none: "
+                        "the node's creep_per_decade applies)")
     p.add_argument("--creep-hold", metavar="FRAMES",
                    help="frames file of one load held still for a minute or more, its first frame when the load "
                         "was applied: the creep per decade is fitted from it (force/creep.py)")
@@ -202,6 +262,24 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
         raise ConfigError(f"--creep-hold: {err}") from None
 
 
+def recording_creep(pipe, frames: np.ndarray, loads: HeldLoads | None, why_not: str = "") -> tuple[float | None, str]:
+    """(creep per decade or None, the line that says so) fitted on a calibration recording's held loads
+    (:class:`HeldLoads` of ``frames``; None: ``why_not``): their uncompensated forces through the
+    pipeline (its reference set), force/creep.py fit_creep_loads."""
+    from ..force.creep import fit_creep_loads
+
+    if loads is not None:
+        order = np.argsort(loads.times, kind="stable")
+        est = np.array([pipe.process(v, with_field=False, gate=False).force for v in frames[order]])
+        try:
+            c, n = fit_creep_loads(loads.times[order], est, loads.load[order], loads.starts)
+            return c, f"creep: {c:.2%} per decade, fitted on the {n} loads (or rests) of the recording held {HELD_FOR:g} s or more"
+        except ValueError as err:
+            why_not = str(err)
+    return None, (f"creep: not fitted from the recording ({why_not}): the node's creep_per_decade applies "
+                  "(hold loads longer, or give --creep-hold or --creep-per-decade)")
+
+
 def run(a) -> int:
     from ..force.creep import creep_problem
 
@@ -212,6 +290,8 @@ def run(a) -> int:
         raise ConfigError.bad_value("--creep-per-decade", a.creep_per_decade, creep_problem(a.creep_per_decade))
     if a.creep_hold and not a.creep_rate > 0:
         raise ConfigError.bad_value("--creep-rate", a.creep_rate, "frames per second > 0")
+    if a.rate is not None and not a.rate > 0:
+        raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
     hold = read_frames(a.creep_hold) if a.creep_hold else None  # read before the model is built
     if cfg.calibration_file:
         raise ConfigError("--calibration: calibrate against the nominal model (give no --calibration)")
@@ -219,7 +299,8 @@ def run(a) -> int:
     if a.bag:
         if a.frames or a.forces or not a.wrench_topic:
             raise ConfigError("--bag takes --voltages-topic and --wrench-topic, not --frames/--forces")
-        frames, forces, n_v, n_w = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance)
+        frames, forces, n_v, n_w, loads = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance, timing=True)
+        recording, why_not = frames, ""
         source = {"bag": str(a.bag), "voltages_topic": a.voltages_topic, "wrench_topic": a.wrench_topic,
                   "stamp_tolerance_s": a.stamp_tolerance}
         print(f"bag: {len(frames)} of {n_v} frames paired with one of {n_w} wrenches within {a.stamp_tolerance:g} s")
@@ -241,7 +322,10 @@ def run(a) -> int:
         idx, forces = read_force_rows(a.forces)
         if len(idx) and idx.max() >= len(all_frames):
             raise ConfigError.bad_value("frame", int(idx.max()), f"a frame of {a.frames} (0..{len(all_frames) - 1})")
-        frames = all_frames[idx]
+        recording, loads = all_frames[idx], None if a.rate is None else file_loads(idx, forces, a.rate)
+        why_not = "a frames file has no time: give --rate, its frames per second, when it is one recording in time order"
+        load = np.linalg.norm(forces, axis=1) >= a.unloaded_below  # rows below: rests (the creep's history)
+        frames, forces = recording[load], forces[load]
         source = {"frames": str(a.frames), "forces": str(a.forces)}
     if a.reference:
         source["reference"] = str(a.reference)
@@ -250,11 +334,16 @@ def run(a) -> int:
     pipe = Pipeline.build(cfg, progress=lambda m: print(f"model: {m}", file=sys.stderr))
     report = pipe.set_reference(ref, noise, n_ref)
     print(f"reference: {report.message}")
-    cal = calibrate(pipe, frames, forces, fitted_on=source)
     creep = a.creep_per_decade
-    if hold is not None:
+    if creep is not None:
+        print(f"creep: {creep:.2%} per decade, as given (--creep-per-decade)")
+    elif hold is not None:
         creep = held_creep(pipe, hold, a.creep_rate)
         print(f"creep: {creep:.2%} per decade, fitted on the held load of {a.creep_hold}")
+    else:
+        creep, line = recording_creep(pipe, recording, loads, why_not)
+        print(line)
+    cal = calibrate(pipe, frames, forces, fitted_on=source)
     if creep is not None:
         cal = replace(cal, creep_per_decade=float(creep))
     out = Path(a.out)
