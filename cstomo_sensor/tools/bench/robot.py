@@ -1,10 +1,13 @@
 """``cstomo bench --drift --robot``: what a robot does to the zero and to the forces (issue 26, item 1: the measuring stick).
 
 The device judged is never the one the tracker's directions (and the estimators) were computed for:
-it is ``scenes/cuboid_device_a_60db.yaml`` (devices/cuboid_joint_device_a.yaml, docs/physics.md#real-devices):
+it is each of :data:`DEVICE_SCENES`, two corners of docs/physics.md#real-devices. ``cuboid_device_a_60db.yaml``:
 another rubber batch (E 0.8 MPa, nu 0.44, phi0 0.062, tau 2.2, 1.7 x as resistive at rest), contact
 impedance 2 x the model's with +-30 % from electrode to electrode (seeded), electrodes placed by hand up
-to 0.5 mm from their nominal centres, its own truth mesh, 60 dB. As on a robot it is calibrated once on
+to 0.5 mm from their nominal centres; ``cuboid_device_b_60db.yaml``: stiff (E 1.3 MPa, nu 0.47), the least
+sensitive rubber (phi0 0.063, tau 1.9), half as resistive at rest, contact impedance 0.5 x the model's
++-30 %, every electrode moved by up to 0.5 mm (seeded). Each has its own truth mesh, 60 dB. As on a
+robot each is calibrated once on
 :data:`CAL_LOADS` known loads (``cstomo calibrate``'s :func:`~cstomo_sensor.force.calibration.calibrate`,
 :data:`CAL_FRAMES` frames each) against its tare, unchanged; then (model/timeline.py, the truth solved at
 knots, no parallel simulation):
@@ -47,7 +50,9 @@ from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warm
 from .report import write_csv
 from .scenes import random_forces
 
-DEVICE_SCENE = Path(__file__).resolve().parents[3] / "scenes" / "cuboid_device_a_60db.yaml"
+SCENES = Path(__file__).resolve().parents[3] / "scenes"
+#: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
+DEVICE_SCENES = (SCENES / "cuboid_device_a_60db.yaml", SCENES / "cuboid_device_b_60db.yaml")
 ESTIMATORS = ("model", "linear")
 CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515
 WARM = 0.02                 # the uniform resistivity change (a and b, c)
@@ -82,8 +87,8 @@ def restart(change: float, loaded: bool) -> TimelineSpec:
                         tasks=back_to_back(duration, seed=SEED + 1) if loaded else None)
 
 
-def device_truth(cache_dir=None):
-    sc = Scene.load(DEVICE_SCENE)
+def device_truth(cache_dir=None, scene=DEVICE_SCENES[0]):
+    sc = Scene.load(scene)
     return sc, sc.truth(cache_dir)
 
 
@@ -144,7 +149,21 @@ def window_errors(est, forces, scale, sel) -> dict:
 
 def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     t_start = time.perf_counter()
-    sc, truth = device_truth(cache_dir)
+    rows = []
+    for scene in DEVICE_SCENES:
+        rows += device_rows(scene, cache_dir, say)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    write_csv(Path(out) / "robot.csv", rows, list(rows[0]))
+    md = markdown(rows)
+    (Path(out) / "robot.md").write_text(md)
+    say(md)
+    say(f"robot bench: {time.perf_counter() - t_start:.0f} s")
+    return rows
+
+
+def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
+    """Every scenario on the device of ``scene`` (the module docstring's rows)."""
+    sc, truth = device_truth(cache_dir, scene)
     pipes = calibrated_pipes(truth, sc.snr_db, cache_dir, say)
     dev = truth.geometry.name
 
@@ -201,12 +220,6 @@ def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
             for tracking in trackings:
                 record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, LOADED_RATE, sp.creep),
                        lambda t, end=sp.duration - 300.0: [("all", t >= 0.0), ("last 5 min", t >= end)])
-    Path(out).mkdir(parents=True, exist_ok=True)
-    write_csv(Path(out) / "robot.csv", rows, list(rows[0]))
-    md = markdown(rows)
-    (Path(out) / "robot.md").write_text(md)
-    say(md)
-    say(f"robot bench: {time.perf_counter() - t_start:.0f} s")
     return rows
 
 
@@ -216,9 +229,12 @@ def _f(v, fmt=".2f") -> str:
 
 def markdown(rows: list[dict]) -> str:
     """The condensed tables of docs/benchmark.md (issue 26's "before")."""
+    devices = list(dict.fromkeys(r["device"] for r in rows))
+
     def find(scenario, est, tracking, window):
         for r in rows:
-            if (r["scenario"], r["estimator"], r["tracking"], r["window"]) == (scenario, est, tracking, window):
+            if (r["device"], r["scenario"], r["estimator"], r["tracking"], r["window"]) == (dev, scenario, est, tracking,
+                                                                                          window):
                 return r
         return None
 
@@ -226,35 +242,37 @@ def markdown(rows: list[dict]) -> str:
         a, b = find(scenario, est, False, window), find(scenario, est, True, window)
         return f"{_f(a and a[key], fmt)} -> {_f(b and b[key], fmt)}"
 
+    def short(d):
+        return d.replace("cuboid_joint_", "")
+
     lines = ["Loaded warm-up (a): median angle deg / magnitude % per minute, tracking off -> on; silently wrong % per minute",
-             "", "| scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 |",
-             "|---|---|---|---|---|---|"]
-    for scenario in ("loaded warm-up 2 % in 5 min", "loaded, no warming"):
+             "", "| device | scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 |",
+             "|---|---|---|---|---|---|---|"]
+    for dev, scenario in ((d, s) for d in devices for s in ("loaded warm-up 2 % in 5 min", "loaded, no warming")):
         for est in ESTIMATORS:
             for tracking in (False, True):
                 rs = [find(scenario, est, tracking, f"min {m + 1}") for m in range(int(WARM_S // 60))]
-                lines.append(f"| {scenario} | {est} | {'on' if tracking else 'off'} | "
+                lines.append(f"| {short(dev)} | {scenario} | {est} | {'on' if tracking else 'off'} | "
                              + " | ".join(" / ".join(_f(r[k], ".2f" if k != "wrong_pct" else ".0f") for r in rs)
                                           for k in ("angle_deg", "magnitude_pct", "wrong_pct")) + " |")
     lines += ["", "Restarts (b, c): tracking off -> on; first 0.1 s / 1 s: median |F - F_true| N; then the "
               "window from 1 s (at rest) or 5 s (loaded)", "",
-              "| scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % | implausible |",
-              "|---|---|---|---|---|---|---|---|---|"]
-    for loaded in (False, True):
-        for change in (WARM, -WARM):
-            scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
-            w = "from 5 s" if loaded else "from 1 s"
-            for est in ESTIMATORS:
-                lines.append(f"| {scenario} | {est} | {off_on(scenario, est, 'first 0.1 s', 'err_n')} | "
-                             f"{off_on(scenario, est, 'first 1 s', 'err_n')} | {off_on(scenario, est, w, 'zero_p99_n')} | "
-                             f"{off_on(scenario, est, w, 'angle_deg')} | {off_on(scenario, est, w, 'magnitude_pct')} | "
-                             f"{off_on(scenario, est, w, 'wrong_pct', '.1f')} | {off_on(scenario, est, w, 'implausible', 'd')} |")
-    lines += ["", "Warm-up 30 min with rests (d), all frames (last 5 min in robot.csv): tracking off -> on", "",
-              "| scenario | estimator | zero p99 N | angle deg | magnitude % | wrong % | implausible |",
-              "|---|---|---|---|---|---|---|"]
-    for scenario in ("warm-up 30 min (rests)", "warm-up baseline (no drift)"):
+              "| device | scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % "
+              "| implausible |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for dev, loaded, change in ((d, ld, c) for d in devices for ld in (False, True) for c in (WARM, -WARM)):
+        scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
+        w = "from 5 s" if loaded else "from 1 s"
         for est in ESTIMATORS:
-            lines.append(f"| {scenario} | {est} | {off_on(scenario, est, 'all', 'zero_p99_n')} | "
+            lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'first 0.1 s', 'err_n')} | "
+                         f"{off_on(scenario, est, 'first 1 s', 'err_n')} | {off_on(scenario, est, w, 'zero_p99_n')} | "
+                         f"{off_on(scenario, est, w, 'angle_deg')} | {off_on(scenario, est, w, 'magnitude_pct')} | "
+                         f"{off_on(scenario, est, w, 'wrong_pct', '.1f')} | {off_on(scenario, est, w, 'implausible', 'd')} |")
+    lines += ["", "Warm-up 30 min with rests (d), all frames (last 5 min in robot.csv): tracking off -> on", "",
+              "| device | scenario | estimator | zero p99 N | angle deg | magnitude % | wrong % | implausible |",
+              "|---|---|---|---|---|---|---|---|"]
+    for dev, scenario in ((d, s) for d in devices for s in ("warm-up 30 min (rests)", "warm-up baseline (no drift)")):
+        for est in ESTIMATORS:
+            lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'all', 'zero_p99_n')} | "
                          f"{off_on(scenario, est, 'all', 'angle_deg')} | {off_on(scenario, est, 'all', 'magnitude_pct')} | "
                          f"{off_on(scenario, est, 'all', 'wrong_pct', '.1f')} | {off_on(scenario, est, 'all', 'implausible', 'd')} |")
     return "\n".join(lines) + "\n"
