@@ -2,7 +2,7 @@
 GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
 the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`), the scene field with the
 foreign-load flag (:mod:`.scene`), the zero over time and the per-frame cost through the stream
-(:mod:`.drift`)."""
+(:mod:`.drift`), what a robot does to them on devices outside the model (:mod:`.robot`)."""
 from __future__ import annotations
 
 import argparse
@@ -16,6 +16,7 @@ from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout, one_frame_reference
 from .pyeit import run as run_pyeit
+from .robot import robot_bench
 from .scene import run_scene
 from .table import run
 from .weight import choose_weight
@@ -46,6 +47,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--one-frame-reference", action="store_true",
                    help="with --heldout: loads held 10 frames each through the frame stream, after a one-frame "
                         "reference with the noise assumed, given or estimated from the frames, and a 50-frame tare")
+    p.add_argument("--robot", action="store_true",
+                   help="with --drift: what a robot does (a device outside the model, loads back to back while it "
+                        "warms, restarts from an old tare, the 30-minute warm-up) instead of the drift table")
     p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
     return p
 
@@ -53,6 +57,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     p = parser()
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if a.robot and not a.drift:
+        p.error("--robot goes with --drift")
     if a.one_frame_reference and not a.heldout:
         p.error("--one-frame-reference goes with --heldout N")
     if os.environ.get("OPENBLAS_NUM_THREADS") != "1":
@@ -77,6 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if a.scene:
         run_scene(a.out, a.cache_dir or None)
+        return 0
+    if a.drift and a.robot:
+        robot_bench(a.out, a.cache_dir or None)
         return 0
     if a.drift:
         drift_bench(a.out, a.cache_dir or None)

@@ -1,0 +1,278 @@
+"""``cstomo bench --drift --robot``: what a robot does to the zero and to the forces (issue 26, item 1: the measuring stick).
+
+The device judged is never the one the tracker's directions (and the estimators) were computed for:
+it is each of :data:`DEVICE_SCENES`, two corners of docs/physics.md#real-devices. ``cuboid_device_a_60db.yaml``:
+another rubber batch (E 0.8 MPa, nu 0.44, phi0 0.062, tau 2.2, 1.7 x as resistive at rest), contact
+impedance 2 x the model's with +-30 % from electrode to electrode (seeded), electrodes placed by hand up
+to 0.5 mm from their nominal centres; ``cuboid_device_b_60db.yaml``: stiff (E 1.3 MPa, nu 0.47), the least
+sensitive rubber (phi0 0.063, tau 1.9), half as resistive at rest, contact impedance 0.5 x the model's
++-30 %, every electrode moved by up to 0.5 mm (seeded). Each has its own truth mesh, 60 dB. As on a
+robot each is calibrated once on
+:data:`CAL_LOADS` known loads (``cstomo calibrate``'s :func:`~cstomo_sensor.force.calibration.calibrate`,
+:data:`CAL_FRAMES` frames each) against its tare, unchanged; then (model/timeline.py, the truth solved at
+knots, no parallel simulation):
+
+a. ``loaded warm-up``: the rubber warms by 2 % (uniform resistivity: 2.5 K at 0.8 %/K, contacts
+   unchanged) over 5 minutes while socket loads follow each other without rest from the first frame
+   (3 s each, 5..30 N, elevations 15..85 deg; :class:`~cstomo_sensor.model.timeline.Tasks` without rests),
+   against the same loads without warming (``loaded, no warming``); errors per minute.
+b. ``restart at rest +-2 %``: the node restarts from a tare saved on the unchanged device (a fresh
+   stream given that old reference, as :meth:`FrameStream.set_reference` at a start) after the rubber
+   changed by +-2 % (uniform); unloaded; the readings over the first 0.1 s and 1 s, the zero from 1 s.
+c. ``restart loaded +-2 %``: the same restart with the joint loaded from the first frame (loads back to
+   back, 3 s each); the first second, and the errors from 5 s on.
+d. ``warm-up 30 min (rests)``: the existing 30-minute warm-up (timeline.warmup_30min: 15 K, gradient,
+   contacts, drive, creep 4 %/decade compensated at 4 %, contact tasks with unannounced rests) on this
+   device, against the same tasks without the drift (``warm-up baseline``).
+
+Both estimators, drift tracking off and on; creep compensation off (0) except in d, whose truth creeps.
+Per window of frames: ``err_n`` the median of |F - F_true| (the timeline's applied force),
+``zero_p99_n`` the 99th percentile of |F| over its zero-load frames, ``angle_deg`` / ``magnitude_pct``
+the median errors over its loaded frames, ``wrong_pct`` the "silently wrong" share: published
+(plausible) frames whose error exceeds 0.5 N at zero load or 10 % of the load, ``implausible`` frames
+refused, ``tracked_change`` the tracker's scale - 1 at the window's end.
+Writes robot.csv and robot.md (the condensed tables) in ``--out``.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...angles import angle_between
+from ...force.calibration import calibrate
+from ...force.pipeline import Pipeline, PipelineConfig
+from ...force.stream import FrameStream, StreamConfig
+from ...model.simulate import Load, Scene, add_noise
+from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from .report import write_csv
+from .scenes import random_forces
+
+SCENES = Path(__file__).resolve().parents[3] / "scenes"
+#: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
+DEVICE_SCENES = (SCENES / "cuboid_device_a_60db.yaml", SCENES / "cuboid_device_b_60db.yaml")
+ESTIMATORS = ("model", "linear")
+CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515
+WARM = 0.02                 # the uniform resistivity change (a and b, c)
+RESISTIVITY_PER_K = 0.008   # so 2 % is 2.5 K
+WARM_S = 300.0              # a: 5 minutes
+HOLD_S = 3.0                # a, c: each load held 3 s, back to back
+RATE = 100.0                # b, c frames/s
+LOADED_RATE = 50.0          # a, d frames/s (the drift bench's warm-up rate)
+RESTART_S, RESTART_LOADED_S = 20.0, 60.0
+SEED = 31
+ZERO_TOL_N, LOAD_TOL = 0.5, 0.10   # the "silently wrong" bounds
+
+
+def back_to_back(duration: float, seed: int) -> Tasks:
+    """Socket loads from t = 0, each held :data:`HOLD_S`, no rest between them (5..30 N, 15..85 deg)."""
+    return Tasks(start=0.0, duration_s=(HOLD_S, HOLD_S), rest_s=(0.0, 0.0), magnitude=(5.0, 30.0),
+                 elevation_deg=(15.0, 85.0), seed=seed)
+
+
+def loaded_warmup(warm: bool = True) -> TimelineSpec:
+    """Scenario a: 2 % over 5 minutes (or none) under back-to-back loads."""
+    temp = Profile(((0.0, 0.0), (WARM_S, WARM / RESISTIVITY_PER_K))) if warm else ZERO
+    return TimelineSpec(duration=WARM_S, temperature=temp, resistivity_per_k=RESISTIVITY_PER_K, contact_per_k=0.0,
+                        tasks=back_to_back(WARM_S, seed=SEED))
+
+
+def restart(change: float, loaded: bool) -> TimelineSpec:
+    """Scenarios b, c: the rubber already ``change`` (uniform) off its tare at the first frame."""
+    duration = RESTART_LOADED_S if loaded else RESTART_S
+    return TimelineSpec(duration=duration, temperature=Profile(((0.0, change / RESISTIVITY_PER_K),)),
+                        resistivity_per_k=RESISTIVITY_PER_K, contact_per_k=0.0,
+                        tasks=back_to_back(duration, seed=SEED + 1) if loaded else None)
+
+
+def device_truth(cache_dir=None, scene=DEVICE_SCENES[0]):
+    sc = Scene.load(scene)
+    return sc, sc.truth(cache_dir)
+
+
+def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print) -> dict:
+    """Both estimators' pipelines, calibrated on the device (unchanged) as ``cstomo calibrate`` does."""
+    forces = random_forces(CAL_LOADS, CAL_SEED)
+    ref, clean = truth.frames([Load("socket", force=tuple(f)) for f in forces])
+    rng = np.random.default_rng(CAL_SEED)
+    tare = add_noise(np.repeat(ref[None], 50, 0), ref, snr_db, rng)
+    frames = add_noise(np.repeat(clean, CAL_FRAMES, 0), ref, snr_db, rng)
+    pipes = {}
+    for name in ESTIMATORS:
+        pipe = Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or "")))
+        pipe.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_frames=len(tare))
+        pipe.set_calibration(calibrate(pipe, frames, np.repeat(forces, CAL_FRAMES, 0)))
+        pipes[name] = pipe
+        say(f"robot bench: {name} calibrated on {CAL_LOADS} loads of {truth.geometry.name}")
+    return pipes
+
+
+def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7):
+    """A fresh stream given ``tare`` (frames of the device's tare state) as its reference, then the
+    timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale)."""
+    rng = np.random.default_rng(seed)
+    times, frames, forces, _ = tl.frames(rate, rng=rng)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare")
+    est = np.full((len(times), 3), np.nan)
+    scale = np.ones(len(times))
+    for k, (t, v) in enumerate(zip(times, frames)):
+        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
+        if out is not None and out.result.valid:
+            est[k] = out.result.force
+        scale[k] = pipe.scale
+    return times, est, forces, scale
+
+
+def window_errors(est, forces, scale, sel) -> dict:
+    """The module docstring's figures over the frames ``sel``."""
+    est, forces = est[sel], forces[sel]
+    ok = np.isfinite(est).all(axis=1)
+    true = np.linalg.norm(forces, axis=1)
+    loaded = true > 0
+    err = np.linalg.norm(est - forces, axis=1)
+    wrong = np.where(loaded, err > LOAD_TOL * true, err > ZERO_TOL_N)
+    lo = loaded & ok
+    ang = np.degrees(angle_between(est[lo], forces[lo])) if lo.any() else np.array([])
+    mag = 100 * np.abs(np.linalg.norm(est[lo], axis=1) / true[lo] - 1)
+    rest = ~loaded & ok
+    return {"frames": int(len(est)), "loaded_pct": 100 * float(loaded.mean()),
+            "err_n": float(np.median(err[ok])) if ok.any() else np.nan,
+            "zero_p99_n": float(np.percentile(np.linalg.norm(est[rest], axis=1), 99)) if rest.any() else np.nan,
+            "angle_deg": float(np.median(ang)) if len(ang) else np.nan,
+            "magnitude_pct": float(np.median(mag)) if len(mag) else np.nan,
+            "wrong_pct": 100 * float(wrong[ok].mean()) if ok.any() else np.nan,
+            "implausible": int((~ok).sum()), "tracked_change": float(scale[sel][-1] - 1)}
+
+
+def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+    t_start = time.perf_counter()
+    rows = []
+    for scene in DEVICE_SCENES:
+        rows += device_rows(scene, cache_dir, say)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    write_csv(Path(out) / "robot.csv", rows, list(rows[0]))
+    md = markdown(rows)
+    (Path(out) / "robot.md").write_text(md)
+    say(md)
+    say(f"robot bench: {time.perf_counter() - t_start:.0f} s")
+    return rows
+
+
+def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
+    """Every scenario on the device of ``scene`` (the module docstring's rows)."""
+    sc, truth = device_truth(cache_dir, scene)
+    pipes = calibrated_pipes(truth, sc.snr_db, cache_dir, say)
+    dev = truth.geometry.name
+
+    def timeline(spec):
+        t0 = time.perf_counter()
+        tl = Timeline(spec, snr_db=sc.snr_db, seed=SEED, cache_dir=cache_dir, truth=truth).prepare()
+        say(f"robot bench: timeline of {spec.duration:g} s, {len(tl.knots[0])} knots, {time.perf_counter() - t0:.0f} s")
+        return tl
+
+    # the tare saved on the device as it was (unchanged, unloaded): every scenario's stream starts from it
+    tare = Timeline(TimelineSpec(duration=1.0), snr_db=sc.snr_db, seed=SEED, cache_dir=cache_dir,
+                    truth=truth).tare(20, np.random.default_rng([SEED, 22]))
+    rows = []
+
+    def record(scenario, name, tracking, times, est, forces, scale, windows):
+        for label, sel in windows(times):
+            rows.append({"scenario": scenario, "device": dev, "estimator": name, "tracking": tracking, "window": label,
+                         **window_errors(est, forces, scale, sel)})
+        r = rows[-1]
+        say(f"robot bench: {scenario}, {name}, tracking {tracking}, {r['window']}: err {r['err_n']:.3f} N, "
+            f"angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %, wrong {r['wrong_pct']:.1f} %")
+
+    def minutes(t):
+        return [(f"min {m + 1}", (t >= 60 * m) & (t < 60 * (m + 1))) for m in range(int(WARM_S // 60))]
+
+    for scenario, spec in (("loaded warm-up 2 % in 5 min", loaded_warmup(True)),
+                           ("loaded, no warming", loaded_warmup(False))):
+        tl = timeline(spec)
+        for name, pipe in pipes.items():
+            for tracking in (False, True):
+                record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, LOADED_RATE, 0.0), minutes)
+
+    def restart_windows(loaded):
+        def w(t):
+            return [("first 0.1 s", t < 0.1), ("first 1 s", t < 1.0),
+                    ("from 5 s", t >= 5.0) if loaded else ("from 1 s", t >= 1.0)]
+        return w
+
+    for loaded in (False, True):
+        for change in (WARM, -WARM):
+            tl = timeline(restart(change, loaded))
+            scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
+            for name, pipe in pipes.items():
+                for tracking in (False, True):
+                    record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, RATE, 0.0),
+                           restart_windows(loaded))
+
+    spec = warmup_30min(seed=SEED)
+    still = type(spec)(**{**spec.__dict__, "temperature": ZERO, "drive": ZERO, "gradient": ZERO})
+    for scenario, sp, trackings in (("warm-up 30 min (rests)", spec, (False, True)),
+                                    ("warm-up baseline (no drift)", still, (False,))):
+        tl = timeline(sp)
+        for name, pipe in pipes.items():
+            for tracking in trackings:
+                record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, LOADED_RATE, sp.creep),
+                       lambda t, end=sp.duration - 300.0: [("all", t >= 0.0), ("last 5 min", t >= end)])
+    return rows
+
+
+def _f(v, fmt=".2f") -> str:
+    return "" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
+
+
+def markdown(rows: list[dict]) -> str:
+    """The condensed tables of docs/benchmark.md (issue 26's "before")."""
+    devices = list(dict.fromkeys(r["device"] for r in rows))
+
+    def find(scenario, est, tracking, window):
+        for r in rows:
+            if (r["device"], r["scenario"], r["estimator"], r["tracking"], r["window"]) == (dev, scenario, est, tracking,
+                                                                                          window):
+                return r
+        return None
+
+    def off_on(scenario, est, window, key, fmt=".2f"):
+        a, b = find(scenario, est, False, window), find(scenario, est, True, window)
+        return f"{_f(a and a[key], fmt)} -> {_f(b and b[key], fmt)}"
+
+    def short(d):
+        return d.replace("cuboid_joint_", "")
+
+    lines = ["Loaded warm-up (a): median angle deg / magnitude % per minute, tracking off -> on; silently wrong % per minute",
+             "", "| device | scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 |",
+             "|---|---|---|---|---|---|---|"]
+    for dev, scenario in ((d, s) for d in devices for s in ("loaded warm-up 2 % in 5 min", "loaded, no warming")):
+        for est in ESTIMATORS:
+            for tracking in (False, True):
+                rs = [find(scenario, est, tracking, f"min {m + 1}") for m in range(int(WARM_S // 60))]
+                lines.append(f"| {short(dev)} | {scenario} | {est} | {'on' if tracking else 'off'} | "
+                             + " | ".join(" / ".join(_f(r[k], ".2f" if k != "wrong_pct" else ".0f") for r in rs)
+                                          for k in ("angle_deg", "magnitude_pct", "wrong_pct")) + " |")
+    lines += ["", "Restarts (b, c): tracking off -> on; first 0.1 s / 1 s: median |F - F_true| N; then the "
+              "window from 1 s (at rest) or 5 s (loaded)", "",
+              "| device | scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % "
+              "| implausible |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for dev, loaded, change in ((d, ld, c) for d in devices for ld in (False, True) for c in (WARM, -WARM)):
+        scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
+        w = "from 5 s" if loaded else "from 1 s"
+        for est in ESTIMATORS:
+            lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'first 0.1 s', 'err_n')} | "
+                         f"{off_on(scenario, est, 'first 1 s', 'err_n')} | {off_on(scenario, est, w, 'zero_p99_n')} | "
+                         f"{off_on(scenario, est, w, 'angle_deg')} | {off_on(scenario, est, w, 'magnitude_pct')} | "
+                         f"{off_on(scenario, est, w, 'wrong_pct', '.1f')} | {off_on(scenario, est, w, 'implausible', 'd')} |")
+    lines += ["", "Warm-up 30 min with rests (d), all frames (last 5 min in robot.csv): tracking off -> on", "",
+              "| device | scenario | estimator | zero p99 N | angle deg | magnitude % | wrong % | implausible |",
+              "|---|---|---|---|---|---|---|---|"]
+    for dev, scenario in ((d, s) for d in devices for s in ("warm-up 30 min (rests)", "warm-up baseline (no drift)")):
+        for est in ESTIMATORS:
+            lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'all', 'zero_p99_n')} | "
+                         f"{off_on(scenario, est, 'all', 'angle_deg')} | {off_on(scenario, est, 'all', 'magnitude_pct')} | "
+                         f"{off_on(scenario, est, 'all', 'wrong_pct', '.1f')} | {off_on(scenario, est, 'all', 'implausible', 'd')} |")
+    return "\n".join(lines) + "\n"
