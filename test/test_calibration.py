@@ -137,33 +137,6 @@ def test_the_node_refuses_to_start_with_a_damaged_calibration(ros, capfd, tmp_pa
     assert str(bad) in line and "truncated" in line, err
 
 
-def test_the_fit_on_load_means_with_counts_is_the_fit_on_every_frame():
-    """A load's frames enter the fit as their mean weighted by their count (how calibrate() fits a
-    20 000-frame recording in seconds): the same A and D as the fit on every frame, row by row."""
-    from cstomo_sensor.force.calibration import fit_correction
-
-    rng = np.random.default_rng(8)
-    n_meas = 30
-    F_cal = rng.uniform(-20, 20, (60, 3))
-    S = rng.standard_normal((n_meas, 3)) * 1e-3
-    model = lambda F: F @ S.T + 1e-5 * (F**2) @ np.abs(S).T  # noqa: E731  a smooth, slightly non-linear response
-    loads = rng.uniform(-15, 15, (6, 3))
-    counts = np.array([1, 3, 7, 2, 5, 4])
-    A_true = np.eye(3) + 0.05 * rng.standard_normal((3, 3))
-    F = np.repeat(loads, counts, axis=0)
-    noise = np.full(n_meas, 2e-4)
-    y = model(F @ A_true.T) + noise * rng.standard_normal((len(F), n_meas))
-    A1, D1 = fit_correction(F_cal, model(F_cal), F, y, noise)
-    y_mean = np.array([y[np.repeat(np.arange(6), counts) == g].mean(0) for g in range(6)])
-    A2, D2 = fit_correction(F_cal, model(F_cal), loads, y_mean, noise, counts=counts)
-    np.testing.assert_allclose(A2, A1, rtol=0, atol=1e-8)
-    np.testing.assert_allclose(D2, D1, rtol=0, atol=1e-8 * np.abs(D1).max())
-    assert np.abs(A1 - A_true).max() < 0.02  # and the fit finds the device's force map
-    # the counts matter: equal weights give another fit
-    A3, _ = fit_correction(F_cal, model(F_cal), loads, y_mean, noise)
-    assert np.abs(A3 - A1).max() > 1e-6
-
-
 HOLD = 4        # frames per held load in the bag (50 frames/s)
 MOVING = 2      # frames while the load changes to the next one
 

@@ -7,6 +7,7 @@ changed). Real rclpy and a simulated board on a virtual link, as in test_node.py
 """
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -151,6 +152,31 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
     level, msgs, kv = proc.health(time.monotonic())
     assert kv["tare_unsaved"] == "" and not any("not saved" in m for m in msgs), msgs
     assert proc.reference_source.startswith("tare saved to")
+
+
+def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_path, monkeypatch):
+    """A node that stops or reconfigures right after a tare (a ~/joint_free re-zero, then Ctrl-C) keeps
+    it: close() waits for the writer thread, bounded, and says when a hung disk outlasts it."""
+    import cstomo_sensor.force.stream as stream_module
+    from cstomo_sensor.force.stream import FrameStream
+
+    write, release = stream_module.write_reference, threading.Event()
+
+    def slow(*args, **kwargs):
+        release.wait(10.0)
+        write(*args, **kwargs)
+
+    monkeypatch.setattr(stream_module, "write_reference", slow)
+    proc = FrameStream(pipe, tare_file=tmp_path / "tare.csv")
+    proc.start_tare(5)
+    for v in source.frames[:5]:
+        proc.process(v)
+    assert proc.ready and not (tmp_path / "tare.csv").exists()
+    assert proc.close(timeout=0.2) == [str(tmp_path / "tare.csv")]  # a hung disk: said, not waited for ever
+    threading.Timer(0.3, release.set).start()
+    t0 = time.monotonic()
+    assert proc.close(timeout=5.0) == []
+    assert (tmp_path / "tare.csv").is_file() and time.monotonic() - t0 < 4.0
 
 
 # --- the node ------------------------------------------------------------------------------------------

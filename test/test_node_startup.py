@@ -71,6 +71,17 @@ def test_a_port_that_is_a_file_or_a_directory_is_refused_once(ros, capfd, tmp_pa
     assert err.count(str(port)) == 1, err  # said once, not retried
 
 
+def test_a_virtual_port_no_board_of_this_process_holds_is_refused(ros, capfd, tmp_path, warm_model):
+    """virtual:// serves a board made in the node's own process; none can appear from outside."""
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    ret, _, _, err = configure(ros, capfd, "nobody_port", input="serial", port="virtual://nobody",
+                               tare_file=str(tmp_path / "tare.csv"))
+    assert ret == TransitionCallbackReturn.FAILURE
+    line = next(ln for ln in err.splitlines() if "refusing to start" in ln)
+    assert "virtual://nobody" in line and "no simulated board of this process" in line, err
+
+
 @pytest.mark.parametrize("text, what", [
     (b"name: cuboid_joint\nbody: {shape: cuboid, size: [0.04, 0.04\n", "malformed YAML"),
     (b"name: caf\xe9\n", "not UTF-8"),
@@ -240,6 +251,7 @@ def test_help_says_what_the_node_is_in_a_full_sentence():
 
 @pytest.mark.parametrize("ros_args, said", [
     (["--params-file", "config/no_such.yaml"], "--params-file config/no_such.yaml: no such readable file in "),
+    (["--params-file", "."], "--params-file .: no such readable file in "),  # a directory is no file
     (["-p"], "Couldn't parse trailing -p flag"),  # rcl's own refusal, in one line
 ])
 def test_a_command_line_rcl_refuses_fails_in_one_line(monkeypatch, tmp_path, capfd, ros_args, said):

@@ -20,6 +20,10 @@ import threading
 import tty
 
 VIRTUAL = "virtual://"
+#: The board end's send buffer (bytes asked of the kernel): it then holds about 17 kB of frames before a
+#: write blocks, as a pseudo-terminal holds 16.5 kB (a socket pair's default holds 72 kB): a stalled
+#: host sees the backlog a tty gives.
+SEND_BUFFER = 24576
 
 _lock = threading.Lock()
 _hosts: dict[str, socket.socket] = {}  # virtual name -> the host end of its board's current link
@@ -74,6 +78,7 @@ class VirtualLink:
     def __init__(self, url: str) -> None:
         self._name, self.device = _name(url), url
         board, self._host = socket.socketpair()
+        board.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)  # a tty's backlog, not 4 x it
         board.setblocking(False)
         with _lock:
             if self._name in _hosts:
@@ -89,6 +94,12 @@ class VirtualLink:
                 del _hosts[self._name]
         self._board.close()
         self._host.close()
+
+
+def holds(url: str) -> bool:
+    """True when a board of this process holds the virtual link ``url`` now."""
+    with _lock:
+        return _name(url) in _hosts
 
 
 def connect(url: str) -> socket.socket:

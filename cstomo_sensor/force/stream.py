@@ -322,7 +322,9 @@ class FrameStream:
         self._tare_forced = False
         self._tare_mask = np.zeros(pipe.n_meas, bool)
         self._tare_left = self._tare_n = 0
-        self._tare_done = threading.Event()  # the transaction's tare ended and was reported (saved)
+        self._tare_over = threading.Event()  # the transaction's tare ended (accepted or refused)
+        self._tare_done = threading.Event()  # ... and was reported (an accepted one saved, or not)
+        self._writers: list[threading.Thread] = []  # tare files being written (close() waits for them)
         self._tare_ended: TareOutcome | None = None
         self._ended: deque[tuple[TareOutcome, int]] = deque()  # ended, to save (the save's number) and report
         self._saves = 0  # accepted tares handed to a writer thread
@@ -451,10 +453,10 @@ class FrameStream:
 
     def tare_deadline(self, rate_hz: float = 0.0) -> float:
         """Seconds a tare of ``tare_frames`` frames may take (:data:`TARE_PERIOD_MARGIN`): from the
-        measured :attr:`frame_period`, else the nominal ``rate_hz`` (0: unknown)."""
+        measured :attr:`frame_period`, never shorter than the nominal ``rate_hz``'s (0: unknown)."""
         period = self.frame_period
-        if not period > 0 and rate_hz > 0:
-            period = 1.0 / rate_hz
+        if rate_hz > 0:  # a backlog drained at once measures short: never shorter than the nominal rate's
+            period = max(period, 1.0 / rate_hz) if period > 0 else 1.0 / rate_hz
         per_frame = TARE_PERIOD_MARGIN * period if period > 0 else TARE_ASSUMED_PERIOD
         return self.config.tare_frames * per_frame + self.config.stale_timeout + TARE_GRACE
 
@@ -468,11 +470,12 @@ class FrameStream:
         would have refused (the steadiness and the other checks still apply). Returns (the outcome or
         None if cancelled, the frames it had taken)."""
         with self.lock:
+            self._tare_over.clear()
             self._tare_done.clear()
             self._tare_ended = None
             self.start_tare()
             self._tare_forced = bool(forced)
-        self._tare_done.wait(timeout)
+        self._tare_over.wait(timeout)
         with self.lock:
             ended = self._tare_ended
             taken = self.cancel_tare() if ended is None else ended.frames
@@ -578,6 +581,7 @@ class FrameStream:
         if outcome.ok and self.tare_file is not None:
             self._saves += 1
         self._tare_ended = outcome
+        self._tare_over.set()
         self._ended.append((outcome, self._saves if outcome.ok else 0))
 
     def _finish_tares(self) -> None:
@@ -590,9 +594,24 @@ class FrameStream:
             except IndexError:  # another thread took it
                 return
             if seq:
-                threading.Thread(target=self._save, args=(outcome, seq), name="cstomo_tare_save", daemon=True).start()
+                writer = threading.Thread(target=self._save, args=(outcome, seq), name="cstomo_tare_save", daemon=True)
+                self._writers = [w for w in self._writers if w.is_alive()] + [writer]
+                writer.start()
             else:
                 self._report(outcome)
+
+    def close(self, timeout: float = 5.0) -> list[str]:
+        """Wait up to ``timeout`` s for the tare files still being written (a node that stops or
+        reconfigures keeps the tare it took); returns the files not written by then (a hung disk)."""
+        self._finish_tares()
+        deadline = time.monotonic() + timeout
+        for w in self._writers:
+            w.join(max(0.0, deadline - time.monotonic()))
+        late = [str(self.tare_file) for w in self._writers if w.is_alive()]
+        if late:
+            log.error("tare not saved to %s within %.0f s (a hung disk?): the next start reads the older tare",
+                      self.tare_file, timeout)
+        return late
 
     def _report(self, outcome: TareOutcome, note: str = "") -> None:
         """The end of a tare, final (``note``: why an accepted one was not saved): to the :meth:`tare`

@@ -43,6 +43,7 @@ from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
 from ..board.driver import BoardDriver, check_port
+from ..board.links import holds, is_virtual
 from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
 from ..errors import ConfigError, CstomoError, FrameError
@@ -150,6 +151,10 @@ class CstomoSensorNode(LifecycleNode):
         geometry = load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
         if cfg.input == "serial":
             check_port(cfg.port)  # a file or a directory is no board: said once, not retried for ever
+            if is_virtual(cfg.port) and not holds(cfg.port):  # nothing outside this process can make one
+                raise ConfigError(f"port {cfg.port!r}: no simulated board of this process holds it (virtual:// "
+                                  "serves a board made in the node's own process: tests, benchmarks); expected "
+                                  "a serial device")
         check_writable(cfg.cache_path)  # at once, not after a long model build
         # the tare must be saved: a node that cannot would re-tare under any load at every restart
         self.tare_path = cfg.tare_path_for(geometry, self.get_namespace())
@@ -254,6 +259,8 @@ class CstomoSensorNode(LifecycleNode):
             if srv is not None:
                 self.destroy_service(srv)
         self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
+        if self.stream is not None:
+            self.stream.close()  # a tare still being written is saved before the node stops
         self.pipe = self.stream = None
 
     # --- tare --------------------------------------------------------------------------------------
@@ -502,7 +509,7 @@ def init_ros(prog: str, argv: list[str]) -> bool:
     own error names neither the directory nor the installed file), or arguments rcl refuses."""
     ros = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []
     for flag, path in zip(ros, ros[1:]):
-        if flag == "--params-file" and not os.access(path, os.R_OK):
+        if flag == "--params-file" and not (os.path.isfile(path) and os.access(path, os.R_OK)):
             where = "" if os.path.isabs(path) else f" in {os.getcwd()}"
             print(f"{prog}: --params-file {path}: no such readable file{where} (the installed one: "
                   f"{INSTALLED_CONFIG})", file=sys.stderr)

@@ -36,7 +36,8 @@ def _d(description: str, *, read_only: bool = False, lo=None, hi=None, step=None
 #: name -> descriptor, in declaration order; the defaults are the config dataclasses' own.
 _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "input": _d("Frame source: 'serial' (a board) or 'topic' (~/raw_voltages_in)", read_only=True),
-    "port": _d("Serial URL: device path, socket://, rfc2217://, loop://; virtual://NAME: a simulated board in this process",
+    "port": _d("Serial URL: device path, socket://, rfc2217://, loop://; "
+               "virtual://NAME: a simulated board made in this process (tests, benchmarks)",
                read_only=True),
     "baudrate": _d("Serial speed (ignored by USB CDC and ptys)", read_only=True, lo=1200, hi=16_000_000),
     "protocol": _d("Wire protocol of the board: 'binary' or 'text' (docs/protocol.md)", read_only=True),

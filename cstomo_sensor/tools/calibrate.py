@@ -292,6 +292,8 @@ def run(a) -> int:
         raise ConfigError.bad_value("--creep-rate", a.creep_rate, "frames per second > 0")
     if a.rate is not None and not a.rate > 0:
         raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
+    if a.rate is not None and a.bag:
+        raise ConfigError("--rate is for --frames files; a bag's frames carry their own stamps (give no --rate)")
     hold = read_frames(a.creep_hold) if a.creep_hold else None  # read before the model is built
     if cfg.calibration_file:
         raise ConfigError("--calibration: calibrate against the nominal model (give no --calibration)")
