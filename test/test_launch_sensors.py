@@ -84,8 +84,11 @@ def test_two_sensors_of_a_list_publish_in_their_namespaces_frames_and_tare_files
             assert all(p.poll() is None for p in nodes + boards), [Path(f.name).read_text() for f in logs]
             ex.spin_once(timeout_sec=0.2)
         assert all(got.values()), ({k: len(v) for k, v in got.items()}, [Path(f.name).read_text() for f in logs])
-        names = set(probe.get_node_names_and_namespaces())
-        assert {("cstomo_sensor", "/left_knee"), ("cstomo_sensor", "/right_knee")} <= names, names
+        # the graph's node names come by discovery of their own, after the data may have (seen: wrenches of
+        # both, the names not yet): wait for them as for the wrenches
+        expected = {("cstomo_sensor", "/left_knee"), ("cstomo_sensor", "/right_knee")}
+        assert wait_for(lambda: expected <= set(probe.get_node_names_and_namespaces()), 20.0), \
+            probe.get_node_names_and_namespaces()
         # each in its own frame, never the other's
         assert {m.header.frame_id for m in got[left.node]} == {"left_knee_socket"}
         assert {m.header.frame_id for m in got[right.node]} == {"right_knee_socket"}
