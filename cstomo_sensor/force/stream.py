@@ -273,6 +273,8 @@ class FrameStream:
         not saved.
     tare_comment : str
         The first comment line of a saved tare (sensor, geometry digest).
+    started : float or None
+        ``time.monotonic()`` of the start the tare's log counts from (the node's; None: now).
 
     Tare semantics (the same everywhere): while a tare is pending (at start without a usable saved
     tare, ``tare_on_start``, :meth:`tare`, or replay without a reference), the next ``tare_frames``
@@ -289,7 +291,7 @@ class FrameStream:
 
     def __init__(self, pipe: Pipeline, config: StreamConfig = StreamConfig(),
                  on_tare: Callable[[TareOutcome], None] | None = None,
-                 tare_file: str | Path | None = None, tare_comment: str = "") -> None:
+                 tare_file: str | Path | None = None, tare_comment: str = "", started: float | None = None) -> None:
         self.pipe = pipe
         self.config = config
         self.on_tare = on_tare
@@ -333,7 +335,8 @@ class FrameStream:
         self.reference_source = "none"
         self.tare_taken = ""    # when the reference in use was tared
         self.tare_refused = ""  # the latest refused tare: when and why
-        self._t_start = self._last_health = time.monotonic()
+        self._created = self._last_health = time.monotonic()
+        self._t_start = self._created if started is None else started
         self._loss_history: deque = deque()
         self._last_rejected = self._last_implausible = 0
         self._drop_log = _Throttle()
@@ -1059,7 +1062,7 @@ class FrameStream:
         :data:`LOSS_ERROR` of the frames the board sent meanwhile."""
         hist = self._loss_history
         if not hist:
-            hist.append((self._t_start, 0, {}))
+            hist.append((self._created, 0, {}))
         hist.append((now, frames, dict(losses)))
         while len(hist) > 2 and now - hist[1][0] >= LOSS_WINDOW:
             hist.popleft()

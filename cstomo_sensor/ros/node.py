@@ -172,7 +172,8 @@ class CstomoSensorNode(LifecycleNode):
         self.config, self.pipe = cfg, pipe
         self.stream = FrameStream(pipe, cfg.stream, tare_file=self.tare_path,
                                   tare_comment=f"cstomo_sensor tare of '{cfg.pipeline.sensor}' "
-                                               f"(geometry {pipe.geometry.digest()})")
+                                               f"(geometry {pipe.geometry.digest()})",
+                                  started=self._t_start)  # the tare's log counts from the node's start
         self._board_clock = ClockMapper(cfg.clock_window)
         self.out = OutputMessages(pipe.centers, cfg.frame_id)
         self._raw_cdr = RawVoltagesCdr(cfg.frame_id)
