@@ -90,10 +90,14 @@ class ForceSigma:
                  k_rel: float, creep_rel: float = 0.0) -> None:
         W = np.asarray(W, float) * keep
         Wn = W * np.where(keep, noise, 0.0)
-        self.noise_var = np.einsum("ij,ij->i", Wn, Wn)  # diag(W S W^T)
+        self.noise_var = np.einsum("ij,ij->i", Wn, Wn).tolist()  # diag(W S W^T)
         self.W = np.ascontiguousarray(W)
-        self.WD = None if D is None else np.ascontiguousarray(W @ np.asarray(D, float).T)  # (3, m)
-        self._WD = None if D is None else self.WD.copy()
+        self.WD = None
+        if D is not None:  # (3, m + 1): the tracker's measured states, then its rate (no direction of its own)
+            D = np.asarray(D, float)
+            self.WD = np.zeros((3, len(D) + 1))
+            self.WD[:, :len(D)] = W @ D.T
+            self._WDT = np.ascontiguousarray(self.WD.T)
         self.k2 = float(k_rel) ** 2 / 3.0
         self.creep_rel = float(creep_rel)
 
@@ -104,18 +108,23 @@ class ForceSigma:
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None
                  ) -> tuple[tuple[float, float, float], float]:
         """((sigma fx, fy, fz), sigma_n) of a frame's ``force`` (3,), the tracker's covariance ``P``
-        ((m+1, m+1): its measured states first; None: no tracking) and the force of the creep offset
-        the frame was corrected by (:meth:`creep_force`; None: none)."""
-        f0, f1, f2 = force.tolist()
-        cal = self.k2 * (f0 * f0 + f1 * f1 + f2 * f2)
-        v = self.noise_var + cal
+        ((m+1, m+1): its measured states, then the scale's rate; None: no tracking) and the force of the
+        creep offset the frame was corrected by (:meth:`creep_force`; None: none)."""
+        f = force.tolist()
+        cal = self.k2 * (f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        v = [x + cal for x in self.noise_var]
         if P is not None and self.WD is not None:
-            A = self._WD
-            m = A.shape[1]
-            A[:, 0] = self.WD[:, 0] + force  # a scale error scales the load's change too
-            v = v + np.einsum("ij,ij->i", np.dot(A, P[:m, :m]), A)
+            # (WD + f e0^T) P (WD + f e0^T)^T: a scale error scales the load's change too; its diagonal
+            G = np.dot(self.WD, P)
+            M = np.dot(G, self._WDT).tolist()
+            u = G[:, 0].tolist()
+            p00 = float(P[0, 0])
+            for i in range(3):
+                v[i] += M[i][i] + 2.0 * f[i] * u[i] + p00 * f[i] * f[i]
         if creep_force is not None and self.creep_rel:
-            c = creep_force * self.creep_rel
-            v = v + c * c
-        v0, v1, v2 = (max(x, 0.0) for x in v.tolist())
+            c = creep_force.tolist()
+            r2 = self.creep_rel * self.creep_rel
+            for i in range(3):
+                v[i] += r2 * c[i] * c[i]
+        v0, v1, v2 = (max(x, 0.0) for x in v)
         return (math.sqrt(v0), math.sqrt(v1), math.sqrt(v2)), math.sqrt(v0 + v1 + v2)

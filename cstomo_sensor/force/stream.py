@@ -353,7 +353,7 @@ class FrameStream:
         self._noise_next = MIN_PAIRS  # the pair count at which the estimate is evaluated next
         self._noise_note = ""  # why no estimate is in use yet
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
-        self._sigma_for: tuple = ()
+        self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
         self.sigma_source = ""  # where the calibration residual of the sigma comes from
 
     def with_config(self, **changes) -> None:
@@ -907,15 +907,16 @@ class FrameStream:
     def _sigma_model(self) -> ForceSigma:
         """The force's uncertainty for the estimator, tracker and creep in use (rebuilt when one changes)."""
         pipe, drift = self.pipe, self.drift
-        key = (pipe.estimator, drift, self.creep is not None, pipe.calibration)
-        if self._sigma is None or len(self._sigma_for) != len(key) or any(a is not b for a, b in zip(key, self._sigma_for)):
+        f = self._sigma_for
+        if (self._sigma is None or f[0] is not pipe.estimator or f[1] is not drift or f[2] is not self.creep
+                or f[3] is not pipe.calibration):
             est = pipe.estimator
             k_rel, self.sigma_source = relative_error(pipe.calibration, est.name)
             fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
             creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
             self._sigma = ForceSigma(self._force_map(), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
                                      None if drift is None else drift._D, k_rel, creep_rel)
-            self._sigma_for = key
+            self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
         return self._sigma
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
