@@ -115,13 +115,15 @@ def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | Non
 
 
 def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray | None = None,
-                 consistency: np.ndarray | None = None, foreign_load: np.ndarray | None = None) -> None:
+                 consistency: np.ndarray | None = None, foreign_load: np.ndarray | None = None,
+                 sigma_n: np.ndarray | None = None) -> None:
     """Write a forces file from (n, 3) force vectors (newtons, wrench frame).
 
     ``valid`` (bool (n,)), when given, adds the optional ``valid`` column of the forces file
     (docs/formats.md#forces-file): 1, or 0 for a frame rejected as implausible, whose force fields are left empty.
     ``consistency`` (float (n,)) with ``foreign_load`` (bool (n,)) add the ``consistency`` and
-    ``foreign_load`` columns (empty for a frame without a statistic: NaN).
+    ``foreign_load`` columns (empty for a frame without a statistic: NaN). ``sigma_n`` (float (n,)) adds
+    the ``sigma_n`` column: the force's 1-sigma, the rms of its error's norm (N; empty when NaN).
     """
     f = np.atleast_2d(np.asarray(forces, dtype=float))
     ok = np.ones(len(f), bool) if valid is None else np.asarray(valid, bool)
@@ -133,15 +135,22 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
         cons, flag = np.asarray(consistency, float), np.asarray(foreign_load, bool)
         if cons.shape != (len(f),) or flag.shape != (len(f),):
             raise FrameError(f"consistency/foreign_load shapes {cons.shape}/{flag.shape}, expected ({len(f)},)")
+    if sigma_n is not None:
+        sig = np.asarray(sigma_n, float)
+        if sig.shape != (len(f),):
+            raise FrameError(f"sigma_n has shape {sig.shape}, expected ({len(f)},)")
     mag, el, az = force_angles(np.where(ok[:, None], f, 0.0))
     table = np.column_stack([f, mag, el, az])
     lines = [FORCES_HEADER + (",valid" if valid is not None else "")
-             + (",consistency,foreign_load" if consistency is not None else "")]
+             + (",consistency,foreign_load" if consistency is not None else "")
+             + (",sigma_n" if sigma_n is not None else "")]
     for i, (row, good) in enumerate(zip(table, ok)):
         fields = ",".join(f"{x:.9g}" for x in row) if good else ",,,,,"
         extra = "" if valid is None else f",{int(good)}"
         if consistency is not None:
             extra += f",{cons[i]:.6g},{int(flag[i])}" if np.isfinite(cons[i]) else ",,"
+        if sigma_n is not None:
+            extra += f",{sig[i]:.6g}" if good and np.isfinite(sig[i]) else ","
         lines.append(f"{i},{fields}" + extra)
     with atomic_write(path) as out:
         out.write(("\n".join(lines) + "\n").encode())

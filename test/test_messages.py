@@ -113,6 +113,31 @@ def test_wrench_and_floats_equal_rclpy(frame_id):
         assert deserialize_message(out.float64(v), Float64).data == v
 
 
+@pytest.mark.parametrize("frame_id", ["cstomo_socket", "knee_left/socket_frame"])
+def test_wrench_sigma_equals_rclpy(frame_id):
+    """~/wrench_sigma (Vector3Stamped) from the template is rclpy's serialisation, under the wrench's
+    stamp and frame_id; build() adds it for a result with a sigma, and only then."""
+    from geometry_msgs.msg import Vector3Stamped
+
+    rng = np.random.default_rng(3)
+    out = OutputMessages(rng.normal(size=(7, 3)) * 0.01, frame_id)
+    for ns in STAMPS:
+        v = np.abs(rng.normal(size=3))
+        ref = Vector3Stamped()
+        ref.header.stamp = _time(ns)
+        ref.header.frame_id = frame_id
+        ref.vector.x, ref.vector.y, ref.vector.z = (float(x) for x in v)
+        _same_cdr(out.vector(v, ns), ref)
+        r = _Result(rng.normal(size=3), None)
+        r.sigma = tuple(v)
+        msgs = out.build(r, ns)
+        assert list(msgs)[:2] == ["wrench", "wrench_sigma"]
+        _same_cdr(msgs["wrench_sigma"], ref)
+        w = deserialize_message(msgs["wrench"], WrenchStamped)
+        assert deserialize_message(msgs["wrench_sigma"], Vector3Stamped).header == w.header
+    assert "wrench_sigma" not in out.build(_Result(np.ones(3), None), 0)
+
+
 @pytest.mark.parametrize("n_cells", [1, 5, 256])
 def test_stress_cloud_and_build_equal_rclpy(n_cells):
     rng = np.random.default_rng(n_cells)

@@ -69,8 +69,15 @@ def test_replay_writes_the_node_topics_for_every_frame_after_the_tare(replayed):
     inputs = read_bag(BAG)["/cstomo_sensor/raw_voltages"]
     assert s.frames_in == len(inputs) and s.corrupt == 0 and s.results == len(inputs) - TARE
     assert set(msgs) == {f"/cstomo_sensor/{t}" for t in FORCE_TOPICS + ("stress_field", "consistency",
-                                                                         "scene_stress_field", "wrench_filtered")}
+                                                                         "scene_stress_field", "wrench_filtered",
+                                                                         "wrench_sigma")}
     assert len(msgs["/cstomo_sensor/consistency"]) == s.results
+    # every wrench with its 1-sigma, under its stamp and frame
+    sig = msgs["/cstomo_sensor/wrench_sigma"]
+    assert [t for t, _ in sig] == [t for t, _ in msgs["/cstomo_sensor/wrench"]]
+    assert all(m.header == w.header for (_, m), (_, w) in zip(sig, msgs["/cstomo_sensor/wrench"]))
+    v = np.array([[m.vector.x, m.vector.y, m.vector.z] for _, m in sig])
+    assert np.isfinite(v).all() and (v > 0).all() and v.max() < 5.0
     assert s.foreign_load == 0  # the bag's loads are on the socket
     rows = force_rows(msgs)
     assert rows.shape == (s.results, 6) and np.isfinite(rows).all()
@@ -96,12 +103,15 @@ def test_replay_forces_file_holds_the_consistency_columns(tmp_path, replayed, co
 
     s = replay(BAG, tmp_path / "out", config, tare_frames=TARE, pipeline=pipe, forces_file=tmp_path / "f.csv")
     lines = (tmp_path / "f.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,sigma_n"
     assert len(lines) == s.results + 1
-    cons = np.array([float(r.split(",")[-2]) for r in lines[1:]])
+    cons = np.array([float(r.split(",")[-3]) for r in lines[1:]])
     want = np.array([m.data for _, m in replayed[1]["/cstomo_sensor/consistency"]])
     np.testing.assert_allclose(cons, want, rtol=1e-5)
-    flags = np.array([int(r.split(",")[-1]) for r in lines[1:]])
+    sigma_n = np.array([float(r.split(",")[-1]) for r in lines[1:]])  # the norm of the bag's per-axis sigmas
+    v = np.array([[m.vector.x, m.vector.y, m.vector.z] for _, m in replayed[1]["/cstomo_sensor/wrench_sigma"]])
+    np.testing.assert_allclose(sigma_n, np.linalg.norm(v, axis=1), rtol=1e-5)
+    flags = np.array([int(r.split(",")[-2]) for r in lines[1:]])
     assert np.array_equal(flags, cons > pipe.consistency.threshold) and flags.sum() == s.foreign_load
     np.testing.assert_allclose(read_forces(tmp_path / "f.csv"), force_rows(replayed[1])[:, :3], rtol=1e-6, atol=1e-6)
 
@@ -155,7 +165,7 @@ def test_replay_reads_mcap_and_the_command_line_works(tmp_path, replayed, config
 
 MASKED = range(30, 36)  # frames whose channel 7 the board flagged (NaN in the recorded message)
 ZEROED = 45             # an all-zero frame: implausible
-OUTPUT_TOPICS = FORCE_TOPICS + ("wrench_filtered", "consistency", "stress_field", "scene_stress_field")
+OUTPUT_TOPICS = FORCE_TOPICS + ("wrench_sigma", "wrench_filtered", "consistency", "stress_field", "scene_stress_field")
 
 
 def _edited_inputs():
@@ -195,8 +205,8 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe)
     in frames 30..35, an all-zero frame) are played with their timing by a test publisher into
     ~/raw_voltages_in, and replayed from a bag of the same messages: every topic (wrench, filtered
     wrench, angles, magnitude, consistency, both stress fields) is identical, message by message,
-    stamps included."""
-    from geometry_msgs.msg import WrenchStamped
+    stamps included; the wrench's sigma too (~/wrench_sigma)."""
+    from geometry_msgs.msg import Vector3Stamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image, PointCloud2
     from std_msgs.msg import Float64
@@ -212,6 +222,7 @@ def test_node_in_topic_mode_publishes_what_replay_writes(tmp_path, config, pipe)
                   qos_reliability="reliable", qos_depth=1000, tare_file=str(tmp_path / "tare.csv"), stale_timeout=2.0)
     h = Harness(ctx, params)
     types = {"geometry_msgs/msg/WrenchStamped": WrenchStamped, "std_msgs/msg/Float64": Float64,
+             "geometry_msgs/msg/Vector3Stamped": Vector3Stamped,
              "sensor_msgs/msg/PointCloud2": PointCloud2}
     try:
         got = {t: h.record(f"/cstomo_sensor/{t}", types[TOPIC_TYPES[t]]) for t in OUTPUT_TOPICS}

@@ -77,7 +77,8 @@ class FrameResult:
     ``reason`` says why, and force, angles and residual are NaN and there is no field.
     ``scene_field`` is the mechanics' field of the estimated force (socket sensors, with the
     field); ``consistency`` the frame's statistic against the socket load model and
-    ``foreign_load`` whether it trips (force/scene_field.py).
+    ``foreign_load`` whether it trips (force/scene_field.py); ``sigma`` and ``sigma_n`` the force's
+    1-sigma uncertainty, set by the frame stream (force/sigma.py; None and NaN without it).
     """
 
     force: np.ndarray
@@ -91,6 +92,8 @@ class FrameResult:
     scene_field: StressField | None = None
     consistency: float = float("nan")
     foreign_load: bool = False
+    sigma: tuple[float, float, float] | None = None  # 1-sigma of fx, fy, fz (N): the stream's (force/sigma.py)
+    sigma_n: float = float("nan")  # the rms of the force error's norm, sqrt(trace(cov)) (N)
 
     @classmethod
     def implausible(cls, reason: str) -> FrameResult:

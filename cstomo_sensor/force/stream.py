@@ -53,6 +53,7 @@ from .filter import LowPass
 from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, noise_level, snr_db
 from .pipeline import NOISE_ASSUMED, FrameResult, Pipeline
 from .scene_field import change_noise
+from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
 from .tare import TareCheck, check_tare
 
 log = logging.getLogger(__name__)
@@ -64,6 +65,8 @@ OK, WARN, ERROR = 0, 1, 2
 #: each as ``~/<name>``, replay writes each as a topic, ``cstomo_sensor_node --help`` lists them.
 OUTPUTS: dict[str, str] = {
     "wrench": "geometry_msgs/WrenchStamped: the force on the socket (N) in frame_id, zero torque",
+    "wrench_sigma": "geometry_msgs/Vector3Stamped: the 1-sigma uncertainty (N) of the wrench's fx, fy, fz, "
+                    "under the wrench's stamp and frame_id (force/sigma.py)",
     "wrench_filtered": "the wrench through a first-order low-pass (wrench_filter_hz; none when 0)",
     "force_magnitude": "std_msgs/Float64: |F| (N)",
     "force_elevation": "std_msgs/Float64: the force's elevation (rad)",
@@ -124,6 +127,7 @@ class StreamConfig:
     drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
     creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
     noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
+    max_sigma_n: float = 2.0  # N: a frame whose force's 1-sigma (sigma_n, force/sigma.py) exceeds it is said in the diagnostics; 0 off
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
@@ -136,6 +140,8 @@ class StreamConfig:
             raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
         if not self.stale_timeout > 0:
             raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
+        if not (math.isfinite(self.max_sigma_n) and self.max_sigma_n >= 0):
+            raise ConfigError.bad_value("max_sigma_n", self.max_sigma_n, ">= 0 N (0 = no check)")
         why = creep_problem(self.creep_per_decade)
         if why:
             raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade, why)
@@ -235,6 +241,10 @@ class _Counts:
         self.consistency = math.nan
         self.foreign = 0
         self.period_foreign = 0
+        self.sigma_n = math.nan      # the latest published frame's sigma_n
+        self.sigma_over = 0          # frames whose sigma_n exceeded max_sigma_n (all time)
+        self.period_sigma_over = 0
+        self.period_sigma_max = 0.0
         self.last_frame: float | None = None  # time.monotonic() of the latest frame
         self.arrivals: deque[float] = deque(maxlen=PERIOD_FRAMES)  # ... and of the ones before it
 
@@ -345,6 +355,9 @@ class FrameStream:
         self._noise_from = ""  # ... and what it was estimated from
         self._noise_next = MIN_PAIRS  # the pair count at which the estimate is evaluated next
         self._noise_note = ""  # why no estimate is in use yet
+        self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
+        self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
+        self.sigma_source = ""  # where the calibration residual of the sigma comes from
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -877,6 +890,11 @@ class FrameStream:
         if self.noise is not None and not self.pipe.noise_measured:
             self._observe_noise(values)
         drift, creep = self.drift, self.creep
+        sig = creep_f = None
+        if result.valid:
+            sig = self._sigma_model()
+            if creep is not None:
+                creep_f = sig.creep_force(creep.offset)  # the offset this frame was corrected by
         if self.pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
             y = self.pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
             if drift is not None:
@@ -885,7 +903,24 @@ class FrameStream:
             if creep is not None:
                 creep.observe(y, t, self._mask if self.excluded.channels else None)
             self._apply_offsets()
+        if sig is not None:  # the tracker's covariance after this frame's predict and update
+            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f)
         return result
+
+    def _sigma_model(self) -> ForceSigma:
+        """The force's uncertainty for the estimator, tracker and creep in use (rebuilt when one changes)."""
+        pipe, drift = self.pipe, self.drift
+        f = self._sigma_for
+        if (self._sigma is None or f[0] is not pipe.estimator or f[1] is not drift or f[2] is not self.creep
+                or f[3] is not pipe.calibration):
+            est = pipe.estimator
+            k_rel, self.sigma_source = relative_error(pipe.calibration, est.name)
+            fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
+            creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
+            self._sigma = ForceSigma(self._force_map(), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
+                                     None if drift is None else drift._D, k_rel, creep_rel)
+            self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
+        return self._sigma
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> Output | None:
@@ -931,6 +966,14 @@ class FrameStream:
             c.consistency = result.consistency
             c.foreign += result.foreign_load
             c.period_foreign += result.foreign_load
+            sn = result.sigma_n
+            c.sigma_n = sn
+            if sn > c.period_sigma_max:
+                c.period_sigma_max = sn
+            bound = self.config.max_sigma_n
+            if bound and sn > bound:
+                c.sigma_over += 1
+                c.period_sigma_over += 1
         return Output(result, filtered, int(stamp_ns))
 
     def drop(self, err: BaseException, corrupt: bool = False) -> None:
@@ -972,6 +1015,9 @@ class FrameStream:
             c.period_frames, c.proc_sum, c.proc_max, c.proc_n = 0, 0.0, 0.0, 0
             period_reason, c.period_reason = c.period_reason, ""
             period_foreign, c.period_foreign = c.period_foreign, 0
+            sigma_n, sigma_over = c.sigma_n, c.sigma_over
+            period_sigma_over, period_sigma_max = c.period_sigma_over, c.period_sigma_max
+            c.period_sigma_over, c.period_sigma_max = 0, 0.0
             frames, late, rejected, corrupt = c.frames, c.late, c.rejected, c.corrupt
             kv = {"frames": frames, "frame_rate_hz": f"{rate:.1f}", "late_dropped": late}
             kv_rejected = {"frames_rejected": rejected, "frames_all_excluded": c.all_excluded,
@@ -1011,6 +1057,15 @@ class FrameStream:
             msgs.append(f"foreign load: {period_foreign} frames not explained by a load on the socket (consistency "
                         f"{consistency:.3g}, limit {self.pipe.consistency.threshold:g}); something else presses the "
                         "sensor or an electrode changed; forces still published")
+        bound = self.config.max_sigma_n
+        kv.update(sigma_n=f"{sigma_n:.4g}", sigma_n_period_max=f"{period_sigma_max:.4g}",
+                  max_sigma_n=f"{bound:g}" if bound else "0 (no check)", sigma_over_frames=sigma_over,
+                  sigma_calibration=self.sigma_source)
+        if bound and period_sigma_over:
+            level = max(level, WARN)
+            msgs.append(f"uncertain forces: {period_sigma_over} frames with a 1-sigma above max_sigma_n {bound:g} N "
+                        f"(largest {period_sigma_max:.3g} N): the noise, the device's untracked change (a long load "
+                        "since the last rest) or the calibration; forces still published")
         kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
                   processing_time_max_ms=f"{proc_max * 1e3:.3f}")
         kv.update(tare_taken=self.tare_taken, tare_refused=self.tare_refused, tare_unsaved=self.tare_unsaved)

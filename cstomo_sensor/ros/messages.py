@@ -13,7 +13,7 @@ from __future__ import annotations
 import struct
 
 import numpy as np
-from geometry_msgs.msg import WrenchStamped
+from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image, PointCloud2, PointField
 from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension
@@ -27,6 +27,7 @@ RAW_TOPIC = "raw_voltages"
 #: the one list of what the node publishes and replay writes) and the raw frames.
 TOPIC_TYPES = {
     "wrench": "geometry_msgs/msg/WrenchStamped",
+    "wrench_sigma": "geometry_msgs/msg/Vector3Stamped",
     "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
     "force_magnitude": "std_msgs/msg/Float64",
     "force_elevation": "std_msgs/msg/Float64",
@@ -134,6 +135,10 @@ class OutputMessages:
         w.header.frame_id = frame_id
         self._wrench = bytearray(serialize_message(w))
         self._wrench_at = len(self._wrench) - 48  # force (3 float64), then torque (3 float64, zero)
+        v = Vector3Stamped()
+        v.header.frame_id = frame_id
+        self._vector = bytearray(serialize_message(v))
+        self._vector_at = len(self._vector) - 24  # the vector (3 float64)
         cloud = self._cloud_msg()
         self._cloud_tpl = bytearray(serialize_message(cloud))
         self._cloud_at = len(self._cloud_tpl) - 1 - self._cloud.nbytes  # data, then is_dense (1 byte)
@@ -160,6 +165,13 @@ class OutputMessages:
         _VEC3.pack_into(buf, self._wrench_at, float(force[0]), float(force[1]), float(force[2]))
         return bytes(buf)
 
+    def vector(self, v, stamp_ns: int) -> bytes:
+        """``Vector3Stamped`` (CDR) of ``v`` (3,) at ``stamp_ns`` (the wrench's sigma)."""
+        buf = self._vector
+        _STAMP.pack_into(buf, 4, *divmod(int(stamp_ns), 1_000_000_000))
+        _VEC3.pack_into(buf, self._vector_at, float(v[0]), float(v[1]), float(v[2]))
+        return bytes(buf)
+
     def float64(self, value: float) -> bytes:
         """``std_msgs/Float64`` (CDR)."""
         buf = self._float64
@@ -180,10 +192,14 @@ class OutputMessages:
     def build(self, result: object, stamp_ns: int, filtered=None) -> dict[str, bytes]:
         """CDR messages of one :class:`~cstomo_sensor.force.pipeline.FrameResult` at ``stamp_ns``, keyed
         by topic name (relative to the node), in the order of the stream's outputs:
+        ``wrench_sigma`` when the result has its uncertainty (under the wrench's stamp),
         ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given, ``consistency`` when the
         result has the statistic, ``stress_field`` and ``scene_stress_field`` only when the result
         carries those fields (same layout)."""
         out = {"wrench": self.wrench(result.force, stamp_ns)}
+        sigma = getattr(result, "sigma", None)
+        if sigma is not None:
+            out["wrench_sigma"] = self.vector(sigma, stamp_ns)
         if filtered is not None:
             out["wrench_filtered"] = self.wrench(filtered, stamp_ns)
         out.update({

@@ -73,6 +73,9 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "creep_per_decade": _d("The rubber's creep per decade of time (0.02..0.06), compensated so a held load reads "
                            "constant (force/creep.py); a calibration file's fitted value wins; 0 = off (a calibration's too)",
                            read_only=True, lo=0.0, hi=MAX_CREEP),
+    "max_sigma_n": _d("Newtons: a published force whose 1-sigma uncertainty (the rms of its error's norm, "
+                      "~/wrench_sigma) exceeds it is counted and said in the diagnostics (WARN); 0 = no check",
+                      read_only=True, lo=0.0, hi=100000.0),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -109,6 +112,7 @@ class NodeConfig:
     wrench_filter_hz: float = StreamConfig.wrench_filter_hz
     drift_tracking: bool = StreamConfig.drift_tracking
     creep_per_decade: float = StreamConfig.creep_per_decade
+    max_sigma_n: float = StreamConfig.max_sigma_n
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
     stale_timeout: float = StreamConfig.stale_timeout
@@ -148,7 +152,8 @@ class NodeConfig:
         """The frame stream's settings."""
         return StreamConfig(tare_frames=self.tare_frames, stress_field_every=self.stress_field_every,
                             wrench_filter_hz=self.wrench_filter_hz, stale_timeout=self.stale_timeout,
-                            drift_tracking=self.drift_tracking, creep_per_decade=self.creep_per_decade)
+                            drift_tracking=self.drift_tracking, creep_per_decade=self.creep_per_decade,
+                            max_sigma_n=self.max_sigma_n)
 
     @property
     def cache_path(self) -> Path:

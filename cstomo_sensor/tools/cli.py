@@ -123,7 +123,8 @@ def cmd_estimate(a) -> int:
     # implausible; without it, every row holds a force
     write_forces(a.out, forces, valid=None if valid.all() else valid,
                  consistency=np.array([r.consistency for r in results]),
-                 foreign_load=np.array([r.foreign_load for r in results]))
+                 foreign_load=np.array([r.foreign_load for r in results]),
+                 sigma_n=np.array([r.sigma_n for r in results]))
     for i, r in enumerate(results):
         if not r.valid:
             print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)

@@ -183,7 +183,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             write_forces(forces_file, np.array([r.force for r in rows]).reshape(-1, 3),
                          valid=np.array([r.valid for r in rows], bool),
                          consistency=np.array([r.consistency for r in rows]),
-                         foreign_load=np.array([r.foreign_load for r in rows], bool))
+                         foreign_load=np.array([r.foreign_load for r in rows], bool),
+                         sigma_n=np.array([r.sigma_n for r in rows], float))
         os.replace(partial, out_bag)
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -30,7 +30,10 @@ Per window of frames: ``err_n`` the median of |F - F_true| (the timeline's appli
 ``zero_p99_n`` the 99th percentile of |F| over its zero-load frames, ``angle_deg`` / ``magnitude_pct``
 the median errors over its loaded frames, ``wrong_pct`` the "silently wrong" share: published
 (plausible) frames whose error exceeds 0.5 N at zero load or 10 % of the load, ``implausible`` frames
-refused, ``tracked_change`` the tracker's scale - 1 at the window's end.
+refused, ``tracked_change`` the tracker's scale - 1 at the window's end; the error bars' honesty
+(force/sigma.py): ``over3sigma_pct`` the share of published frames whose error norm exceeds 3
+``sigma_n`` (the aim: <= 1 %), ``sigma_n`` the median ``sigma_n`` and ``sigma_ratio`` it over the
+median error (informative: within 2x).
 Writes robot.csv and robot.md (the condensed tables) in ``--out``.
 """
 from __future__ import annotations
@@ -111,24 +114,28 @@ def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print) -> dict:
 
 def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7):
     """A fresh stream given ``tare`` (frames of the device's tare state) as its reference, then the
-    timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale)."""
+    timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale,
+    sigma_n (NaN when refused))."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare")
     est = np.full((len(times), 3), np.nan)
     scale = np.ones(len(times))
+    sigma = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):
         out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
         if out is not None and out.result.valid:
             est[k] = out.result.force
+            sigma[k] = out.result.sigma_n
         scale[k] = pipe.scale
-    return times, est, forces, scale
+    return times, est, forces, scale, sigma
 
 
-def window_errors(est, forces, scale, sel) -> dict:
+def window_errors(est, forces, scale, sel, sigma=None) -> dict:
     """The module docstring's figures over the frames ``sel``."""
     est, forces = est[sel], forces[sel]
+    sig = np.full(len(est), np.nan) if sigma is None else sigma[sel]
     ok = np.isfinite(est).all(axis=1)
     true = np.linalg.norm(forces, axis=1)
     loaded = true > 0
@@ -144,7 +151,17 @@ def window_errors(est, forces, scale, sel) -> dict:
             "angle_deg": float(np.median(ang)) if len(ang) else np.nan,
             "magnitude_pct": float(np.median(mag)) if len(mag) else np.nan,
             "wrong_pct": 100 * float(wrong[ok].mean()) if ok.any() else np.nan,
-            "implausible": int((~ok).sum()), "tracked_change": float(scale[sel][-1] - 1)}
+            "implausible": int((~ok).sum()), "tracked_change": float(scale[sel][-1] - 1),
+            **sigma_figures(err[ok], sig[ok])}
+
+
+def sigma_figures(err: np.ndarray, sigma: np.ndarray) -> dict:
+    """The error bars' honesty over published frames of error norms ``err`` and ``sigma`` (sigma_n)."""
+    if not len(err) or not np.isfinite(sigma).all():
+        return {"over3sigma_pct": np.nan, "sigma_n": np.nan, "sigma_ratio": np.nan}
+    med = float(np.median(sigma))
+    return {"over3sigma_pct": 100 * float(np.mean(err > 3 * sigma)), "sigma_n": med,
+            "sigma_ratio": med / max(float(np.median(err)), 1e-12)}
 
 
 def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
@@ -178,13 +195,14 @@ def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
                     truth=truth).tare(20, np.random.default_rng([SEED, 22]))
     rows = []
 
-    def record(scenario, name, tracking, times, est, forces, scale, windows):
+    def record(scenario, name, tracking, times, est, forces, scale, sigma, windows):
         for label, sel in windows(times):
             rows.append({"scenario": scenario, "device": dev, "estimator": name, "tracking": tracking, "window": label,
-                         **window_errors(est, forces, scale, sel)})
+                         **window_errors(est, forces, scale, sel, sigma)})
         r = rows[-1]
         say(f"robot bench: {scenario}, {name}, tracking {tracking}, {r['window']}: err {r['err_n']:.3f} N, "
-            f"angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %, wrong {r['wrong_pct']:.1f} %")
+            f"angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %, wrong {r['wrong_pct']:.1f} %, "
+            f"> 3 sigma {r['over3sigma_pct']:.2f} %, sigma_n {r['sigma_n']:.3f} N ({r['sigma_ratio']:.2f} x the error)")
 
     def minutes(t):
         return [(f"min {m + 1}", (t >= 60 * m) & (t < 60 * (m + 1))) for m in range(int(WARM_S // 60))]
@@ -246,19 +264,22 @@ def markdown(rows: list[dict]) -> str:
         return d.replace("cuboid_joint_", "")
 
     lines = ["Loaded warm-up (a): median angle deg / magnitude % per minute, tracking off -> on; silently wrong % per minute",
-             "", "| device | scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 |",
-             "|---|---|---|---|---|---|---|"]
+             "", "| device | scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 "
+             "| > 3 sigma %, min 1..5 | sigma_n / error, min 1..5 |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for dev, scenario in ((d, s) for d in devices for s in ("loaded warm-up 2 % in 5 min", "loaded, no warming")):
         for est in ESTIMATORS:
             for tracking in (False, True):
                 rs = [find(scenario, est, tracking, f"min {m + 1}") for m in range(int(WARM_S // 60))]
                 lines.append(f"| {short(dev)} | {scenario} | {est} | {'on' if tracking else 'off'} | "
                              + " | ".join(" / ".join(_f(r[k], ".2f" if k != "wrong_pct" else ".0f") for r in rs)
-                                          for k in ("angle_deg", "magnitude_pct", "wrong_pct")) + " |")
+                                          for k in ("angle_deg", "magnitude_pct", "wrong_pct")) + " | "
+                             + " / ".join(_f(r["over3sigma_pct"], ".1f") for r in rs) + " | "
+                             + " / ".join(_f(r["sigma_ratio"], ".2f") for r in rs) + " |")
     lines += ["", "Restarts (b, c): tracking off -> on; first 0.1 s / 1 s: median |F - F_true| N; then the "
               "window from 1 s (at rest) or 5 s (loaded)", "",
               "| device | scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % "
-              "| implausible |", "|---|---|---|---|---|---|---|---|---|---|"]
+              "| implausible | > 3 sigma % | sigma_n / error |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for dev, loaded, change in ((d, ld, c) for d in devices for ld in (False, True) for c in (WARM, -WARM)):
         scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
         w = "from 5 s" if loaded else "from 1 s"
@@ -266,13 +287,15 @@ def markdown(rows: list[dict]) -> str:
             lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'first 0.1 s', 'err_n')} | "
                          f"{off_on(scenario, est, 'first 1 s', 'err_n')} | {off_on(scenario, est, w, 'zero_p99_n')} | "
                          f"{off_on(scenario, est, w, 'angle_deg')} | {off_on(scenario, est, w, 'magnitude_pct')} | "
-                         f"{off_on(scenario, est, w, 'wrong_pct', '.1f')} | {off_on(scenario, est, w, 'implausible', 'd')} |")
+                         f"{off_on(scenario, est, w, 'wrong_pct', '.1f')} | {off_on(scenario, est, w, 'implausible', 'd')} | "
+                         f"{off_on(scenario, est, w, 'over3sigma_pct', '.1f')} | {off_on(scenario, est, w, 'sigma_ratio')} |")
     lines += ["", "Warm-up 30 min with rests (d), all frames (last 5 min in robot.csv): tracking off -> on", "",
-              "| device | scenario | estimator | zero p99 N | angle deg | magnitude % | wrong % | implausible |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| device | scenario | estimator | zero p99 N | angle deg | magnitude % | wrong % | implausible | > 3 sigma % "
+              "| sigma_n / error |", "|---|---|---|---|---|---|---|---|---|---|"]
     for dev, scenario in ((d, s) for d in devices for s in ("warm-up 30 min (rests)", "warm-up baseline (no drift)")):
         for est in ESTIMATORS:
             lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'all', 'zero_p99_n')} | "
                          f"{off_on(scenario, est, 'all', 'angle_deg')} | {off_on(scenario, est, 'all', 'magnitude_pct')} | "
-                         f"{off_on(scenario, est, 'all', 'wrong_pct', '.1f')} | {off_on(scenario, est, 'all', 'implausible', 'd')} |")
+                         f"{off_on(scenario, est, 'all', 'wrong_pct', '.1f')} | {off_on(scenario, est, 'all', 'implausible', 'd')} | "
+                         f"{off_on(scenario, est, 'all', 'over3sigma_pct', '.1f')} | {off_on(scenario, est, 'all', 'sigma_ratio')} |")
     return "\n".join(lines) + "\n"

@@ -1,0 +1,130 @@
+"""Every force with its error bar: the 1-sigma uncertainty of a frame's force (issue 26, item 3).
+
+The force's error covariance of one frame, from the same estimate that gave the force::
+
+    cov_F = W S W^T  +  (W D_F) P (W D_F)^T  +  (k |F|)^2 / 3 I  +  (u W o)(u W o)^T
+
+- ``W`` (3, n_meas): the estimator's linear map of a change to a force (``linear``: the estimator
+  itself; ``model``: its linear part, the ridge regression it starts from: the non-linear estimator's
+  sensitivity to noise near a load is close to it, not equal);
+- ``S``: the per-channel noise of the change, the frame's and the reference's (``change_noise`` of
+  the estimator's ``noise``: measured by the tare, estimated from the frames, or assumed);
+- ``P``: the drift tracker's covariance of its measured states (the scale, the contacts' and the
+  gradient's), after this frame's predict and update: it grows while the joint is loaded (nothing is
+  measured then), so a loaded warm-up's forces carry a growing sigma. ``D_F`` the states' directions
+  in the change (``r = V_ref / y_scale`` for the scale, the contacts' and the gradient's directions),
+  the scale's plus the load's own change (a scale error ``d`` scales the load's change too:
+  ``W (d (r + y)) = d (W r + F)``). Without drift tracking this term is absent (nothing is tracked, and
+  the drift is not in the error bar);
+- ``k``: the calibration's residual, a relative error of the force's norm (isotropic): from a device
+  calibration's cross-validated 90th percentiles of the magnitude and angle errors
+  (:func:`relative_error`), else the nominal model's stated held-out accuracy
+  (:data:`NOMINAL_ACCURACY`, docs/benchmark.md: for the nominal sensor; a device off the nominal one
+  without calibration is worse, up to 40 % in magnitude);
+- the creep compensation's: ``o`` the creep offset the frame was corrected by, ``u`` the relative
+  uncertainty of its coefficient (:data:`CREEP_REL_ASSUMED` for the assumed 2..6 % per decade,
+  :data:`CREEP_REL_FITTED` for a calibration's fitted one).
+
+What is constant (``W S W^T``, ``W D``) is computed when the estimator or the tracker changes (a
+reference, a noise, a mask, a calibration); per frame: a (3, m) (m, m) product and a 208-long dot per
+axis for the creep. ``sigma`` is the square root of the diagonal (fx, fy, fz), ``sigma_n`` of its
+trace: the rms of the force error's norm. Not included: a foreign load, a change of the device none of
+the tracker's directions describe, the model estimator's non-linearity beyond its linear part, the
+filter (``~/wrench_filtered`` has no sigma).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: The nominal model's held-out accuracy (docs/benchmark.md, the nominal sensor at 60 dB): angle deg,
+#: magnitude % (median) per estimator; the sigma of an uncalibrated stream takes this as its
+#: calibration residual (a median of a normal's absolute value is 0.674 of its sigma).
+NOMINAL_ACCURACY = {"model": (0.5, 0.8), "linear": (0.8, 2.0)}
+#: A normal's 90th percentile of |x| in sigmas, and a 2-D one's (Rayleigh) of its norm.
+_P90_1D, _P90_2D, _P50_1D, _P50_2D = 1.645, 2.146, 0.674, 1.177
+#: Relative 1-sigma of the creep coefficient: assumed (uniform over 2..6 % around 4 %: 1.15 / 4), and
+#: fitted by a calibration (its held loads: assumed 10 %).
+CREEP_REL_ASSUMED = 0.29
+CREEP_REL_FITTED = 0.10
+
+
+def relative_error(calibration, estimator: str) -> tuple[float, str]:
+    """(k, where it comes from): the rms of the force error's norm over ``|F|`` that the calibration's
+    residual leaves (its radial and two tangential components). A calibration with a cross-validated
+    ``after``: from its 90th percentiles; else :data:`NOMINAL_ACCURACY` (medians)."""
+    cv = getattr(calibration, "cv", None) or {}
+    after = cv.get("after") if calibration is not None else None
+    if after:
+        mag = after["magnitude_pct_p90"] / 100.0 / _P90_1D
+        ang = math.radians(after["angle_deg_p90"]) / _P90_2D
+        where = f"calibration {calibration.path or ''} (cross-validated p90)".replace("  ", " ")
+    else:
+        a, m = NOMINAL_ACCURACY.get(estimator, NOMINAL_ACCURACY["linear"])
+        mag, ang = m / 100.0 / _P50_1D, math.radians(a) / _P50_2D
+        where = "the nominal model's held-out accuracy (docs/benchmark.md)" if calibration is None else \
+            f"the nominal model's held-out accuracy (calibration {calibration.path} not cross-validated)"
+    return math.sqrt(mag * mag + 2.0 * ang * ang), where
+
+
+class ForceSigma:
+    """The per-frame uncertainty of one estimator and tracker (module docstring).
+
+    Parameters
+    ----------
+    W : (3, n_meas) ndarray
+        The estimator's linear map (zero on excluded channels).
+    noise : (n_meas,) ndarray
+        Per-channel noise std of the change (y units).
+    keep : (n_meas,) bool ndarray
+    D : (m, n_meas) ndarray or None
+        The tracker's measured states' directions (the scale's first), or None without tracking.
+    k_rel : float
+        The calibration's relative residual (:func:`relative_error`).
+    creep_rel : float
+        The creep coefficient's relative 1-sigma (0: no creep term).
+    """
+
+    def __init__(self, W: np.ndarray, noise: np.ndarray, keep: np.ndarray, D: np.ndarray | None,
+                 k_rel: float, creep_rel: float = 0.0) -> None:
+        W = np.asarray(W, float) * keep
+        Wn = W * np.where(keep, noise, 0.0)
+        self.noise_var = np.einsum("ij,ij->i", Wn, Wn).tolist()  # diag(W S W^T)
+        self.W = np.ascontiguousarray(W)
+        self.WD = None
+        if D is not None:  # (3, m + 1): the tracker's measured states, then its rate (no direction of its own)
+            D = np.asarray(D, float)
+            self.WD = np.zeros((3, len(D) + 1))
+            self.WD[:, :len(D)] = W @ D.T
+            self._WDT = np.ascontiguousarray(self.WD.T)
+        self.k2 = float(k_rel) ** 2 / 3.0
+        self.creep_rel = float(creep_rel)
+
+    def creep_force(self, offset: np.ndarray) -> np.ndarray:
+        """The force of a creep offset (n_meas,): ``W o`` (taken before the compensator moves on)."""
+        return np.dot(self.W, offset)
+
+    def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None
+                 ) -> tuple[tuple[float, float, float], float]:
+        """((sigma fx, fy, fz), sigma_n) of a frame's ``force`` (3,), the tracker's covariance ``P``
+        ((m+1, m+1): its measured states, then the scale's rate; None: no tracking) and the force of the
+        creep offset the frame was corrected by (:meth:`creep_force`; None: none)."""
+        f = force.tolist()
+        cal = self.k2 * (f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        v = [x + cal for x in self.noise_var]
+        if P is not None and self.WD is not None:
+            # (WD + f e0^T) P (WD + f e0^T)^T: a scale error scales the load's change too; its diagonal
+            G = np.dot(self.WD, P)
+            M = np.dot(G, self._WDT).tolist()
+            u = G[:, 0].tolist()
+            p00 = float(P[0, 0])
+            for i in range(3):
+                v[i] += M[i][i] + 2.0 * f[i] * u[i] + p00 * f[i] * f[i]
+        if creep_force is not None and self.creep_rel:
+            c = creep_force.tolist()
+            r2 = self.creep_rel * self.creep_rel
+            for i in range(3):
+                v[i] += r2 * c[i] * c[i]
+        v0, v1, v2 = (max(x, 0.0) for x in v)
+        return (math.sqrt(v0), math.sqrt(v1), math.sqrt(v2)), math.sqrt(v0 + v1 + v2)
