@@ -127,7 +127,9 @@ class StreamConfig:
     drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
     creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
     noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
-    max_sigma_n: float = 2.0  # N: a frame whose force's 1-sigma (sigma_n, force/sigma.py) exceeds it is said in the diagnostics; 0 off
+    # N: a frame whose force's 1-sigma (sigma_n, force/sigma.py) exceeds it is said in the diagnostics
+    # (above a 40 dB board's noise alone, ~1.9 N); 0 off
+    max_sigma_n: float = 5.0
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
