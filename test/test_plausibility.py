@@ -93,8 +93,8 @@ def test_cli_estimate_marks_an_all_zero_frame_invalid(tmp_path, bag_frames):
             "--grid", *map(str, PIPE["grid"])]
     assert main(args) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
-    assert lines[2] == "1,,,,,,,0,,"  # frame, six empty force fields, valid, no statistic
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,sigma_n"
+    assert lines[2] == "1,,,,,,,0,,,"  # frame, six empty force fields, valid, no statistic, no sigma
     assert lines[1].split(",")[7] == "1" and lines[3].split(",")[7] == "1"
     forces, valid = read_forces(tmp_path / "forces.csv", with_valid=True)
     assert valid.tolist() == [True, False, True]
