@@ -140,9 +140,10 @@ def test_cli_simulate_then_estimate(tmp_path):
     assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--out", str(tmp_path / "forces.csv"), "--estimator", "linear"]) == 0
     header = (tmp_path / "forces.csv").read_text().splitlines()[0]
-    assert header == "frame,fx,fy,fz,magnitude,elevation,azimuth,consistency,foreign_load"
+    assert header == "frame,fx,fy,fz,magnitude,elevation,azimuth,consistency,foreign_load,sigma_n"
     rows = (tmp_path / "forces.csv").read_text().splitlines()[1:]
-    assert [r.split(",")[-1] for r in rows] == ["0", "0", "0"]  # socket loads: no foreign load
+    assert [r.split(",")[-2] for r in rows] == ["0", "0", "0"]  # socket loads: no foreign load
+    assert all(0 < float(r.split(",")[-1]) < 5 for r in rows), rows  # each force with its 1-sigma, N
     est, truth = read_forces(tmp_path / "forces.csv"), read_forces(tmp_path / "truth.csv")
     assert est.shape == truth.shape == (3, 3)
     assert np.degrees(angle_between(est, truth)).max() < 5.0

@@ -247,9 +247,9 @@ def test_cli_estimate_flags_the_foreign_scene(tmp_path):
     assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(MODEL_H)]) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
-    assert lines[0].endswith(",consistency,foreign_load")
+    assert lines[0].endswith(",consistency,foreign_load,sigma_n")
     # side press x2, top press x2, then a socket load x2 (one-frame reference: its noise counted, still quiet)
-    assert [r.split(",")[-1] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
+    assert [r.split(",")[-2] for r in lines[1:]] == ["1", "1", "1", "1", "0", "0"]
 
 
 @pytest.mark.slow
