@@ -168,7 +168,7 @@ def test_cli_estimate_says_and_uses_the_estimated_noise(device, tmp_path, capsys
     assert abs(said - 40.0) < 20 * math.log10(1.2), err
     lines = (tmp_path / "forces.csv").read_text().splitlines()
     assert len(lines) == 1 + len(read_frames(tmp_path / "frames.csv"))
-    assert [r.split(",")[-1] for r in lines[1:]] == ["0"] * len(frames)  # no socket frame flagged
+    assert [r.split(",")[-2] for r in lines[1:]] == ["0"] * len(frames)  # no socket frame flagged
 
 
 @pytest.mark.slow
