@@ -12,13 +12,39 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from cstomo_sensor.tools.bench.node import COLUMNS, cpu_seconds, markdown, memory_mb  # noqa: E402
+from cstomo_sensor.tools.bench.node import (  # noqa: E402
+    COLUMNS,
+    THREAD_GROUPS,
+    cpu_seconds,
+    markdown,
+    memory_mb,
+    thread_cpu,
+)
+
+#: The columns that hold text, not numbers.
+TEXT = ("node0_threads", "cold_node0_threads", "outputs")
+
+
+def numbers(row: dict, cold: bool = True) -> dict:
+    return {k: float(v) for k, v in row.items() if k not in TEXT and (cold or not k.startswith("cold_"))}
+
+
+def check_threads(row: dict, prefix: str = "") -> None:
+    """The per-thread figures of the first node process: positive where the node works (the frame and
+    reader threads), none negative, their sum within the process total (a tolerance for its 10 ms ticks)."""
+    total = row[f"{prefix}node0_cpu_us_per_frame"]
+    groups = [row[f"{prefix}node0_{g}_us_per_frame"] for g in THREAD_GROUPS]
+    assert total > 0 and all(g >= 0 for g in groups), row
+    assert row[f"{prefix}node0_frames_us_per_frame"] > 0 and row[f"{prefix}node0_reader_us_per_frame"] > 0, row
+    assert sum(groups) <= 1.2 * total + 100, row
 
 pytestmark = pytest.mark.slow  # bench-node runs real node and board processes (~30 s)
 
 
 def test_proc_readers_on_self():
     assert cpu_seconds(os.getpid()) > 0
+    threads = thread_cpu(os.getpid())
+    assert os.getpid() in threads and all(ns >= 0 and comm for comm, ns in threads.values())
     rss, hwm = memory_mb(os.getpid())
     assert 0 < rss <= hwm
 
@@ -30,8 +56,8 @@ def test_bench_node_smoke(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
                ROS_DOMAIN_ID=CALLER_DOMAIN or str(30 + (os.getpid() + 35) % 70))
     r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--rates", "100", "--stress", "1",
-                        "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
-                       env=env, capture_output=True, text=True, timeout=150)
+                        "--seconds", "2", "--warmup", "0.5", "--cold", "--out", str(tmp_path)],
+                       env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "| fps |" in r.stdout and "minimum transport delay" in r.stdout
     with open(tmp_path / "node_bench.csv", newline="") as f:
@@ -39,9 +65,17 @@ def test_bench_node_smoke(tmp_path):
         assert reader.fieldnames == COLUMNS
         rows = list(reader)
     assert len(rows) == 1
-    row = {k: float(v) for k, v in rows[0].items()}
+    text = rows[0]
+    row = numbers(text)
     assert all(math.isfinite(v) for v in row.values()), row
-    assert row["rate_hz"] == 100 and row["stress_field_every"] == 1
+    assert row["rate_hz"] == 100 and row["stress_field_every"] == 1 and row["cold_rate_hz"] == 10
+    check_threads(row)
+    check_threads(row, "cold_")
+    # the threads by name, the node's two among them; the outputs built with the field every frame
+    assert "cstomo_frames=" in text["node0_threads"] and "cstomo_reader=" in text["cold_node0_threads"], text
+    outputs = dict(x.split("=") for x in text["outputs"].split())
+    assert {"wrench", "raw_voltages", "stress_field"} <= set(outputs), text["outputs"]
+    assert "| frame thr |" in r.stdout
     assert row["wrenches"] > 0 and row["node_vmrss_mb"] > 0 and row["node_vmhwm_mb"] >= row["node_vmrss_mb"]
     assert markdown([row]).count("\n") == 2
 
@@ -62,8 +96,10 @@ def test_bench_node_two_sensors_writes_its_tables(tmp_path):
     with open(tmp_path / "node_bench.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 1 and rows[0]["sensors"] == "2" and rows[0]["hosted"] == "0"
-    row = {k: float(v) for k, v in rows[0].items()}
+    row = numbers(rows[0], cold=False)  # no --cold: those columns are empty (nan)
     assert all(math.isfinite(v) for v in row.values()), row
+    check_threads(row)
+    assert "stress_field" not in rows[0]["outputs"] and "wrench=" in rows[0]["outputs"], rows[0]["outputs"]
     assert row["wrenches"] > 0 and row["node_cpu_pct"] > 0 and row["board_cpu_pct"] > 0
     with open(tmp_path / "node_bench_sensors.csv", newline="") as f:
         reader = csv.DictReader(f)

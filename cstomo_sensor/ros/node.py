@@ -42,7 +42,7 @@ from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.clock import ClockMapper
-from ..board.driver import BoardDriver, check_port
+from ..board.driver import BoardDriver, check_port, set_os_thread_name
 from ..board.links import holds, is_virtual
 from ..board.wire import DATA_WIRE_BYTES, link_frame_rate
 from ..cache import check_writable
@@ -58,6 +58,9 @@ from .params import PARAMETERS, NodeConfig
 #: as ``dropped_overflow``): a controller wants the newest frame, not a backlog, so at most this many
 #: frame periods of staleness (4 ms at 1000 frames/s, 40 ms at 100).
 FRAME_QUEUE = 4
+#: The frame thread's name, for the OS too (``/proc/<pid>/task/<tid>/comm``; the driver's reader
+#: thread is :data:`~cstomo_sensor.board.driver.READER_THREAD`).
+FRAME_THREAD = "cstomo_frames"
 
 
 class CstomoSensorNode(LifecycleNode):
@@ -83,6 +86,7 @@ class CstomoSensorNode(LifecycleNode):
         self._driver = None
         self._sub = self._free_sub = None
         self._pubs: dict = {}
+        self._published: dict[str, int] = {}  # messages published per topic since configure (diagnostics)
         self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
@@ -185,6 +189,7 @@ class CstomoSensorNode(LifecycleNode):
                 f"{why}: taring on the first {cfg.tare_frames} frames from now, {elapsed:.0f} s after start (the "
                 "joint must be unloaded); no force is published before the tare is taken")
         qos = cfg.qos()
+        self._published = {}
         topics = self.stream.outputs + ((RAW_TOPIC,) if cfg.input == "serial" else ())
         for topic in topics:
             self._pubs[topic] = self.create_lifecycle_publisher(_msg_class(TOPIC_TYPES[topic]), f"~/{topic}", qos)
@@ -208,7 +213,7 @@ class CstomoSensorNode(LifecycleNode):
             self._driver = BoardDriver(cfg.port, protocol=cfg.protocol, baudrate=cfg.baudrate,
                                        rate_hz=cfg.rate_hz or None, queue_size=FRAME_QUEUE,
                                        stall_timeout=max(cfg.stale_timeout, 0.2))
-            self._thread = threading.Thread(target=self._serial_loop, name="cstomo_frames", daemon=True)
+            self._thread = threading.Thread(target=self._serial_loop, name=FRAME_THREAD, daemon=True)
             self._thread.start()
         else:
             self._sub = self.create_subscription(Image, "~/raw_voltages_in", self._on_raw, qos)
@@ -317,6 +322,7 @@ class CstomoSensorNode(LifecycleNode):
     # --- frames ------------------------------------------------------------------------------------
 
     def _serial_loop(self) -> None:
+        set_os_thread_name(FRAME_THREAD)
         drv = self._driver
         while not self._stop.is_set():
             try:
@@ -338,6 +344,7 @@ class CstomoSensorNode(LifecycleNode):
                 if self._active:  # the raw frame as measured, NaN where the board flagged a measurement
                     flagged = self.stream.flagged(frame.saturated, frame.contact_ok)
                     self._pubs[RAW_TOPIC].publish(self._raw_cdr(frame.values, stamp_ns, flagged))
+                    self._published[RAW_TOPIC] = self._published.get(RAW_TOPIC, 0) + 1
                 self._publish(self.stream.push(frame.values, frame.saturated, frame.contact_ok, stamp_ns,
                                                age_ns, process=self._active or self.stream.taring))
             except RCLError:
@@ -360,9 +367,10 @@ class CstomoSensorNode(LifecycleNode):
     def _publish(self, output) -> None:
         if output is None or not output.result.valid or not self._active:
             return  # an implausible frame is no force: counted by the stream, shown in diagnostics
-        pubs = self._pubs
+        pubs, counts = self._pubs, self._published
         for topic, data in self.out.build(output.result, output.stamp_ns, output.filtered).items():
             pubs[topic].publish(data)  # CDR bytes, serialised by OutputMessages
+            counts[topic] = counts.get(topic, 0) + 1
 
     # --- diagnostics -------------------------------------------------------------------------------
 
@@ -412,6 +420,7 @@ class CstomoSensorNode(LifecycleNode):
         kv["checksum"] = ("crc32" if cfg.protocol == "binary" else "none (text mode)") if serial else "n/a"
         reason = self.stale_reason() if self._active else ""
         kv["stale_reason"] = reason
+        kv["messages_published"] = " ".join(f"{t}={n}" for t, n in sorted(dict(self._published).items()))
         if reason:
             level = ERROR if ds is not None and not ds.connected else max(level, WARN)
             msgs = [f"stale: {reason}"] + [m for m in msgs if m != "board disconnected"]  # the reason says it

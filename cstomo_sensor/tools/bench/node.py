@@ -30,7 +30,20 @@ subscriber, so the measuring side stays small), the CPU of every node process an
   late, rejected and implausible ones) and their ratio, from the differences of its /diagnostics
   counters; the configuration row carries the smallest ratio over the sensors (``published_min_pct``)
   and the smallest published rate against the nominal one (``published_of_nominal_min_pct``: a board
-  that falls behind under load sends fewer frames than asked, which the first ratio cannot see).
+  that falls behind under load sends fewer frames than asked, which the first ratio cannot see);
+* CPU per frame of the first node process (``/s0``'s, or the host's) by thread: the CPU time of each of
+  its threads over the window (``/proc/<pid>/task/<tid>/schedstat``, ns; by OS thread name,
+  ``/proc/<pid>/task/<tid>/comm``) grouped as the frame thread (``cstomo_frames``), the driver's reader
+  thread (``cstomo_reader``; the node names both for the OS), the executor (the main thread and the
+  threads named as it: the executor's pool) and the other threads (the middleware's), in microseconds
+  per frame the process received (its sensors' diagnostics ``frames``), next to the process total
+  (``node0_cpu_us_per_frame``) and every thread name's figure (``node0_threads``);
+* with ``--cold``, the same configuration again at ``--cold-rate`` (10 frames/s: each frame comes after
+  ~100 ms idle) and its per-frame CPU by thread in the ``cold_*`` columns: the cost of a frame after an
+  idle period next to the warm one (it doubles the run time). The cold figures include what the node
+  does per second whatever the rate (diagnostics, timers) spread over fewer frames;
+* the outputs built: the topics the first sensor published on over the window and their rates
+  (``outputs``, from the ``messages_published`` counters of its diagnostics).
 
 Prints markdown tables and writes ``node_bench.csv``, ``node_bench_sensors.csv`` and ``node_bench.md``
 in ``--out``.
@@ -67,6 +80,14 @@ COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate
            "processing_mean_ms", "host_loadavg_1m",
            "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct", "node_cpu_us_per_frame",
            "node_cpu_max_pct", "bench_cpu_pct", "host_loadavg_end"]
+#: Thread groups of the first node process, by OS thread name (/proc/<pid>/task/<tid>/comm): the frame
+#: thread, the driver's reader thread (both named by the node), the executor (the main thread and the
+#: threads named as it: Python's, as the executor's pool) and the other threads (the middleware's,
+#: which name themselves).
+THREAD_GROUPS = ("frames", "reader", "executor", "other")
+_NODE0 = ["node0_cpu_us_per_frame"] + [f"node0_{g}_us_per_frame" for g in THREAD_GROUPS]
+COLUMNS += _NODE0 + ["node0_threads", "outputs", "cold_rate_hz"] + [f"cold_{c}" for c in _NODE0] + [
+    "cold_node0_threads", "cold_host_loadavg_1m"]
 #: One row per sensor and configuration (node_bench_sensors.csv).
 SENSOR_COLUMNS = ["rate_hz", "stress_field_every", "sensors", "hosted", "sensor", "window_s", "board_frames",
                   "board_rate_hz", "frames", "published", "published_pct", "published_rate_hz", "dropped_overflow",
@@ -82,9 +103,84 @@ METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the n
           "late, rejected and implausible ones, of the frames its board sent (frames + overflow + gaps + "
           "corrupt), from its /diagnostics counters; the smallest over the sensors. load 1m = the host's "
           "1-minute load average at the window's start and end (2 cores here: above ~1.5 the figures include "
-          "contention with other work).")
+          "contention with other work). Per thread (first node process): CPU time of each thread "
+          "(/proc/<pid>/task/<tid>/schedstat, ns) over the window by OS thread name (comm), per frame the "
+          "process received (its sensors' diagnostics 'frames'); frame thr = cstomo_frames, reader thr = "
+          "cstomo_reader (the driver), executor = the main thread and the threads named as it (the "
+          "executor's pool), other = the middleware's threads; us/frame = the process's utime+stime "
+          "(/proc/<pid>/stat, 10 ms ticks, ended threads included). cold = the same configuration at a low "
+          "rate (--cold-rate): every frame comes after an idle period (caches and branch predictors cold, "
+          "CPU clock down). outputs = the topics the first sensor published on over the window "
+          "(its diagnostics' messages_published).")
 
 _TICK = os.sysconf("SC_CLK_TCK")
+
+
+def thread_cpu(pid: int) -> dict[int, tuple[str, int]]:
+    """tid -> (OS thread name, CPU time in ns) of every thread of a process: the run time of
+    /proc/<pid>/task/<tid>/schedstat (ns), else utime+stime of its stat (clock ticks, 10 ms); a thread
+    that ends while it is read is left out."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        task = f"/proc/{pid}/task/{tid}"
+        try:
+            with open(f"{task}/comm") as f:
+                comm = f.read().strip()
+            try:
+                with open(f"{task}/schedstat") as f:
+                    ns = int(f.read().split()[0])
+            except FileNotFoundError:  # a kernel without schedstats
+                with open(f"{task}/stat") as f:
+                    rest = f.read().rsplit(")", 1)[1].split()
+                ns = (int(rest[11]) + int(rest[12])) * 1_000_000_000 // _TICK
+        except (FileNotFoundError, ProcessLookupError, IndexError, ValueError):
+            continue
+        out[int(tid)] = (comm, ns)
+    return out
+
+
+def thread_group(tid: int, pid: int, comm: str, main_comm: str) -> str:
+    """The group of THREAD_GROUPS a thread of process ``pid`` belongs to."""
+    from ...board.driver import READER_THREAD
+    from ...ros.node import FRAME_THREAD
+
+    if comm == FRAME_THREAD:
+        return "frames"
+    if comm == READER_THREAD:
+        return "reader"
+    if tid == pid or comm == main_comm:
+        return "executor"
+    return "other"
+
+
+def thread_figures(pid: int, before: dict, after: dict, frames: float) -> dict:
+    """CPU microseconds per frame of a process's thread groups between two :func:`thread_cpu`
+    readings (a thread started in between counts from zero, one that ended is lost: the process
+    total, from /proc/<pid>/stat, has it), and every thread name's, as 'name=us ...' (largest first)."""
+    main_comm = after.get(pid, before.get(pid, ("", 0)))[0]
+    groups = dict.fromkeys(THREAD_GROUPS, 0)
+    names: dict[str, int] = {}
+    for tid, (comm, ns) in after.items():
+        d = ns - before.get(tid, (comm, 0))[1]
+        groups[thread_group(tid, pid, comm, main_comm)] += d
+        names[comm] = names.get(comm, 0) + d
+    per = lambda ns: round(ns * 1e-3 / frames, 1) if frames > 0 else math.nan  # noqa: E731
+    return {**{f"node0_{g}_us_per_frame": per(ns) for g, ns in groups.items()},
+            "node0_threads": " ".join(f"{c}={per(ns):g}" for c, ns in sorted(names.items(), key=lambda x: -x[1])
+                                      if ns > 0)}
+
+
+def published_topics(diags: list, t0: float, t1: float) -> str:
+    """The topics a sensor published messages on over the window, with their rates ('wrench=100/s ...'),
+    from the ``messages_published`` counters of its diagnostics; '' when it does not report them."""
+    before = [(t, d) for t, d in diags if t <= t0 and "messages_published" in d]
+    inside = [(t, d) for t, d in diags if t0 < t <= t1 and "messages_published" in d]
+    if not (before and inside):
+        return ""
+    (tb, db), (ta, da) = before[-1], inside[-1]
+    parse = lambda d: dict((k, int(v)) for k, _, v in (x.partition("=") for x in d["messages_published"].split()))  # noqa: E731
+    b, a = parse(db), parse(da)
+    return " ".join(f"{t}={(n - b.get(t, 0)) / (ta - tb):.0f}/s" for t, n in sorted(a.items()) if n > b.get(t, 0))
 
 
 def cpu_seconds(pid: int) -> float:
@@ -176,7 +272,9 @@ class _Sensors:
         # warm-up + window + margin
         duration = 30.0 + 8.0 * n + a.warmup + a.seconds
         self.params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": float(rate), "protocol": "binary",
-                       "tare_on_start": True, "tare_frames": 50, "stress_field_every": stress}
+                       "tare_on_start": True,
+                       # the tare within the load script's unloaded 2 s at a low (cold) rate too
+                       "tare_frames": int(min(50, max(5, rate // 2))), "stress_field_every": stress}
         board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(rate), "--duration",
                       str(duration), "--protocol", "binary"]
         self.logs = []
@@ -275,9 +373,11 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
         with rec.lock:
             rec.recording, n0 = True, rec.wrenches
         pids = sensors.node_pids + sensors.board_pids + [me]
+        th0 = thread_cpu(pids[0])
         t0, c0 = time.monotonic(), [cpu_seconds(p) for p in pids]
         time.sleep(a.seconds)
         t1, c1 = time.monotonic(), [cpu_seconds(p) for p in pids]
+        th1 = thread_cpu(pids[0])
         with rec.lock:
             rec.recording, n1 = False, rec.wrenches
             lat = np.array(rec.latencies_ns, float) * 1e-6
@@ -316,6 +416,8 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
     published_min = min((f.get("published_pct", math.nan) for f in figs), default=math.nan) if all(figs) else math.nan
     nominal_min = min((f.get("published_of_nominal", math.nan) for f in figs), default=math.nan) if all(figs) else math.nan
     frames_all = total("frames")
+    frames0 = frames_all if hosted else f0.get("frames", math.nan)  # the frames of the first node process
+    node0 = thread_figures(sensors.node_pids[0], th0, th1, frames0)
     keeps_up = int(wrench_rate >= 0.98 * rate and dropped == 0 and published_min >= 99.9)
     pct = lambda q: float(np.percentile(lat, q)) if lat.size else math.nan  # noqa: E731
     row = {"rate_hz": rate, "stress_field_every": stress, "window_s": round(window, 3), "wrenches": n1 - n0,
@@ -334,8 +436,18 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
            "node_cpu_us_per_frame": round(1e4 * sum(node_cpu) * window / frames_all, 1)
            if math.isfinite(frames_all) and frames_all > 0 else math.nan,
            "node_cpu_max_pct": round(max(node_cpu), 1), "bench_cpu_pct": round(bench_cpu, 1),
-           "host_loadavg_end": round(load, 2)}
+           "host_loadavg_end": round(load, 2),
+           "node0_cpu_us_per_frame": round(1e4 * node_cpu[0] * window / frames0, 1) if frames0 > 0 else math.nan,
+           **node0, "outputs": published_topics(diags.get(rec.names[0], []), t0, t1),
+           **{c: math.nan for c in COLUMNS if c.startswith("cold_")}}
     return row, sensor_rows
+
+
+def with_cold(row: dict, cold: dict) -> dict:
+    """``row`` with the first node process's per-frame CPU of ``cold`` (the same configuration at a low
+    rate) in its ``cold_*`` columns."""
+    return dict(row, cold_rate_hz=cold["rate_hz"], cold_host_loadavg_1m=cold["host_loadavg_1m"],
+                **{f"cold_{c}": cold[c] for c in _NODE0 + ["node0_threads"]})
 
 
 def _table(head: list[str], keys: list[str], rows: list[dict]) -> str:
@@ -366,6 +478,18 @@ def markdown(rows: list[dict]) -> str:
     return _table(head, keys, rows)
 
 
+def threads_markdown(rows: list[dict]) -> str:
+    """CPU per frame of the first node process by thread group, warm and (with --cold) cold, and the
+    topics it published."""
+    head = ["fps", "stress", "sensors", "hosted", "us/frame", "frame thr", "reader thr", "executor", "other",
+            "cold fps", "cold us/frame", "cold frame thr", "cold reader thr", "cold executor", "cold other",
+            "load 1m warm/cold", "outputs (msgs/s)"]
+    keys = ["rate_hz", "stress_field_every", "sensors", "hosted", *_NODE0, "cold_rate_hz",
+            *[f"cold_{c}" for c in _NODE0], "load", "outputs"]
+    rows = [dict(r, load=f"{r['host_loadavg_1m']:g}/{r['cold_host_loadavg_1m']:g}") for r in rows]
+    return _table(head, keys, rows)
+
+
 def sensors_markdown(rows: list[dict]) -> str:
     head = ["fps", "stress", "sensors", "hosted", "sensor", "board fr/s", "published", "published %", "published/s",
             "overflow", "seq gaps", "corrupt", "late", "rejected", "implausible", "node CPU %"]
@@ -387,6 +511,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--both", action="store_true", help="every configuration with a process each and hosted")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
     p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
+    p.add_argument("--cold", action="store_true",
+                   help="every configuration also at --cold-rate (frames after an idle period; doubles the run time)")
+    p.add_argument("--cold-rate", type=float, default=10.0, help="the cold run's frame rate, Hz (default 10)")
     p.add_argument("--out", default=".", help="directory for the tables and the processes' logs")
     p.add_argument("--sensor", default=DEFAULTS.sensor)
     p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
@@ -429,6 +556,9 @@ def main(argv: list[str] | None = None) -> int:
                               flush=True)
                         t = time.monotonic()
                         row, per_sensor = run_one(ros_node, a, rate, stress, work, script, n, hosted)
+                        if a.cold:
+                            print(f"     cold: the same at {a.cold_rate:g} fps ...", flush=True)
+                            row = with_cold(row, run_one(ros_node, a, a.cold_rate, stress, work, script, n, hosted)[0])
                         rows.append(row)
                         sensor_rows += per_sensor
                         print(f"     done in {time.monotonic() - t:.1f} s: published min {row['published_min_pct']:g} %, "
@@ -448,7 +578,9 @@ def main(argv: list[str] | None = None) -> int:
         w = csv.DictWriter(f, fieldnames=SENSOR_COLUMNS)
         w.writeheader()
         w.writerows(sensor_rows)
-    text = f"{markdown(rows)}\n\nPer sensor:\n\n{sensors_markdown(sensor_rows)}\n\nMethod: {METHOD}\n"
+    text = (f"{markdown(rows)}\n\nCPU per frame of the first node process by thread, us (cold: "
+            f"{'at ' + format(a.cold_rate, 'g') + ' fps' if a.cold else 'not measured, see --cold'}):\n\n"
+            f"{threads_markdown(rows)}\n\nPer sensor:\n\n{sensors_markdown(sensor_rows)}\n\nMethod: {METHOD}\n")
     (out / "node_bench.md").write_text(text)
     print()
     print(text)
