@@ -21,11 +21,12 @@ from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame
 from ..inverse.landweber import LandweberSVD
 from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
-from ..model.geometry import DEFAULT_SENSOR, SensorGeometry, load_sensor
+from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
+from ..settings import default
 from .calibration import DeviceCalibration
 from .device import DEFAULT_NOISE_DB, ScaleReport, check_noise
-from .estimate import ESTIMATORS, CalibrationSpec, build_estimator
+from .estimate import ESTIMATORS, build_estimator
 from .gate import PlausibilityGate
 from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
 
@@ -35,24 +36,22 @@ log = logging.getLogger(__name__)
 NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
 NOISE_MEASURED = "measured by the tare"
 
-#: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load.
-RATED_FORCE = max(CalibrationSpec.magnitudes)  # N
 
 
 @dataclass(frozen=True)
 class PipelineConfig:
-    """Every setting of the per-frame path: the one source of their defaults and choices (the
-    node's parameters, the parameter file and the command line take theirs from here)."""
+    """Every setting of the per-frame path; their defaults, ranges and descriptions are declared
+    once in cstomo_sensor/settings.py."""
 
-    sensor: str = DEFAULT_SENSOR
-    cache_dir: str = ""  # '' = default_cache_dir()
-    estimator: str = ESTIMATORS[0]
-    mesh_size: float = ReconSpec.mesh_size  # m
-    grid: tuple[int, int, int] = ReconSpec.grid
-    iterations: int = 0  # 0 = chosen by the discrepancy rule
-    damping: float = ReconSpec.damping
-    max_force: float = 1.5 * RATED_FORCE  # N; larger estimates (and frames no such load explains) are implausible
-    calibration_file: str = ""  # a device calibration (cstomo calibrate); '' = the nominal model
+    sensor: str = default("sensor")
+    cache_dir: str = default("cache_dir")  # '' = default_cache_dir()
+    estimator: str = default("estimator")
+    mesh_size: float = default("mesh_size")  # m
+    grid: tuple[int, int, int] = default("grid")
+    iterations: int = default("iterations")  # 0 = chosen by the discrepancy rule
+    damping: float = default("damping")
+    max_force: float = default("max_force")  # N; larger estimates (and frames no such load explains) are implausible
+    calibration_file: str = default("calibration_file")  # a device calibration (cstomo calibrate); '' = the nominal model
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:

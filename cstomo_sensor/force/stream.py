@@ -46,7 +46,8 @@ import numpy as np
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
-from .creep import DEFAULT_CREEP, CreepCompensator, creep_problem
+from ..settings import default
+from .creep import CreepCompensator, creep_problem
 from .device import read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
 from .filter import LowPass
@@ -116,20 +117,18 @@ PERIOD_FRAMES = 32
 
 @dataclass(frozen=True)
 class StreamConfig:
-    """Every setting of the frame stream: the one source of their defaults (the node's parameters
-    and the command line take theirs from here)."""
+    """Every setting of the frame stream; the defaults, ranges and descriptions of those the node
+    has as parameters are declared once in cstomo_sensor/settings.py."""
 
-    tare_frames: int = 50
+    tare_frames: int = default("tare_frames")
     tare_max_spread: float = TARE_MAX_SPREAD
-    stress_field_every: int = 10  # attach the fields to every N-th processed frame (the first included); 0 never
-    wrench_filter_hz: float = 20.0  # 0 = no filtered wrench
-    stale_timeout: float = 0.5  # s: a frame older is late (dropped); a gap longer restarts the filter
-    drift_tracking: bool = True  # follow the device's slow uniform change after the tare (force/drift.py)
-    creep_per_decade: float = DEFAULT_CREEP  # the rubber's creep (force/creep.py) unless the calibration has it; 0 off
+    stress_field_every: int = default("stress_field_every")  # the fields of every N-th processed frame (the first); 0 never
+    wrench_filter_hz: float = default("wrench_filter_hz")  # 0 = no filtered wrench
+    stale_timeout: float = default("stale_timeout")  # s: a frame older is late (dropped); a gap longer restarts the filter
+    drift_tracking: bool = default("drift_tracking")  # follow the device's slow uniform change (force/drift.py)
+    creep_per_decade: float = default("creep_per_decade")  # the rubber's creep (force/creep.py) unless the calibration's; 0 off
     noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
-    # N: a frame whose force's 1-sigma (sigma_n, force/sigma.py) exceeds it is said in the diagnostics
-    # (above a 40 dB board's noise alone, ~1.9 N); 0 off
-    max_sigma_n: float = 5.0
+    max_sigma_n: float = default("max_sigma_n")  # N: a force's 1-sigma above it is said in the diagnostics; 0 off
 
     def __post_init__(self) -> None:
         if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
