@@ -85,10 +85,10 @@ class Setting:
         try:
             value = kind(text)
         except ValueError:
-            raise ValueError(f"{text!r}: expected a {kind.__name__} (default {_text(self.default)})") from None
+            raise ValueError(f"{text!r}: expected a {kind.__name__} (default {text_of(self.default)})") from None
         why = self._problem(value, kind)
         if why:
-            raise ValueError(f"{text!r}: expected {why} (default {_text(self.default)})")
+            raise ValueError(f"{text!r}: expected {why} (default {text_of(self.default)})")
         return value
 
 
@@ -161,7 +161,7 @@ def _number(x: float) -> str:
     return str(int(x)) if float(x).is_integer() else f"{x:g}"
 
 
-def _text(value: object) -> str:
+def text_of(value: object) -> str:
     """A value as the parameter file and the docs write it."""
     if isinstance(value, bool):
         return str(value).lower()
@@ -180,7 +180,7 @@ def parameter_file() -> str:
            "/**/cstomo_sensor:           # any namespace (launch namespace:=left_knee, ros2 run ... -r __ns:=/left_knee)",
            "  ros__parameters:"]
     for s in SETTINGS:
-        head = f"    {s.name}: {_text(s.default)} ".ljust(30)
+        head = f"    {s.name}: {text_of(s.default)} ".ljust(30)
         note = f"[{s.range}] " if s.range else ""
         lines = textwrap.wrap(note + s.description, 110 - 32, break_on_hyphens=False)
         out.append(f"{head}# {lines[0]}")
@@ -193,7 +193,7 @@ def markdown_table() -> str:
     out = ["| parameter | default | values | read-only | description |", "|---|---|---|---|---|"]
     for s in SETTINGS:
         desc = s.description.replace("|", "\\|")
-        out.append(f"| `{s.name}` | `{_text(s.default)}` | {s.range} | {'yes' if s.read_only else 'no'} | {desc} |")
+        out.append(f"| `{s.name}` | `{text_of(s.default)}` | {s.range} | {'yes' if s.read_only else 'no'} | {desc} |")
     return "\n".join(out) + "\n"
 
 

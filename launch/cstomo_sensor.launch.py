@@ -29,33 +29,9 @@ from launch.event_handlers import OnShutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 
-from cstomo_sensor.tools.launching import NODE_NAME, launch_plan
+from cstomo_sensor.tools.launching import ARGUMENTS, NODE_NAME, launch_plan
 from launch import LaunchDescription
 
-ARGUMENTS = {  # name: (default, description); None: a file of the installed package (_DEFAULT_FILES)
-    "port": ("", "serial URL of the board (default: the config file's port)"),
-    "config": (None, "parameter file of the node(s)"),
-    "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
-    "sensor": ("", "sensor preset or YAML path (default: the config file's)"),
-    "estimator": ("", "force estimator: model or linear (default: the config file's)"),
-    "frame_id": ("", "frame of the wrench and the stress cloud (default: the config file's, cstomo_socket)"),
-    "calibration_file": ("", "device calibration from `cstomo calibrate` (default: the config file's)"),
-    "tare_on_start": ("", "true: tare on the first frames at start; false: the saved tare (default: the file's)"),
-    "namespace": ("", "namespace of the node's topics"),
-    "sim_load_script": ("", "with sim: load script CSV for the simulated board (default: built in)"),
-    "parent_frame": ("", "frame the sensor is fixed to: also publish the static transform to frame_id"),
-    "x": ("", "with parent_frame: the socket centre's x in parent_frame, metres (default 0)"),
-    "y": ("", "with parent_frame: y, metres (default 0)"),
-    "z": ("", "with parent_frame: z, metres (default 0)"),
-    "roll": ("", "with parent_frame: rotation about x, radians (default 0)"),
-    "pitch": ("", "with parent_frame: rotation about y, radians (default 0)"),
-    "yaw": ("", "with parent_frame: rotation about z, radians (default 0)"),
-    "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above; a relative "
-                    "path from the current directory, else from the installed package (config/sensors_example.yaml)"),
-    "rviz": ("false", "true: also start RViz2 showing the wrench and the stress cloud"),
-    "rviz_config": (None, "RViz2 configuration whose /cstomo_sensor/... displays are repeated per sensor"),
-    "rviz_fixed_frame": ("", "RViz fixed frame (default: the first sensor's parent_frame, else its frame_id)"),
-}
 _DEFAULT_FILES = {"config": "cstomo_sensor.yaml", "rviz_config": "cstomo_sensor.rviz"}  # in share/.../config
 
 

@@ -10,7 +10,6 @@ stand for any value; an inline mention may leave out values and required options
 from __future__ import annotations
 
 import argparse
-import ast
 import re
 import shlex
 from pathlib import Path
@@ -153,9 +152,9 @@ def _ros_args(words: list[str]) -> str | None:
 
 
 def _launch_arguments() -> set[str]:
-    tree = ast.parse((ROOT / "launch" / "cstomo_sensor.launch.py").read_text())
-    (table,) = [n.value for n in tree.body if isinstance(n, ast.Assign) and n.targets[0].id == "ARGUMENTS"]
-    return set(ast.literal_eval(table))
+    from cstomo_sensor.tools.launching import ARGUMENTS  # the launch file declares these
+
+    return set(ARGUMENTS)
 
 
 def check(command: str, inline: bool) -> str | None:

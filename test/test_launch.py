@@ -10,7 +10,6 @@ against launch itself.
 """
 from __future__ import annotations
 
-import ast
 from pathlib import Path
 
 import pytest
@@ -48,11 +47,12 @@ def declared():
 
 
 def _arguments() -> dict:
-    """The launch file's ARGUMENTS table (name -> (default, description)), read without importing
-    launch (not installable from the package index)."""
-    tree = ast.parse(LAUNCH.read_text())
-    (table,) = [n.value for n in tree.body if isinstance(n, ast.Assign) and n.targets[0].id == "ARGUMENTS"]
-    return ast.literal_eval(table)
+    """The launch file's arguments (name -> (default, description)): tools/launching.py's table, which
+    the launch file declares (importing launch is not possible here: not installable from the index)."""
+    from cstomo_sensor.tools.launching import ARGUMENTS
+
+    assert "for name, (default, desc) in ARGUMENTS.items()" in LAUNCH.read_text()
+    return ARGUMENTS
 
 
 def test_every_launch_argument_is_a_declared_parameter_and_defaults_to_the_file(declared):

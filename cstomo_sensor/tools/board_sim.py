@@ -24,6 +24,7 @@ from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
 from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
+from .common import add_setting_arg
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -34,7 +35,7 @@ SCRIPT_HOLD_S = 3600.0
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
-    p.add_argument("--sensor", default=DEFAULT_SENSOR, help="sensor preset name or YAML path (default %(default)s)")
+    add_setting_arg(p, "sensor")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scene", help="scene YAML file: a timeline scene's rubber creeps as its timeline's creep: "
                                      "says; a scene's list of loads (foreign loads too) holds each load exactly, "
@@ -50,7 +51,7 @@ def parser() -> argparse.ArgumentParser:
                         "without further creep; the first run solves its knots (about 40 ms each), cached")
     p.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ, help="frames per second (default %(default)g)")
     p.add_argument("--duration", type=float, help="seconds to run (default: until SIGINT/SIGTERM)")
-    p.add_argument("--protocol", default="binary", help="binary (default) or text")
+    add_setting_arg(p, "protocol")
     p.add_argument("--link", help="symlink kept pointing at the current pty")
     p.add_argument("--snr", type=float, default=None,
                    help=f"signal-to-noise ratio in dB (default: the scene's snr_db; {DEFAULT_SNR_DB:g} for a load script)")

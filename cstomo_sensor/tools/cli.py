@@ -26,7 +26,7 @@ from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
-from .common import add_creep_arg, add_pipeline_args, pipeline_config
+from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -107,7 +107,7 @@ def cmd_estimate(a) -> int:
         creep = 0.0
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
-                                            drift_tracking=not a.no_drift_tracking, creep_per_decade=creep))
+                                            drift_tracking=a.drift_tracking, creep_per_decade=creep))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
     noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "
@@ -194,8 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
                    help="frames per second of the frames file, in file order: the clock of the drift tracking "
                         "(default %(default)g)")
-    e.add_argument("--no-drift-tracking", action="store_true",
-                   help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
+    add_setting_arg(e, "drift_tracking")
     add_creep_arg(e)
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)

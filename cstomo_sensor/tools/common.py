@@ -1,9 +1,10 @@
-"""What the command-line tools share: the pipeline's flags, the ROS environment of the tools that
-start rclpy, finding the package's executables, and starting the node together with a simulated
-board (what a launch starts is decided in :mod:`.launching`).
+"""What the command-line tools share: the flags that mirror a node setting, the ROS environment of
+the tools that start rclpy, finding the package's executables, and starting the node together with
+a simulated board (what a launch starts is decided in :mod:`.launching`).
 
-The flags take their defaults and choices from :class:`~cstomo_sensor.force.pipeline.PipelineConfig`
-(the one source of truth); every length is in metres, as in the node's parameters and the files.
+A flag that mirrors a node setting takes its default, choices, range and help from the setting's one
+declaration (:mod:`cstomo_sensor.settings`, :func:`add_setting_arg`); every length is in metres, as
+in the node's parameters and the files.
 """
 from __future__ import annotations
 
@@ -18,50 +19,60 @@ from typing import IO
 
 import yaml
 
-from ..errors import ConfigError, CstomoError
-from ..force.estimate import ESTIMATORS
+from ..errors import CstomoError
 from ..force.pipeline import PipelineConfig
+from ..settings import SETTING, text_of
 
 DEFAULTS = PipelineConfig()
+_SAME = object()
+
+
+def add_setting_arg(p: argparse.ArgumentParser, name: str, *, flag: str | None = None, default=_SAME,
+                    note: str = "") -> argparse.Action:
+    """The flag (``--name-with-dashes`` unless ``flag``) of node setting ``name``: its default (or
+    ``default``), choices, range (a value outside is refused naming the flag) and description as
+    its help, then ``note``; a boolean one is ``--name``/``--no-name``. ``dest`` is ``name``."""
+    s = SETTING[name]
+    flag = flag or "--" + name.replace("_", "-")
+    value = s.default if default is _SAME else default
+    text = s.description.replace("%", "%%") + (f" ({s.range})" if s.range and not s.choices else "")
+    text += f"; default {text_of(value) if value is not None else 'none'}" + (f"; {note}" if note else "")
+    if isinstance(s.default, bool):
+        return p.add_argument(flag, dest=name, default=value, action=argparse.BooleanOptionalAction, help=text)
+
+    def parse(word: str):
+        try:
+            return s.parse(word)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+
+    parse.__name__ = name  # argparse's message names it
+    kind = {"nargs": len(s.default), "default": list(value)} if isinstance(s.default, tuple) else {"default": value}
+    metavar = ("NX", "NY", "NZ") if name == "grid" else None
+    return p.add_argument(flag, dest=name, type=parse, choices=s.choices or None, help=text, metavar=metavar, **kind)
 
 
 def add_pipeline_args(p: argparse.ArgumentParser, estimator: bool = True) -> None:
-    """``--sensor --mesh-size --grid --iterations --damping --cache-dir`` (and ``--estimator``)."""
-    p.add_argument("--sensor", default=DEFAULTS.sensor, help="preset name or geometry YAML path (default %(default)s)")
-    p.add_argument("--mesh-size", type=float, default=DEFAULTS.mesh_size, metavar="METRES",
-                   help="forward mesh element size in metres (default %(default)g)")
-    p.add_argument("--grid", type=int, nargs=3, default=DEFAULTS.grid, metavar=("NX", "NY", "NZ"),
-                   help="reconstruction voxel grid (default %(default)s)")
-    p.add_argument("--iterations", type=int, default=DEFAULTS.iterations, help="Landweber iterations (0 = discrepancy rule)")
-    p.add_argument("--damping", type=float, default=DEFAULTS.damping, help="Tikhonov damping relative to s_max^2")
-    p.add_argument("--cache-dir", default=DEFAULTS.cache_dir, help="cache directory (default: the user's cache)")
+    """``--sensor --mesh-size --grid --iterations --damping --cache-dir`` (and ``--estimator
+    --calibration --max-force``): the node's settings of the same names."""
+    for name in ("sensor", "mesh_size", "grid", "iterations", "damping", "cache_dir"):
+        add_setting_arg(p, name)
     if estimator:
-        p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS,
-                       help="force estimator (default %(default)s)")
-        p.add_argument("--calibration", default=DEFAULTS.calibration_file, metavar="FILE",
-                       help="device calibration from `cstomo calibrate` (default: the nominal model)")
-        p.add_argument("--max-force", type=float, default=DEFAULTS.max_force, metavar="N",
-                       help="frames implying a larger force are implausible: no output (default %(default)g)")
+        add_setting_arg(p, "estimator")
+        add_setting_arg(p, "calibration_file", flag="--calibration")
+        add_setting_arg(p, "max_force")
 
 
 def add_creep_arg(p: argparse.ArgumentParser) -> None:
     """``--creep-per-decade``: the stream's creep compensation, as the node's ``creep_per_decade``."""
-    from ..force.stream import StreamConfig
-
-    p.add_argument("--creep-per-decade", type=float, default=StreamConfig.creep_per_decade, metavar="C",
-                   help="the rubber's creep per decade of time, compensated so a held load reads constant "
-                        "(default %(default)g; a calibration's fitted value wins; 0: off, over a calibration's too; "
-                        "`cstomo estimate` turns it off on frames that are not one recording in time)")
+    add_setting_arg(p, "creep_per_decade", note="`cstomo estimate` turns it off on frames that are not one "
+                                                "recording in time")
 
 
 def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
     """The :class:`PipelineConfig` of parsed :func:`add_pipeline_args` flags (validated there)."""
-    if a.mesh_size > 0.1:  # a value in millimetres, as older versions took it
-        raise ConfigError.bad_value("--mesh-size", a.mesh_size, f"metres (e.g. {a.mesh_size * 1e-3:g})")
-    return PipelineConfig(sensor=a.sensor, cache_dir=a.cache_dir, estimator=getattr(a, "estimator", DEFAULTS.estimator),
-                          mesh_size=a.mesh_size, grid=tuple(a.grid), iterations=a.iterations, damping=a.damping,
-                          max_force=getattr(a, "max_force", DEFAULTS.max_force),
-                          calibration_file=getattr(a, "calibration", DEFAULTS.calibration_file) or "")
+    return PipelineConfig(**{name: getattr(a, name) for name in PipelineConfig.__dataclass_fields__
+                             if hasattr(a, name)})
 
 
 def local_ros_env(domain_base: int) -> None:

@@ -33,10 +33,9 @@ from geometry_msgs.msg import WrenchStamped
 
 from ..angles import angle_between, force_angles, force_from_angles
 from ..errors import CstomoError
-from ..force.estimate import ESTIMATORS
 from ..force.pipeline import Pipeline, PipelineConfig
 from ..frames_io import force_at, load_index, read_load_script
-from .common import DEFAULTS, NodeWithBoard, local_ros_env
+from .common import NodeWithBoard, add_setting_arg, local_ros_env
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -62,8 +61,8 @@ def _fmt(f: np.ndarray) -> str:
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo demo", description=__doc__.splitlines()[0])
-    p.add_argument("--sensor", default=DEFAULTS.sensor)
-    p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
+    add_setting_arg(p, "sensor")
+    add_setting_arg(p, "estimator")
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
     p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held (the last one, with --load-script)")
     p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")

@@ -27,7 +27,8 @@ from ..cache import default_cache_dir
 from ..errors import ConfigError, CstomoError
 from ..force.device import tare_file_name
 from ..model.geometry import load_sensor
-from .common import DEFAULTS, PACKAGE, config_parameter, executable, package_executable, package_file
+from ..settings import SETTING, default
+from .common import PACKAGE, config_parameter, executable, package_executable, package_file
 
 NODE_NAME = "cstomo_sensor"  # the node's name in every namespace (the parameter file's key)
 #: The sensor's pose in its parent frame: metres and radians (roll about x, pitch about y, yaw about z).
@@ -48,6 +49,36 @@ SIM_LOAD = "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,10,0,-15\n9,0,10,-15\n12,0,0,0\
 
 _ROS_NAME = re.compile(r"^/?[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _FRAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_./-]*$")
+
+
+def _node_argument(name: str) -> tuple[str, str]:
+    """A launch argument overriding node parameter ``name``: empty (the parameter file's value) and the
+    setting's description."""
+    return "", f"{SETTING[name].description} (default: the parameter file's)"
+
+
+#: Every argument of launch/cstomo_sensor.launch.py: name -> (default, description); a default None is
+#: a file of the installed package (the launch file finds it); a node argument's description is the
+#: setting's (cstomo_sensor/settings.py).
+ARGUMENTS = {
+    "port": _node_argument("port"), "config": (None, "parameter file of the node(s)"),
+    "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
+    **{name: _node_argument(name) for name in NODE_ARGUMENTS[1:]},
+    "namespace": ("", "namespace of the node's topics"),
+    "sim_load_script": ("", "with sim: load script CSV for the simulated board (default: built in)"),
+    "parent_frame": ("", "frame the sensor is fixed to: also publish the static transform to frame_id"),
+    "x": ("", "with parent_frame: the socket centre's x in parent_frame, metres (default 0)"),
+    "y": ("", "with parent_frame: y, metres (default 0)"),
+    "z": ("", "with parent_frame: z, metres (default 0)"),
+    "roll": ("", "with parent_frame: rotation about x, radians (default 0)"),
+    "pitch": ("", "with parent_frame: rotation about y, radians (default 0)"),
+    "yaw": ("", "with parent_frame: rotation about z, radians (default 0)"),
+    "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above; a relative "
+                    "path from the current directory, else from the installed package (config/sensors_example.yaml)"),
+    "rviz": ("false", "true: also start RViz2 showing the wrench and the stress cloud"),
+    "rviz_config": (None, "RViz2 configuration whose /cstomo_sensor/... displays are repeated per sensor"),
+    "rviz_fixed_frame": ("", "RViz fixed frame (default: the first sensor's parent_frame, else its frame_id)"),
+}
 
 
 @dataclass(frozen=True)
@@ -160,12 +191,6 @@ def _transform(where: str, parent: str, child: str, pose: dict) -> Transform | N
     return Transform(parent, child, tuple(_number(f"{where}{k}", given.get(k, 0.0)) for k in POSE))
 
 
-def _node_default(name: str) -> object:
-    from ..ros.params import PARAMETERS  # rclpy: only when the parameter file does not say
-
-    return PARAMETERS[name][0]
-
-
 def _from_file(config: str, name: str) -> object | None:
     """Parameter ``name`` of the parameter file ``config`` ('' = none), or None if it does not set it."""
     if not config:
@@ -180,7 +205,7 @@ def _from_file(config: str, name: str) -> object | None:
 
 def _file_or_default(config: str, name: str) -> object:
     value = _from_file(config, name)
-    return _node_default(name) if value is None else value
+    return default(name) if value is None else value
 
 
 class _Work:
@@ -304,7 +329,7 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
         overrides["tare_on_start"] = tare_on_start
     board = None
     if sim:
-        sensor = args.get("sensor") or _from_file(config, "sensor") or DEFAULTS.sensor
+        sensor = args.get("sensor") or _from_file(config, "sensor") or default("sensor")
         board, link, tare = _sim_board(work(), str(sensor), args.get("sim_load_script"))
         overrides.update(port=link, tare_file=tare)
     frame_id = _frame("frame_id", overrides.get("frame_id") or _file_or_default(config, "frame_id"))
@@ -387,7 +412,7 @@ def _entry_plan(entry: dict, where: str, config: str, work: _Work) -> SensorPlan
     namespace = entry["namespace"]
     params = entry["parameters"]
     frame_id = _frame(f"{where}frame_id", entry["frame_id"])
-    sensor = str(entry.get("sensor") or _from_file(config, "sensor") or DEFAULTS.sensor)
+    sensor = str(entry.get("sensor") or _from_file(config, "sensor") or default("sensor"))
     overrides = dict(params, frame_id=frame_id)
     for key in ("sensor", "calibration_file"):
         if entry.get(key):

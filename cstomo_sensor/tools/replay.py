@@ -44,7 +44,8 @@ from ..force.pipeline import Pipeline, PipelineConfig
 from ..force.stream import FrameStream, StreamConfig
 from ..frames_io import write_forces
 from ..ros.messages import LEGACY_RAW_TYPE, RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
-from .common import add_creep_arg, add_pipeline_args, pipeline_config
+from ..settings import default
+from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
 log = logging.getLogger(__name__)
 
@@ -93,9 +94,9 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
-           tare_frames: int = StreamConfig.tare_frames, stress_field_every: int = 0,
-           wrench_filter_hz: float = StreamConfig.wrench_filter_hz, drift_tracking: bool = StreamConfig.drift_tracking,
-           creep_per_decade: float = StreamConfig.creep_per_decade, frame_id: str = "cstomo_socket",
+           tare_frames: int = default("tare_frames"), stress_field_every: int = 0,
+           wrench_filter_hz: float = default("wrench_filter_hz"), drift_tracking: bool = default("drift_tracking"),
+           creep_per_decade: float = default("creep_per_decade"), frame_id: str = default("frame_id"),
            topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
            forces_file: str | Path | None = None) -> ReplaySummary:
     """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
@@ -202,16 +203,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
     add_pipeline_args(p)
     p.add_argument("--reference", help="frames file used as the reference (else: tare on the first frames)")
-    p.add_argument("--tare-frames", type=int, default=StreamConfig.tare_frames,
-                   help="frames averaged by the tare (default %(default)s)")
-    p.add_argument("--stress-field-every", type=int, default=0,
-                   help="write stress_field and scene_stress_field every N results (default 0: never)")
-    p.add_argument("--wrench-filter-hz", type=float, default=StreamConfig.wrench_filter_hz, metavar="HZ",
-                   help="cutoff of wrench_filtered, as the node's parameter (default %(default)g; 0: none)")
-    p.add_argument("--no-drift-tracking", action="store_true",
-                   help="do not follow the device's slow change after the tare (the node's drift_tracking: false)")
+    add_setting_arg(p, "tare_frames")
+    add_setting_arg(p, "stress_field_every", default=0,
+                    note=f"here no stress fields unless asked (the node's default: {default('stress_field_every')})")
+    add_setting_arg(p, "wrench_filter_hz")
+    add_setting_arg(p, "drift_tracking")
     add_creep_arg(p)
-    p.add_argument("--frame-id", default="cstomo_socket")
+    add_setting_arg(p, "frame_id")
     p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
     p.add_argument("--forces", help="also write a forces file (CSV) with the consistency and foreign_load columns")
     return p
@@ -227,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
                    stress_field_every=args.stress_field_every, wrench_filter_hz=args.wrench_filter_hz,
-                   drift_tracking=not args.no_drift_tracking, creep_per_decade=args.creep_per_decade,
+                   drift_tracking=args.drift_tracking, creep_per_decade=args.creep_per_decade,
                    frame_id=args.frame_id, topic=args.topic, storage=args.storage, forces_file=args.forces,
                    progress=lambda m: print(f"model: {m}", file=sys.stderr))
     except (CstomoError, OSError, ReaderError, WriterError) as err:

@@ -69,9 +69,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 
 from ...errors import CstomoError
-from ...force.estimate import ESTIMATORS
 from ...force.pipeline import Pipeline, PipelineConfig
-from ..common import DEFAULTS, NodeWithBoard, executable, local_ros_env
+from ..common import NodeWithBoard, add_setting_arg, executable, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
@@ -515,8 +514,8 @@ def parser() -> argparse.ArgumentParser:
                    help="every configuration also at --cold-rate (frames after an idle period; doubles the run time)")
     p.add_argument("--cold-rate", type=float, default=10.0, help="the cold run's frame rate, Hz (default 10)")
     p.add_argument("--out", default=".", help="directory for the tables and the processes' logs")
-    p.add_argument("--sensor", default=DEFAULTS.sensor)
-    p.add_argument("--estimator", default=DEFAULTS.estimator, choices=ESTIMATORS)
+    add_setting_arg(p, "sensor")
+    add_setting_arg(p, "estimator")
     return p
 
 
