@@ -27,6 +27,7 @@ INPUTS = ("serial", "topic")
 RELIABILITIES = ("system_default", "reliable", "best_effort")
 #: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load, N.
 RATED_FORCE = max(CalibrationSpec.magnitudes)
+_KINDS = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string"}
 
 
 @dataclass(frozen=True)
@@ -67,7 +68,7 @@ class Setting:
         else:
             ok = type(v) is kind  # a bool is no int here, nor an int a bool
         if not ok:
-            return f"a {kind.__name__}" + (f", {self.range}" if self.range else "")
+            return _KINDS[kind] + (f", {self.range}" if self.range else "")
         if self.choices and v not in self.choices or self.lo is not None and not self.lo <= v <= self.hi:
             return self.range
         return ""
@@ -85,7 +86,7 @@ class Setting:
         try:
             value = kind(text)
         except ValueError:
-            raise ValueError(f"{text!r}: expected a {kind.__name__} (default {text_of(self.default)})") from None
+            raise ValueError(f"{text!r}: expected {_KINDS[kind]} (default {text_of(self.default)})") from None
         why = self._problem(value, kind)
         if why:
             raise ValueError(f"{text!r}: expected {why} (default {text_of(self.default)})")

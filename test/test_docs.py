@@ -125,6 +125,8 @@ def _value(action: argparse.Action | None, word: str) -> str:
         return word
     if action.choices:
         return str(list(action.choices)[0])
+    if action.type not in (None, str) and action.default is not None:  # a setting's flag: its default fits
+        return str(action.default[0] if isinstance(action.default, list) else action.default)
     return "1" if action.type in (int, float) else word
 
 

@@ -126,7 +126,9 @@ def test_bench_greit_figures(tmp_path):
 
 
 def test_mesh_size_is_in_metres_everywhere(capsys):
-    assert cstomo(["model", "build", "--mesh-size", "4"]) == 2  # millimetres refused, with the fix named
+    with pytest.raises(SystemExit) as done:  # millimetres refused by the parser, with the fix named
+        cstomo(["model", "build", "--mesh-size", "4"])
+    assert done.value.code == 2
     err = capsys.readouterr().err
     assert "--mesh-size" in err and "metres" in err and "0.004" in err
 

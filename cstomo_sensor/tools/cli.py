@@ -205,8 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
     s.add_argument("--out", required=True, metavar="DIR",
                    help="output directory, created if missing: reference.csv, frames.csv, truth.csv")
-    s.add_argument("--cache-dir", default="", metavar="DIR",
-                   help="cache of meshes and models (default: the user's cache, $CSTOMO_CACHE_DIR)")
+    add_setting_arg(s, "cache_dir")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")

@@ -49,7 +49,8 @@ def add_setting_arg(p: argparse.ArgumentParser, name: str, *, flag: str | None =
     parse.__name__ = name  # argparse's message names it
     kind = {"nargs": len(s.default), "default": list(value)} if isinstance(s.default, tuple) else {"default": value}
     metavar = ("NX", "NY", "NZ") if name == "grid" else None
-    return p.add_argument(flag, dest=name, type=parse, choices=s.choices or None, help=text, metavar=metavar, **kind)
+    return p.add_argument(flag, dest=name, type=None if s.choices else parse, choices=s.choices or None, help=text,
+                          metavar=metavar, **kind)
 
 
 def add_pipeline_args(p: argparse.ArgumentParser, estimator: bool = True) -> None:

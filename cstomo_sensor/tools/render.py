@@ -25,10 +25,11 @@ from ..angles import planar_angle
 from ..errors import ConfigError, CstomoError, ModelMismatchError
 from ..force.pipeline import Pipeline, PipelineConfig
 from ..inverse.reconstruction import voxel_basis
-from ..model.geometry import DEFAULT_SENSOR, load_sensor
+from ..model.geometry import load_sensor
 from ..model.material import pressure_of_theta
 from ..model.mesh import MeshSpec, build_mesh, electrode_patches
 from ..model.simulate import Scene, add_noise
+from .common import add_setting_arg
 
 WINDOW = (1200, 600)
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "cuboid_planar_60db.yaml"
@@ -221,10 +222,10 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo render", description=__doc__.splitlines()[0])
-    p.add_argument("--sensor", default=DEFAULT_SENSOR, help="preset name or geometry YAML path (default %(default)s)")
+    add_setting_arg(p, "sensor")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
     p.add_argument("--scene", default=None, help=f"scene file (default {DEFAULT_SCENE.name})")
-    p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
+    add_setting_arg(p, "cache_dir")
     return p
 
 

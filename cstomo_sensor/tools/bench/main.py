@@ -10,6 +10,7 @@ import os
 import sys
 from pathlib import Path
 
+from ..common import add_setting_arg
 from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
@@ -50,7 +51,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", action="store_true",
                    help="with --drift: what a robot does (a device outside the model, loads back to back while it "
                         "warms, restarts from an old tare, the 30-minute warm-up) instead of the drift table")
-    p.add_argument("--cache-dir", default="", help="cache directory (default: the user's cache)")
+    add_setting_arg(p, "cache_dir")
     return p
 
 
