@@ -57,8 +57,9 @@ class NodeConfig:
     clock_window: float = default("clock_window")
 
     def __post_init__(self) -> None:
-        for f in fields(self)[1:]:
-            SETTING[f.name].check(getattr(self, f.name))
+        for f in fields(self):
+            if f.name in SETTING:
+                SETTING[f.name].check(getattr(self, f.name))
         if self.input == "serial" and not self.port:
             raise ConfigError("parameter 'port'='': expected a serial URL")
         if not self.frame_id:
