@@ -37,7 +37,6 @@ NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
 NOISE_MEASURED = "measured by the tare"
 
 
-
 @dataclass(frozen=True)
 class PipelineConfig:
     """Every setting of the per-frame path; their defaults, ranges and descriptions are declared

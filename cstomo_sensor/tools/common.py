@@ -23,7 +23,6 @@ from ..errors import CstomoError
 from ..force.pipeline import PipelineConfig
 from ..settings import SETTING, text_of
 
-DEFAULTS = PipelineConfig()
 _SAME = object()
 
 
