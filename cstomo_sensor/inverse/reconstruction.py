@@ -83,8 +83,8 @@ class ReconSpec:
             object.__setattr__(self, name, g)
         if self.iterations is not None and not (1 <= int(self.iterations) <= 10**9):
             raise ConfigError.bad_value("iterations", self.iterations, "None (automatic) or 1..1e9")
-        if not (0.0 <= self.damping < 1e6) or not np.isfinite(self.damping):
-            raise ConfigError.bad_value("damping", self.damping, ">= 0 (relative to s_max^2)")
+        if not (0.0 <= self.damping <= 1e6):  # the node's declared range (settings.py)
+            raise ConfigError.bad_value("damping", self.damping, "0..1e6 (relative to s_max^2)")
         if not (0.0 < self.snr_db <= 200.0):
             raise ConfigError.bad_value("snr_db", self.snr_db, "0 < snr_db <= 200")
         if not (0.0 < self.tau <= 10.0):
