@@ -124,7 +124,7 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
     """Issue 27 item 3: an accepted tare is the reference at once and is saved by a thread of its own,
     outside the frame lock; a failed save is logged, in the outcome's note and in the diagnostics until
     a tare is saved."""
-    import cstomo_sensor.force.stream as stream_module
+    import cstomo_sensor.force.taring as stream_module
     from cstomo_sensor.force.stream import FrameStream
 
     def full(*args, **kwargs):
@@ -157,7 +157,7 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
 def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_path, monkeypatch):
     """A node that stops or reconfigures right after a tare (a ~/joint_free re-zero, then Ctrl-C) keeps
     it: close() waits for the writer thread, bounded, and says when a hung disk outlasts it."""
-    import cstomo_sensor.force.stream as stream_module
+    import cstomo_sensor.force.taring as stream_module
     from cstomo_sensor.force.stream import FrameStream
 
     write, release = stream_module.write_reference, threading.Event()
