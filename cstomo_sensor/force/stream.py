@@ -1,20 +1,18 @@
 """The frame stream of one sensor: everything that happens to its frames between the board and the
-outputs and needs state from frame to frame. No ROS, no serial.
+outputs and needs state from frame to frame. No ROS, no serial. The node, ``cstomo replay`` and
+``cstomo estimate`` push their frames through a :class:`FrameStream`, so they cannot disagree.
 
-The node (``ros/node.py``), ``cstomo replay`` and ``cstomo estimate`` all push their frames through a
-:class:`FrameStream` and only turn what it emits into messages or rows, so they cannot disagree. It is
-a small coordinator over stages that own their state and their rules and hand their results on as
-arguments: the tare transaction (force/taring.py, its rules force/tare.py), the channel mask
-(force/mask.py), the per-frame core (:class:`~.pipeline.Pipeline`), the device's slow states (drift,
-creep and the force's 1-sigma: force/slow.py), the noise in use (force/noise_state.py), the filtered
-wrench (:class:`~.filter.LowPass`, reset on a tare, a reconnect and gaps), health (force/health.py),
-and the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`: the node's
-publishers, replay's topics and the node's ``--help`` all come from it).
+It coordinates stages that own their state and rules and hand their results on as arguments: the
+tare transaction (force/taring.py; its rules: force/tare.py), the channel mask (force/mask.py), the
+per-frame core (:class:`~.pipeline.Pipeline`), the device's slow states and the force's 1-sigma
+(force/slow.py), the noise in use (force/noise_state.py), the filtered wrench (:class:`~.filter.LowPass`,
+reset on a tare, a reconnect and gaps), health (force/health.py), and the outputs a configuration
+produces (:data:`OUTPUTS`, :func:`output_set`: the node's publishers, replay's topics, ``--help``).
 
-Frames are pushed with a stamp (ns, the time the frame was measured on the caller's clock: the
-filter runs on it) and an age (ns, how long ago it was measured on the monotonic clock: older than
-``stale_timeout`` is late). A frame the stream cannot use (wrong length, NaN in a used channel, every
-channel excluded, an unexpected error) is dropped, counted and logged (throttled), never raised.
+A frame comes with a stamp (ns on the caller's clock: the filter runs on it) and an age (ns on the
+monotonic clock: older than ``stale_timeout`` is late). A frame the stream cannot use (wrong length,
+NaN in a used channel, every channel excluded, an unexpected error) is dropped, counted and logged
+(throttled), never raised.
 """
 from __future__ import annotations
 
@@ -121,17 +119,11 @@ class Output:
 
 
 class FrameStream:
-    """The frame stream of one sensor (module docstring) over the pipeline ``pipe``. ``on_tare``: called
-    with each tare's :class:`~.tare.TareOutcome`, outside the frame lock; ``tare_file``: where an
-    accepted tare is saved (by a thread of its own: frames never wait for the disk) and read back
-    (:meth:`init_reference`), with ``tare_comment`` first; ``started``: the ``time.monotonic()`` the
-    tare's log counts from (None: now).
-
-    A tare pending (at start without a usable saved tare, ``tare_on_start``, :meth:`tare`, replay
-    without a reference) averages the next ``tare_frames`` usable frames into the reference; they give
-    no output. The rules that refuse it are force/tare.py's; a reconnect refuses it too. Without any
-    reference a tare is always pending: a refused or cancelled one starts over.
-    """
+    """The frame stream of one sensor over the pipeline ``pipe``. The tare's ``on_tare``, ``tare_file``,
+    ``tare_comment`` and ``started``: :class:`~.taring.Taring`. A tare pending (at start without a
+    usable saved tare, :meth:`tare`, replay without a reference) averages the next ``tare_frames``
+    frames into the reference (no output); force/tare.py's rules or a reconnect refuse it. Without any
+    reference a tare is always pending: a refused or cancelled one starts over."""
 
     def __init__(self, pipe: Pipeline, config: StreamConfig = StreamConfig(),
                  on_tare: Callable[[TareOutcome], None] | None = None,
@@ -173,13 +165,13 @@ class FrameStream:
     # --- reference and tare ----------------------------------------------------------------------
 
     def use_reference(self, path: str | Path, what: str = "reference") -> str:
-        """:meth:`set_reference` of the reference file ``path`` (:func:`~.device.read_reference`)."""
+        """:meth:`set_reference` of the file ``path`` (:func:`~.device.read_reference`)."""
         return self.set_reference(*read_reference(path, self.pipe.n_meas), source=f"{what} {path}")
 
     def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str) -> str:
         """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
-        (None: assumed), if it is a plausible frame of this sensor (:func:`~.tare.tare_problem`);
-        returns the tare report's message. Raises :class:`ConfigError` naming ``source`` and what is wrong."""
+        (None: assumed) if plausible (:func:`~.tare.tare_problem`, else :class:`ConfigError` naming
+        ``source``); returns the tare report's message."""
         why = tare_problem(ref, self.pipe.model_reference)
         if why:
             raise ConfigError(f"{source} not used: {why}")
@@ -196,10 +188,9 @@ class FrameStream:
         return report
 
     def init_reference(self, tare_on_start: bool) -> str:
-        """The saved tare (``tare_file``) if usable, else a tare on the first frames (``tare_on_start``
-        always tares): no force is ever computed against the model's own reference frame, which is
-        not the device's (a phantom force of several newtons at zero load). Returns '' when the saved
-        tare is used, else why a tare is pending."""
+        """The saved tare if usable, else a tare on the first frames (``tare_on_start``: always): never a
+        force against the model's own reference (a phantom force of newtons at zero load). Returns ''
+        when the saved tare is used, else why a tare is pending."""
         saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
         if saved is not None:
             try:
@@ -217,9 +208,8 @@ class FrameStream:
         self.noise_state.restart()  # no frame pair across the tare
 
     def joint_free(self) -> bool:
-        """A controller's hint that the joint is free now: re-zero at once, a tare on the next
-        ``tare_frames`` frames with every rule of a tare. False (and nothing changes) while a tare is
-        already pending."""
+        """A controller's hint that the joint is free: a tare now, with every rule of a tare; False (and
+        nothing changes) while one is pending."""
         with self.lock:
             if self.taring:
                 return False
@@ -228,9 +218,8 @@ class FrameStream:
         return True
 
     def reconnected(self) -> None:
-        """The board came back after an outage: the filtered wrench starts again from the next frame and
-        a pending tare ends, refused (:data:`~.tare.TARE_RECONNECTED`: the joint may be loaded by then;
-        without any reference it starts over on the returning frames)."""
+        """The board came back after an outage: the filter starts again, a pending tare is refused
+        (:data:`~.tare.TARE_RECONNECTED`: the joint may be loaded by then)."""
         with self.lock:
             if self.filter is not None:
                 self.filter.reset()
@@ -250,11 +239,9 @@ class FrameStream:
         return tare_deadline(self.config.tare_frames, self.frame_period, rate_hz, self.config.stale_timeout)
 
     def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
-        """A tare transaction: a tare on the next frames, awaited up to ``timeout`` s
-        (:meth:`tare_deadline`), else cancelled (under the frame lock: it cannot end meanwhile). An
-        accepted tare is saved outside the frame lock: awaited up to ``timeout`` s more, else its
-        ``note`` says the save is under way. ``forced``: the load checks (force/tare.py) do not refuse
-        it. Returns (the outcome or None if cancelled, the frames it had taken)."""
+        """A tare transaction: a tare awaited up to ``timeout`` s (:meth:`tare_deadline`), else cancelled
+        (under the frame lock), then its save up to ``timeout`` s more (else its ``note`` says so);
+        ``forced``: the load checks do not refuse it. Returns (the outcome, None if cancelled; its frames)."""
         with self.lock:
             self.tares.begin(self.config.tare_frames, forced)
             self.noise_state.restart()
@@ -264,8 +251,8 @@ class FrameStream:
         return (None, taken) if ended is None else (self.tares.wait_saved(ended, timeout), taken)
 
     def _end_tare(self, outcome: TareOutcome) -> None:
-        """A tare ended (under the frame lock): an accepted one is the reference from the next frame;
-        it is saved and reported once the lock is released (:meth:`~.taring.Taring.finish`)."""
+        """Under the frame lock: an accepted tare is the reference from the next frame (saved and
+        reported once the lock is released: :meth:`~.taring.Taring.finish`)."""
         report = None
         if outcome.ok:
             report = self._new_reference(outcome.reference, outcome.noise, outcome.frames)
@@ -276,16 +263,14 @@ class FrameStream:
             self.noise_state.restart()
 
     def close(self, timeout: float = 5.0) -> list[str]:
-        """Wait up to ``timeout`` s for the tare files still being written (a node that stops keeps the
-        tare it took); returns the files not written by then (a hung disk)."""
+        """Wait up to ``timeout`` s for the tare files being written; returns those still unwritten."""
         return self.tares.close(timeout)
 
     # --- noise -----------------------------------------------------------------------------------
 
     def estimate_noise(self, frames: np.ndarray, source: str) -> str:
-        """Estimate the noise from a whole file of consecutive frames ``frames`` (n, n_meas) before they
-        are processed (force/noise_state.py), so every frame gets it; nothing changes when the
-        reference's noise is measured or ``noise_estimation`` is off. Returns :attr:`noise_text`."""
+        """The noise from a file of consecutive ``frames`` (n, n_meas) before they are processed, unless
+        measured or not estimated (force/noise_state.py); returns :attr:`noise_text`."""
         with self.lock:
             if self.noise is not None and not self.pipe.noise_measured and self.pipe.reference is not None:
                 self._use_noise(self.noise_state.from_frames(frames, ~self.pipe.bad_channels, source))
@@ -315,11 +300,9 @@ class FrameStream:
 
     def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
                 contact_ok: np.ndarray | None = None, t: float | None = None) -> FrameResult | None:
-        """The :class:`FrameResult` of one frame (an implausible one: ``valid`` False, counted), or None
-        while the frame goes into a pending tare or no reference exists. Raises :class:`FrameError`
-        for a frame that must be dropped (it then counts for nothing, not even for a tare). ``t``: its
-        time (s; None: 10 ms after the previous one). :meth:`push` is this with the accounting, the
-        filter and the stamps."""
+        """The :class:`FrameResult` of one frame at ``t`` s (None: 10 ms after the previous), or None (a
+        tare frame, no reference); :class:`FrameError` for a frame to drop. :meth:`push` adds the
+        accounting, the filter and the stamps."""
         try:
             with self.lock:
                 return self._process(values, saturated, contact_ok, t)
@@ -351,10 +334,9 @@ class FrameStream:
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> Output | None:
-        """One frame measured ``age_ns`` ago (monotonic clock), stamped ``stamp_ns``: counted, dropped if
-        late, then processed (``process`` False: only counted, e.g. an inactive node that is not
-        taring). Returns the :class:`Output` of a result (an implausible one too: no filtered force),
-        else None (a tare frame, no reference, late, or dropped: counted, never raised)."""
+        """One frame measured ``age_ns`` ago, stamped ``stamp_ns``: counted, dropped if late, processed
+        unless ``process`` is False. Its :class:`Output` (an implausible one too: no filtered force),
+        else None (a tare frame, no reference, late, dropped: counted, never raised)."""
         t0 = time.perf_counter()
         if self.counter.arrived(age_ns) or not process:
             return None
@@ -373,17 +355,14 @@ class FrameStream:
         return None if result is None else Output(result, filtered, int(stamp_ns))
 
     def drop(self, err: BaseException, corrupt: bool = False) -> None:
-        """Count and log (throttled) a frame that could not be used: ``corrupt`` for an input message
-        that is no frame at all (the caller's decoding failed), else a frame the frame path dropped
-        (a :class:`FrameError`, or an unexpected error: a bug, logged with its trace)."""
+        """Count and log a frame that could not be used (``corrupt``: no frame at all): :meth:`~.health.Health.drop`."""
         self.counter.drop(err, corrupt)
 
     # --- health ----------------------------------------------------------------------------------
 
     def health(self, now: float, board_losses: dict[str, int] | None = None) -> tuple[int, list[str], dict]:
-        """The level (:data:`OK`, :data:`WARN`, :data:`ERROR`), problems and figures of the period so far,
-        a snapshot (:meth:`end_period` starts the next). ``board_losses``: the board driver's running
-        totals of lost frames by kind (corrupt, gaps, duplicates, reordered, overflow), None without."""
+        """The level (:data:`OK`, :data:`WARN`, :data:`ERROR`), problems and figures of the period so far:
+        a snapshot (:meth:`end_period` starts the next). ``board_losses``: :meth:`~.health.Health.status`."""
         pipe = self.pipe
         return self.counter.status(now, board_losses, pipe, self.channels.status(), self.slow.sigma_source,
                                    self.tares.status(pipe.reference is not None), self.slow.status(pipe.calibration),
