@@ -7,15 +7,12 @@ and to the drift tracker; they receive it, none keeps its own.
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import NoUsableChannelsError
 from ..model.pattern import MeasurementPattern
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -87,9 +84,6 @@ class ChannelMask:
     def use(self, mask: np.ndarray, excluded: Excluded) -> None:
         """The mask of :meth:`change`, once the pipeline took it."""
         self.mask, self.excluded = mask, excluded
-        if mask.any():
-            log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
-                        excluded.channels, excluded.saturated, excluded.dead_electrodes)
 
     def status(self) -> tuple[list[str], dict]:
         """The diagnostics' problems and figures."""

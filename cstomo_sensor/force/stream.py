@@ -296,6 +296,9 @@ class FrameStream:
         self.pipe.set_bad_channels(new[0].copy())  # raises before changing anything if refused
         self.channels.use(*new)
         self.slow.masked(self.pipe)
+        if new[1].channels:
+            log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
+                        new[1].channels, new[1].saturated, new[1].dead_electrodes)
         return True
 
     def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
@@ -328,7 +331,7 @@ class FrameStream:
         self.counter.plausible(result)
         frozen = self.channels.frozen
         if self.noise_state.estimate is not None and not pipe.noise_measured:
-            self._use_noise(self.noise_state.observe(values, None if frozen is None else ~frozen, k))
+            self._use_noise(self.noise_state.observe(values, None if frozen is None else ~frozen, self.processed))
         slow.observe(pipe, result, t, frozen)
         return result
 
