@@ -81,11 +81,10 @@ class _Throttle:
 
 
 class Health:
-    """The counts of a stream whose frames are late after ``stale_timeout`` s and whose forces are
-    uncertain above ``max_sigma_n`` N (0: no check)."""
+    """The counts of a stream whose forces are uncertain above ``max_sigma_n`` N (0: no check)."""
 
-    def __init__(self, stale_timeout: float, max_sigma_n: float) -> None:
-        self.stale_timeout, self.max_sigma_n = stale_timeout, max_sigma_n
+    def __init__(self, max_sigma_n: float) -> None:
+        self.max_sigma_n = max_sigma_n
         self.lock = threading.Lock()
         self.counts = Counts()
         self._created = time.monotonic()
@@ -96,14 +95,13 @@ class Health:
 
     # --- per frame -------------------------------------------------------------------------------
 
-    def arrived(self, age_ns: int) -> bool:
-        """A frame measured ``age_ns`` ago arrived: counted; True if it is late."""
+    def arrived(self, late: bool) -> bool:
+        """A frame arrived, ``late`` or not: counted; returns ``late``."""
         c = self.counts
         with self.lock:
             c.frames += 1
             c.last_frame = time.monotonic()
             c.arrivals.append(c.last_frame)
-            late = age_ns > self.stale_timeout * 1e9
             c.late += late
         return late
 

@@ -136,13 +136,12 @@ class FrameStream:
         self.channels = ChannelMask(pipe.geometry, pipe.bad_channels)
         self.slow = SlowStates(pipe.n_meas, config.drift_tracking, config.creep_per_decade)
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
-        self.counter = Health(config.stale_timeout, config.max_sigma_n)
+        self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
         self.config = replace(self.config, **changes)
-        self.counter.stale_timeout = self.config.stale_timeout
         if self.filter is not None:
             self.filter.max_gap = self.config.stale_timeout
 
@@ -341,7 +340,7 @@ class FrameStream:
         unless ``process`` is False. Its :class:`Output` (an implausible one too: no filtered force),
         else None (a tare frame, no reference, late, dropped: counted, never raised)."""
         t0 = time.perf_counter()
-        if self.counter.arrived(age_ns) or not process:
+        if self.counter.arrived(age_ns > self.config.stale_timeout * 1e9) or not process:
             return None
         try:
             with self.lock:
