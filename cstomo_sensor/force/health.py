@@ -90,7 +90,7 @@ class Health:
         self._created = time.monotonic()
         self._start = {"t": self._created, **{k: 0 for k in _TOTALS}}  # the period's start: its totals
         self._loss_history: deque = deque([(self._created, 0, {})])  # (time, frames, losses) of the periods
-        self._implausible_run = 0
+        self.implausible_run = 0  # implausible frames in a row so far
         self._drop_log = _Throttle()
 
     # --- per frame -------------------------------------------------------------------------------
@@ -112,12 +112,12 @@ class Health:
         if not result.valid:
             c.implausible += 1
             c.implausible_reason = result.reason
-            if not self._implausible_run:
+            if not self.implausible_run:
                 log.warning("implausible frames (no force output): %s", result.reason)
-            self._implausible_run += 1
-        elif self._implausible_run:
-            log.warning("plausible frames again after %d implausible ones", self._implausible_run)
-            self._implausible_run = 0
+            self.implausible_run += 1
+        elif self.implausible_run:
+            log.warning("plausible frames again after %d implausible ones", self.implausible_run)
+            self.implausible_run = 0  # implausible frames in a row so far
 
     def passed(self, result, seconds: float) -> None:
         """A frame went through (``result`` None: into a tare) in ``seconds``."""

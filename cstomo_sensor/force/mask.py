@@ -32,13 +32,7 @@ class ChannelMask:
         pattern = MeasurementPattern(n_el, geometry.layers)
         self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
         self._all_good = np.ones(n_el, bool)
-        self.mask = np.array(bad, bool)
-        self.excluded = Excluded(channels=int(self.mask.sum()))
-
-    @property
-    def frozen(self) -> np.ndarray | None:
-        """The excluded channels, None when none is (the common case)."""
-        return self.mask if self.excluded.channels else None
+        self.use(np.array(bad, bool), Excluded(channels=int(np.count_nonzero(bad))))
 
     def of(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None):
         """(mask, saturated count, dead electrodes) of a frame's flags; raises
@@ -84,6 +78,8 @@ class ChannelMask:
     def use(self, mask: np.ndarray, excluded: Excluded) -> None:
         """The mask of :meth:`change`, once the pipeline took it."""
         self.mask, self.excluded = mask, excluded
+        self.frozen = mask if excluded.channels else None  # the excluded channels, None when none is
+        self.kept = ~mask if excluded.channels else None  # ... and the others
 
     def status(self) -> tuple[list[str], dict]:
         """The diagnostics' problems and figures."""

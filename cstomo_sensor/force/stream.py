@@ -289,6 +289,8 @@ class FrameStream:
     def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
         """Exclude saturated values and every row of a dead electrode; True if the mask changed. Raises
         :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every measurement."""
+        if saturated is None and contact_ok is None and self.channels.frozen is None:
+            return False  # the common case, per frame: nothing flagged and nothing excluded
         new = self.channels.change(saturated, contact_ok)
         if new is None:
             return False
@@ -326,12 +328,12 @@ class FrameStream:
         self.update_mask(saturated, contact_ok)
         every, k = self.config.stress_field_every, self.processed
         self.processed += 1
-        result = pipe.process(values, with_field=every > 0 and k % every == 0, scale=slow.scale, offset=slow.offset)
-        self.counter.plausible(result)
-        frozen = self.channels.frozen
+        result = pipe.process(values, every > 0 and k % every == 0, True, slow.scale, slow.offset)
+        if not result.valid or self.counter.implausible_run:
+            self.counter.plausible(result)
         if self.noise_state.estimate is not None and not pipe.noise_measured:
-            self._use_noise(self.noise_state.observe(values, None if frozen is None else ~frozen, self.processed))
-        slow.observe(pipe, result, t, frozen)
+            self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
+        slow.observe(pipe, result, t, self.channels.frozen)
         return result
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
