@@ -164,7 +164,7 @@ def test_a_drifting_device_over_time_is_followed(warm_model):
         for t, v in zip(times, frames):
             out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
             forces.append(out.result.force if out is not None and out.result.valid else np.full(3, np.nan))
-            scale.append(warm_model.scale)
+            scale.append(stream.slow.scale)
         late = times >= times[-1] - 2.0
         zero[tracking] = float(np.linalg.norm(np.nanmean(np.array(forces)[late], axis=0)))
     true = (1 + state.rho_change) * state.drive

@@ -266,12 +266,12 @@ def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, s
 
     from geometry_msgs.msg import WrenchStamped
 
-    import cstomo_sensor.force.stream as stream_module
+    import cstomo_sensor.force.taring as taring_module
 
     h, board = start(ros, tmp_path, Unloaded(source), rate=100.0, tare_frames=5)
     tare_file = tmp_path / "tare.csv"
     writing, release = threading.Event(), threading.Event()
-    write = stream_module.write_reference
+    write = taring_module.write_reference
 
     def hung(*args, **kwargs):
         writing.set()
@@ -283,7 +283,7 @@ def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, s
         board.start()
         assert wait_for(lambda: h.node.reference_source.startswith("tare saved"), 10.0), h.node.reference_source
         saved, ref = tare_file.read_bytes(), h.node.pipe.reference.copy()
-        monkeypatch.setattr(stream_module, "write_reference", hung)
+        monkeypatch.setattr(taring_module, "write_reference", hung)
         answer = []
         caller = threading.Thread(target=lambda: answer.append(h.call_tare()), daemon=True)
         caller.start()

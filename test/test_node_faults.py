@@ -66,7 +66,7 @@ def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_i
     no_sat = np.zeros(208, bool)
 
     def in_step():
-        np.testing.assert_array_equal(proc._mask, pipe.bad_channels)
+        np.testing.assert_array_equal(proc.channels.mask, pipe.bad_channels)
 
     good = proc.process(v, no_sat, ok)
     one_dead = ok.copy()
@@ -124,7 +124,7 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
     """Issue 27 item 3: an accepted tare is the reference at once and is saved by a thread of its own,
     outside the frame lock; a failed save is logged, in the outcome's note and in the diagnostics until
     a tare is saved."""
-    import cstomo_sensor.force.stream as stream_module
+    import cstomo_sensor.force.taring as stream_module
     from cstomo_sensor.force.stream import FrameStream
 
     def full(*args, **kwargs):
@@ -157,7 +157,7 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
 def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_path, monkeypatch):
     """A node that stops or reconfigures right after a tare (a ~/joint_free re-zero, then Ctrl-C) keeps
     it: close() waits for the writer thread, bounded, and says when a hung disk outlasts it."""
-    import cstomo_sensor.force.stream as stream_module
+    import cstomo_sensor.force.taring as stream_module
     from cstomo_sensor.force.stream import FrameStream
 
     write, release = stream_module.write_reference, threading.Event()
@@ -201,7 +201,7 @@ def test_frames_without_usable_channels_are_counted_and_the_node_keeps_publishin
         assert wait_for(lambda: sum(t > t0 + 3.0 for t, _ in wr) > 50, 15.0), \
             (len(wr), [diag(m)[1] for _, m in dg[-3:]])
         assert wait_for(lambda: any(t > t0 + 4.0 for t, _ in dg), 5.0)
-        np.testing.assert_array_equal(h.node.processor._mask, h.node.pipe.bad_channels)
+        np.testing.assert_array_equal(h.node.processor.channels.mask, h.node.pipe.bad_channels)
         assert not h.node.pipe.bad_channels.any()
         assert h.node._thread.is_alive()
         # the status returns to OK (a loaded host may overflow the frame queue for a moment: those

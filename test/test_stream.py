@@ -128,3 +128,27 @@ def test_a_dropped_frame_never_raises_and_repeats_are_logged_once(warm_model, ca
     assert len([r for r in caplog.records if "dropped frame" in r.getMessage()]) == 1
     out = stream.push(warm_model.model_reference * 1.0001)
     assert out is not None and out.result.valid and stream.counts.reject_reason == ""
+
+
+def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
+    """Issue 27 item 3: reading the health changes nothing (twice the same problems and figures);
+    end_period returns the period's health and the next period starts without its rejected and
+    implausible frames (the all-time counts stay)."""
+    from cstomo_sensor.force.stream import WARN, FrameStream, StreamConfig
+
+    stream = FrameStream(warm_model, StreamConfig(stress_field_every=0))
+    ref = warm_model.model_reference
+    stream.set_reference(ref, None, 1, "test")
+    for k in range(5):
+        stream.push(ref * 1.0001, stamp_ns=(k + 1) * 10_000_000)
+    stream.push(np.ones(207))  # rejected
+    stream.push(ref * 10, stamp_ns=60_000_000)  # implausible
+    first = stream.health(1.0)
+    assert first == stream.health(1.0)
+    level, msgs, kv = first
+    assert level == WARN and any("1 frames rejected" in m for m in msgs), msgs
+    assert any("1 implausible frames" in m for m in msgs) and kv["implausible"] == 1, msgs
+    assert stream.end_period(1.0) == first
+    level, msgs, kv = stream.health(2.0)
+    assert not any("rejected" in m or "implausible" in m for m in msgs), msgs
+    assert kv["frames_rejected"] == 1 and kv["implausible"] == 1 and kv["frames"] == 7

@@ -245,7 +245,7 @@ def test_reconnect_ends_a_pending_tare_and_a_tare_at_start_starts_over(pipe, dev
         stream.process(v)
     stream.reconnected()  # no reference yet: the tare at start starts over on the returning frames
     assert ended[-1].reason == TARE_RECONNECTED and ended[-1].frames == 4
-    assert stream.taring and stream._tare_left == 10 and pipe.reference is None
+    assert stream.taring and stream.tares.left == 10 and pipe.reference is None
     for v in _frames(ref, ref, 10, rng):
         stream.process(v)
     assert ended[-1].ok and not stream.taring

@@ -127,8 +127,6 @@ class Pipeline:
         self._dropped: np.ndarray | None = None  # indices of the excluded channels (None: none)
         self._update_consistency()
         self._y = np.empty(self.n_meas, dtype=np.float64)  # the latest frame's change (last_y)
-        self.scale = 1.0  # the uniform scale of the voltages since the tare (the stream's drift tracker sets it)
-        self.offset: np.ndarray | None = None  # ... and its change along other directions (y units)
         self.change_plausible = False  # the latest frame passed the gate's change bounds
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
@@ -183,13 +181,18 @@ class Pipeline:
         """The normalised change of the latest processed frame (n_meas,), zero on excluded channels."""
         return self._y
 
-    def normalise(self, frames: np.ndarray) -> np.ndarray:
-        """``(V / s - V_ref) / (c v_scale)`` of (n_meas,) or (n, n_meas) frames, as :meth:`process` forms it
-        (``s`` the :attr:`scale`, 1 unless the stream tracks the device's drift)."""
+    def normalise(self, frames: np.ndarray, scale: float = 1.0, offset: np.ndarray | None = None) -> np.ndarray:
+        """``(V / s - V_ref) / (c v_scale) - offset`` of (n_meas,) or (n, n_meas) frames, as :meth:`process`
+        forms it (``scale`` and ``offset``: the device's slow change since the tare, force/slow.py)."""
         if self.reference is None:
             raise FrameError("no reference: tare the sensor (set_reference) before processing frames")
-        y = (check_frame(frames, self.n_meas, "frame", batch=True) / self.scale - self.reference) / self._y_scale
-        return y if self.offset is None else y - self.offset
+        y = (check_frame(frames, self.n_meas, "frame", batch=True) / scale - self.reference) / self._y_scale
+        return y if offset is None else y - offset
+
+    @property
+    def y_scale(self) -> float:
+        """``c * v_scale``: what a change is divided by (:meth:`set_reference`)."""
+        return self._y_scale
 
     @property
     def model_reference(self) -> np.ndarray:
@@ -220,7 +223,6 @@ class Pipeline:
         noise_y = self._default_noise if noise is None else self._noise_y(noise, y_scale)
         estimator = self.estimator.with_noise(noise_y)
         self.reference, self._y_scale, self.estimator = ref, y_scale, estimator
-        self.scale, self.offset = 1.0, None  # a new reference: no change of the device since
         self.scale_report, self.noise_measured = report, noise is not None
         self.noise_source = NOISE_MEASURED if noise is not None else NOISE_ASSUMED
         self.reference_frames = int(n_frames)
@@ -283,8 +285,11 @@ class Pipeline:
         self._dropped = None if keep.all() else np.flatnonzero(~keep)
         self._update_gate()
 
-    def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True) -> FrameResult:
-        """Estimate the force (and the field) from one frame of (n_meas,) volts.
+    def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True, scale: float = 1.0,
+                offset: np.ndarray | None = None) -> FrameResult:
+        """Estimate the force (and the field) from one frame of (n_meas,) volts; ``scale`` and ``offset``:
+        the device's slow change since the tare (the uniform scale of the voltages and the change along
+        other directions in y units: the frame stream's, force/slow.py; 1 and None: none).
 
         ``gate=False`` skips the plausibility gate (studies of what the estimator does with any
         input, e.g. the benchmark's stability table); the node, replay and the command line keep it.
@@ -296,11 +301,11 @@ class Pipeline:
         v = check_frame(frame, self.n_meas, used=self._keep)
         y = self._y
         with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: the gate rejects them
-            np.multiply(v, 1.0 / self.scale, out=y)  # the device's slow change (force/drift.py)
+            np.multiply(v, 1.0 / scale, out=y)  # the device's slow change (force/drift.py)
             y -= self.reference
             y /= self._y_scale
-            if self.offset is not None:
-                y -= self.offset
+            if offset is not None:
+                y -= offset
             if self._dropped is not None:
                 y[self._dropped] = 0.0
             why = self.gate.change_quiet(y) if gate else ""

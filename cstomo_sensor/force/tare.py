@@ -1,6 +1,10 @@
-"""A tare is never taken under load: the load checks of a new reference (issue 20). No ROS, no serial.
+"""The rules of a tare and their constants (the transaction that applies them: force/taring.py). No
+ROS, no serial.
 
-A tare that passed the steadiness check (:data:`~.stream.TARE_MAX_SPREAD`) is judged by two figures,
+A tare is never taken under load (issue 20). A tare's frames must be steady (:data:`TARE_MAX_SPREAD`,
+:data:`TARE_NOISE_FACTOR`), their mean a frame of this sensor (:func:`tare_problem`); it must end
+within its deadline (:func:`tare_deadline`, from the measured frame period). One that passed the
+steadiness check is then judged by two figures,
 both forces in newtons estimated by the pipeline's own estimator (its calibration, noise and mask):
 
 - **load**: the change from the reference it replaces, ``new / s - old`` in the old reference's
@@ -22,7 +26,7 @@ both forces in newtons estimated by the pipeline's own estimator (its calibratio
   no scale is removed here (removing it would make the vertical force about 4 x noisier).
 
 Without a reference to replace (the first tare of a device, no saved tare) there is no load figure:
-only the steadiness, the drift and the rms plausibility (:func:`~.stream.tare_problem`) are checked;
+only the steadiness, the drift and the rms plausibility (:func:`tare_problem`) are checked;
 the comparison with the model's predicted frame refuses nothing (a real device's own mismatch with the
 model reads as a "load" of several newtons through the estimator: about 12 N for the test bag's
 device on the coarse test model) and is only
@@ -47,6 +51,29 @@ import numpy as np
 
 from .device import ScaleReport
 
+#: Largest tare spread accepted: max over the used channels of std / rms(reference) of the tare
+#: frames. 60 dB noise (std 0.1 % of rms) gives 0.15..0.35 % over 208 channels (2..50 frames); a
+#: 20 N socket load moves a channel by up to 5.7 % of rms, so one arriving in the middle 80 % of
+#: a tare gives 1.7 % or more.
+TARE_MAX_SPREAD = 0.01
+#: On a noisy board the limit is this many times the median channel's spread instead, when larger: a
+#: 40 dB board (docs/physics.md#real-devices) has a std of 1 % of rms on every channel, and a load
+#: arriving during the tare still shows as channels far noisier than the typical one (use >= 10 tare
+#: frames there).
+TARE_NOISE_FACTOR = 3.0
+#: A saved tare whose rms lies outside these multiples of the model reference's rms is not a frame of
+#: this sensor: voltages scale with the rubber's resistivity, 0.2..5 times nominal
+#: (docs/physics.md#real-devices).
+TARE_RMS_RATIO = (0.2, 5.0)
+#: Why a pending tare ends when the board comes back after an outage (force/taring.py).
+TARE_RECONNECTED = ("tare refused: the board reconnected during the tare (its frames would span an outage, "
+                    "and the joint may be loaded when the board returns)")
+#: A tare's deadline (:func:`tare_deadline`): its frames at this many times the frame period, plus
+#: ``stale_timeout`` and :data:`TARE_GRACE` s; the period is the measured one (force/health.py), else
+#: the nominal rate's, else :data:`TARE_ASSUMED_PERIOD` s with no margin.
+TARE_PERIOD_MARGIN = 1.5
+TARE_GRACE = 2.0
+TARE_ASSUMED_PERIOD = 0.1
 #: Largest load (N) a new reference may carry against the one it replaces, uniform scale removed.
 #: A 5 N load reads 5.1-5.3 N; a 1 % uniform resistivity change 0.03 N; 60 dB noise 0.26 N rms
 #: (module docstring).
@@ -161,3 +188,94 @@ def check_tare(pipe, reference: np.ndarray, drift: np.ndarray | None, noise: np.
         limit = max(TARE_MAX_DRIFT, TARE_NOISE_SIGMAS * noise_force(est, sigma))
         out.update(drift=float(np.linalg.norm(est.estimate(yd))), drift_limit=limit)
     return TareCheck(frames=frames, **out)
+
+
+def tare_deadline(frames: int, period: float, rate_hz: float, stale_timeout: float) -> float:
+    """Seconds a tare of ``frames`` frames may take (:data:`TARE_PERIOD_MARGIN`): from the measured
+    frame ``period`` (s; nan: unknown), never shorter than the nominal ``rate_hz``'s (0: unknown)."""
+    if rate_hz > 0:  # a backlog drained at once measures short: never shorter than the nominal rate's
+        period = max(period, 1.0 / rate_hz) if period > 0 else 1.0 / rate_hz
+    per_frame = TARE_PERIOD_MARGIN * period if period > 0 else TARE_ASSUMED_PERIOD
+    return frames * per_frame + stale_timeout + TARE_GRACE
+
+
+def tare_problem(ref: np.ndarray, model_reference: np.ndarray) -> str:
+    """Why the saved tare ``ref`` (n_meas,) is implausible for a model whose reference is
+    ``model_reference``; '' if it is plausible."""
+    if not np.all(np.isfinite(ref)):
+        return "it holds non-finite values"
+    if not np.any(ref):
+        return "all its values are zero"
+    ratio = float(np.sqrt(np.mean(ref**2)) / np.sqrt(np.mean(model_reference**2)))
+    lo, hi = TARE_RMS_RATIO
+    if not lo <= ratio <= hi:
+        return (f"its rms is {ratio:.3g} times the model reference's, outside {lo:g}..{hi:g} (a rubber "
+                "within the real-device ranges of docs/physics.md); a tare of another sensor or board?")
+    return ""
+
+
+@dataclass(frozen=True)
+class TareOutcome:
+    """How a tare ended: ``reference`` (208,) if accepted, else None and ``reason`` says why.
+
+    ``spread`` is the steadiness figure of :data:`TARE_MAX_SPREAD` (0.0 for a one-frame tare);
+    ``noise`` (208,) volts the per-channel std of the frames (None for a one-frame tare); ``note``
+    says why an accepted tare was not saved ('' when saved or when the stream has no file);
+    ``check`` the load figures (:class:`TareCheck`; None when the tare ended before them);
+    ``forced`` a forced tare, and ``overridden`` what it overrode ('' when nothing).
+    """
+
+    reference: np.ndarray | None
+    frames: int
+    spread: float
+    reason: str = ""
+    noise: np.ndarray | None = None
+    note: str = ""
+    check: TareCheck | None = None
+    forced: bool = False
+    overridden: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.reference is not None
+
+
+def judge_tare(pipe, n: int, x0: np.ndarray, s1: np.ndarray, s2: np.ndarray, st: np.ndarray, used: np.ndarray,
+               max_spread: float, forced: bool) -> TareOutcome:
+    """The outcome of a tare of ``n`` frames by every rule above: their sums taken around the first
+    frame ``x0`` (``s1`` of the differences, ``s2`` of their squares, ``st`` of k x the k-th's), over
+    the channels ``used`` (none excluded during the tare); ``max_spread`` the setting
+    (:data:`TARE_MAX_SPREAD`); ``forced``: the load checks do not refuse it."""
+    ref = x0 + s1 / n
+    spread = 0.0
+    noise = None
+    rms = float(np.sqrt(np.mean(ref[used] ** 2))) if used.any() else 0.0
+    if n > 1 and rms > 0:
+        var = np.maximum(s2 - s1**2 / n, 0.0) / (n - 1)
+        spread = float(np.sqrt(var[used].max()) / rms)
+        noise = np.sqrt(var)
+        noise[~used | ~np.isfinite(noise)] = float(np.median(noise[used]))  # excluded: no data
+    if not np.isfinite(ref).all() or not rms > 0 or not np.isfinite(spread):
+        return TareOutcome(None, n, spread, "tare refused: the averaged frames hold NaN/Inf or no usable "
+                                            "channel; check the board's contacts and cable")
+    limit = max_spread
+    if noise is not None:
+        limit = max(limit, TARE_NOISE_FACTOR * float(np.median(noise[used])) / rms)
+    if spread > limit:
+        worst = int(np.argmax(np.where(used, var, -1.0))) + 1
+        return TareOutcome(None, n, spread, f"tare refused: frames not steady (spread {spread:.2%} of the "
+                                            f"reference rms at measurement {worst}, limit {limit:.2%}); keep "
+                                            "the sensor still and unloaded during the tare")
+    why = tare_problem(ref[used], pipe.model_reference[used])  # flagged channels hold no data
+    if why:
+        return TareOutcome(None, n, spread, f"tare refused: {why}")
+    drift = None
+    if n >= 3:  # the linear trend's change from the first frame to the last, per channel
+        stt = n * (n * n - 1) / 12.0
+        drift = (st - 0.5 * (n - 1) * s1) / stt * (n - 1)
+    check = check_tare(pipe, ref, drift, noise, n, used)
+    problems = check.problems()
+    if problems and not forced:
+        return TareOutcome(None, n, spread, f"tare refused: {'; '.join(problems)}; tare with the joint unloaded "
+                                            "and still", noise=noise, check=check)
+    return TareOutcome(ref.copy(), n, spread, noise=noise, check=check, forced=forced, overridden="; ".join(problems))

@@ -414,7 +414,7 @@ class CstomoSensorNode(LifecycleNode):
             if not ds.connected:
                 level, msgs = ERROR, ["board disconnected"]
         if stream is not None:
-            s_level, s_msgs, s_kv = stream.health(time.monotonic(), board)
+            s_level, s_msgs, s_kv = stream.end_period(time.monotonic(), board)
             level, msgs = max(level, s_level), msgs + s_msgs
             kv.update(s_kv)
         kv["checksum"] = ("crc32" if cfg.protocol == "binary" else "none (text mode)") if serial else "n/a"

@@ -176,7 +176,7 @@ def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int 
         cost[k] = time.perf_counter() - t0
         if out is not None and out.result.valid:
             est[k] = out.result.force
-        scale[k] = pipe.scale
+        scale[k] = stream.slow.scale
     return times, est, forces, state, scale, 1e6 * float(np.median(cost))
 
 

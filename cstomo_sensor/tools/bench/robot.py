@@ -128,7 +128,7 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
         if out is not None and out.result.valid:
             est[k] = out.result.force
             sigma[k] = out.result.sigma_n
-        scale[k] = pipe.scale
+        scale[k] = stream.slow.scale
     return times, est, forces, scale, sigma
 
 

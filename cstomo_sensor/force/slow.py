@@ -1,0 +1,146 @@
+"""The device's slow states since the tare: its drift and its creep, and the force's uncertainty they
+leave. No ROS, no serial.
+
+A stage of the frame stream (force/stream.py). With each reference it makes a drift tracker
+(:class:`~.drift.DriftTracker`, ``drift_tracking``: the device's slow uniform change and its gradient)
+and a creep compensator (:class:`~.creep.CreepCompensator`, ``creep_per_decade`` or the calibration's);
+frame by frame it follows them, and hands the pipeline what it takes as arguments: :attr:`SlowStates.scale`
+(the voltages' uniform scale) and :attr:`SlowStates.offset` (the drift's gradient and the creep, summed,
+in y units). It never writes the pipeline's attributes: it reads what it needs (the reference, the
+estimator, the mask, the calibration) when the stream tells it one of them changed.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .creep import CreepCompensator
+from .drift import DriftTracker, gradient_directions
+from .scene_field import change_noise
+from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
+
+
+def force_map(pipe) -> np.ndarray | None:
+    """The estimator's linear map of a change to a force (the drift tracker's rest bound)."""
+    est = pipe.estimator
+    return getattr(getattr(est, "linear", est), "W", None)
+
+
+class SlowStates:
+    """The drift tracker (``tracking``) and the creep compensator (``creep_setting`` per decade, 0:
+    off) of a pipeline's reference, and the offset and scale they give."""
+
+    def __init__(self, n_meas: int, tracking: bool, creep_setting: float) -> None:
+        self.tracking = bool(tracking)
+        self.creep_setting = float(creep_setting)
+        self.drift: DriftTracker | None = None  # made with each reference (tracking)
+        self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
+        self.scale = 1.0  # the pipeline's arguments for the next frame: the voltages' uniform scale
+        self.offset: np.ndarray | None = None  # ... and the drift's and the creep's offsets, summed (y units)
+        self._sum = np.zeros(n_meas)
+        self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
+        self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
+        self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
+        self.sigma_source = ""  # where the calibration residual of the sigma comes from
+
+    def creep_per_decade(self, calibration) -> float:
+        """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
+        setting of 0 turns it off, over a calibration's too."""
+        if not self.creep_setting:
+            return 0.0
+        fitted = getattr(calibration, "creep_per_decade", None) if calibration is not None else None
+        return float(fitted) if fitted is not None else self.creep_setting
+
+    def reset(self, pipe) -> None:
+        """A tracker and a compensator for the reference ``pipe`` has just set (none without one)."""
+        self.drift = self.creep = None
+        if pipe.reference is not None:
+            if self.tracking:
+                if self._gradients is None:  # the contacts' change, then the resistivity's gradient
+                    g = gradient_directions(pipe.model)
+                    c = pipe.model.contact
+                    self._gradients = g if c is None else np.vstack([c, g])
+                self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
+                                          change_noise(pipe.estimator.noise, pipe.reference_frames),
+                                          ~pipe.bad_channels, force_map(pipe))
+            c = self.creep_per_decade(pipe.calibration)
+            if c > 0:
+                self.creep = CreepCompensator(c, pipe.n_meas)
+        self.scale = 1.0
+        self._offsets()
+
+    def masked(self, pipe) -> None:
+        """``pipe``'s mask changed: the tracker (its state kept) over its channels."""
+        if self.drift is not None:
+            self.drift = self.drift.with_mask(~pipe.bad_channels, force_map(pipe))
+            self._offsets()
+
+    def renoised(self, pipe) -> None:
+        """``pipe``'s noise changed: the tracker (its state kept) with the change's noise."""
+        if self.drift is not None:
+            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames),
+                                               force_map(pipe))
+            self._offsets()
+
+    def observe(self, pipe, result, t: float | None, frozen: np.ndarray | None) -> None:
+        """After ``pipe`` processed a frame at ``t`` (s; None: 10 ms after the previous) into ``result``:
+        the tracker and the compensator follow its change (``frozen``: the excluded channels, the
+        creep's history held there), and the result gets its force's 1-sigma."""
+        drift, creep = self.drift, self.creep
+        sig = creep_f = None
+        if result.valid:
+            sig = self._sigma_model(pipe)
+            if creep is not None:
+                creep_f = sig.creep_force(creep.offset)  # the offset this frame was corrected by
+        if pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
+            y = pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
+            if drift is not None:
+                drift.observe(y, t)
+                self.scale = drift.scale
+            if creep is not None:
+                creep.observe(y, t, frozen)
+            self._offsets()
+        if sig is not None:  # the tracker's covariance after this frame's predict and update
+            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f)
+
+    def _offsets(self) -> None:
+        d = self.drift.offset if self.drift is not None else None
+        c = self.creep.offset if self.creep is not None else None
+        self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)
+
+    def _sigma_model(self, pipe) -> ForceSigma:
+        """The force's uncertainty for the estimator, tracker and creep in use (rebuilt when one changes)."""
+        drift, f = self.drift, self._sigma_for
+        if (self._sigma is None or f[0] is not pipe.estimator or f[1] is not drift or f[2] is not self.creep
+                or f[3] is not pipe.calibration):
+            est = pipe.estimator
+            k_rel, self.sigma_source = relative_error(pipe.calibration, est.name)
+            fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
+            creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
+            self._sigma = ForceSigma(force_map(pipe), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
+                                     None if drift is None else drift._D, k_rel, creep_rel)
+            self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
+        return self._sigma
+
+    def creep_text(self, calibration) -> str:
+        """The creep compensated and where its coefficient comes from, for the diagnostics."""
+        c = self.creep_per_decade(calibration)
+        if c <= 0:
+            return "not compensated (creep_per_decade 0)"
+        if calibration is not None and getattr(calibration, "creep_per_decade", None) is not None:
+            return f"{c:.2%} per decade, from the calibration {calibration.path}"
+        return (f"{c:.2%} per decade, assumed (creep_per_decade; a rubber's is 2..6 %: fit it with "
+                "cstomo calibrate from held loads, docs/calibration.md#the-creep)")
+
+    def status(self, calibration) -> tuple[int, list[str], dict]:
+        """The diagnostics' level (0 OK), problems and figures."""
+        drift, level, msgs = self.drift, 0, []
+        if drift is not None:
+            level, d_msg = drift.status()
+            kv = dict(drift_change=f"{drift.change:+.3%}", drift_kelvin=drift.kelvin_text,
+                      drift_rest_frames=drift.rest_frames)
+            msgs = [d_msg] if d_msg else []
+        else:
+            kv = dict(drift_change="not tracked (drift_tracking false)" if not self.tracking
+                      else "not tracked yet: no reference (tracking starts with the tare)")
+        kv.update(creep=self.creep_text(calibration))
+        return (level if msgs else 0), msgs, kv
