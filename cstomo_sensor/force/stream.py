@@ -17,8 +17,8 @@ owns, per sensor:
   pipeline now and then, or from a whole frames file first (:meth:`FrameStream.estimate_noise`);
 - the accounting: frames, late frames, dropped frames and why, implausible and foreign-load frames,
   the processing time, and the losses over the last :data:`LOSS_WINDOW` s;
-- the set of outputs a configuration produces (:data:`OUTPUTS`, :func:`output_set`): the node's
-  publishers, replay's topics and the node's ``--help`` all come from it.
+- the set of outputs its configuration produces (:attr:`FrameStream.outputs`; declared in
+  :mod:`cstomo_sensor.outputs`).
 
 Why a module of ``force/`` and not a layer of its own: it needs nothing but the force layer (the
 pipeline, the filter, the device's reference files), and the board's and ROS's layers above it use it.
@@ -46,6 +46,7 @@ import numpy as np
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
+from ..outputs import OUTPUTS, output_set  # noqa: F401 - the output set (re-exported)
 from .creep import DEFAULT_CREEP, CreepCompensator, creep_problem
 from .device import read_reference, write_reference
 from .drift import DriftTracker, gradient_directions
@@ -60,24 +61,6 @@ log = logging.getLogger(__name__)
 
 #: Diagnostic levels (the values of diagnostic_msgs/DiagnosticStatus).
 OK, WARN, ERROR = 0, 1, 2
-
-#: Every output a stream can produce, in publishing order: name -> what it holds. The node publishes
-#: each as ``~/<name>``, replay writes each as a topic, ``cstomo_sensor_node --help`` lists them.
-OUTPUTS: dict[str, str] = {
-    "wrench": "geometry_msgs/WrenchStamped: the force on the socket (N) in frame_id, zero torque",
-    "wrench_sigma": "geometry_msgs/Vector3Stamped: the 1-sigma uncertainty (N) of the wrench's fx, fy, fz, "
-                    "under the wrench's stamp and frame_id (force/sigma.py)",
-    "wrench_filtered": "the wrench through a first-order low-pass (wrench_filter_hz; none when 0)",
-    "force_magnitude": "std_msgs/Float64: |F| (N)",
-    "force_elevation": "std_msgs/Float64: the force's elevation (rad)",
-    "force_azimuth": "std_msgs/Float64: the force's azimuth (rad)",
-    "consistency": "std_msgs/Float64: how well the frame fits a load on the socket (above its limit: "
-                   "a foreign load)",
-    "stress_field": "sensor_msgs/PointCloud2: the EIT image (conductivity change, compression, pressure) "
-                    "every stress_field_every frames (none when 0)",
-    "scene_stress_field": "sensor_msgs/PointCloud2: the mechanics' field of the estimated force, with "
-                          "stress_field (socket sensors)",
-}
 
 #: Largest tare spread accepted: max over the used channels of std / rms(reference) of the tare
 #: frames. 60 dB noise (std 0.1 % of rms) gives 0.15..0.35 % over 208 channels (2..50 frames); a
@@ -147,19 +130,6 @@ class StreamConfig:
         why = creep_problem(self.creep_per_decade)
         if why:
             raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade, why)
-
-
-def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
-    """The outputs a stream with ``config`` produces (a subset of :data:`OUTPUTS`, in its order);
-    ``scene_field``: the pipeline has the mechanics' field (a socket sensor)."""
-    off = set()
-    if not config.wrench_filter_hz:
-        off.add("wrench_filtered")
-    if not config.stress_field_every:
-        off |= {"stress_field", "scene_stress_field"}
-    if not scene_field:
-        off.add("scene_stress_field")
-    return tuple(n for n in OUTPUTS if n not in off)
 
 
 def tare_problem(ref: np.ndarray, model_reference: np.ndarray) -> str:
@@ -325,6 +295,7 @@ class FrameStream:
         self._all_good = np.ones(n_el, bool)
         self.excluded = Excluded(channels=int(self._mask.sum()))
         self.processed = 0
+        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them)
         self.implausible = 0  # frames the plausibility gate rejected (all time)
         self.implausible_reason = ""
         self._implausible_run = 0
@@ -877,7 +848,7 @@ class FrameStream:
             return None
         self.update_mask(saturated, contact_ok)
         every = self.config.stress_field_every
-        with_field = every > 0 and self.processed % every == 0
+        with_field = every > 0 and self.processed % every == 0 and self.fields_wanted
         self.processed += 1
         result = self.pipe.process(values, with_field=with_field)
         if not result.valid:
