@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import select
 import stat
 import threading
 import time
@@ -44,6 +45,14 @@ def set_os_thread_name(name: str) -> None:
     except (OSError, AttributeError):
         pass
 
+def _fd_ports() -> tuple[type, ...]:
+    """The port classes read through their file descriptor (:meth:`BoardDriver._read`)."""
+    from .protocol_virtual import Serial as VirtualSerial
+
+    posix = getattr(getattr(serial, "serialposix", None), "Serial", None)
+    return (VirtualSerial,) if posix is None else (VirtualSerial, posix)
+
+
 if __package__ not in serial.protocol_handler_packages:  # virtual://NAME: .protocol_virtual, an in-process board
     serial.protocol_handler_packages.append(__package__)
 
@@ -56,6 +65,7 @@ FIRST_PERIOD_WAIT = 2.5
 #: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
 #: duplicate; further back, the board restarted its counter.
 REORDER_WINDOW = 256
+_FD_PORTS = _fd_ports()
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -224,6 +234,7 @@ class BoardDriver:
         self.identity: Identity | None = None
         self.on_reconnect = on_reconnect
         self._backoff_now = self._backoff[0]
+        self._fd: int | None = None  # the open port's file descriptor, when it is read directly (_read)
         self._next_open = 0.0  # monotonic time of the next attempt to open the port
         self._last_byte = 0.0
         self._thread: threading.Thread | None = None
@@ -331,6 +342,7 @@ class BoardDriver:
             self._error(f"open failed: {err}")
             return False
         _set_low_latency(port, self.url)
+        self._fd = port.fileno() if isinstance(port, _FD_PORTS) else None
         self._decoder.reset()
         with self._port_lock:
             self._port = port
@@ -375,7 +387,7 @@ class BoardDriver:
             if self._opens > 1 and self.on_reconnect is not None:
                 self.on_reconnect()
         try:
-            data = self._port.read(max(1, self._port.in_waiting))
+            data = self._read()
         except (serial.SerialException, OSError) as err:
             self._error(f"read failed: {err}")
             self._close_port()
@@ -390,6 +402,21 @@ class BoardDriver:
             return
         self._last_byte = now
         self._handle(self._decoder.feed(data, marks=True))
+
+    def _read(self) -> bytes:
+        """What the port holds, waiting up to ``read_timeout`` for the first byte: on a device or a
+        virtual link one wait and one read of the file descriptor (pyserial's own read of what is
+        waiting costs an ioctl and two waits and reads per frame), else pyserial's read."""
+        fd = self._fd
+        if fd is None:
+            return self._port.read(max(1, self._port.in_waiting))
+        if not select.select((fd,), (), (), self._read_timeout)[0]:
+            return b""
+        data = os.read(fd, 65536)
+        if not data:  # ready, yet nothing: the device went away (pyserial says the same)
+            raise serial.SerialException("device reports readiness to read but returned no data "
+                                         "(device disconnected or multiple access on port?)")
+        return data
 
     def _handle(self, messages: list) -> None:
         for msg in messages:
