@@ -181,8 +181,9 @@ class CstomoSensorNode(LifecycleNode):
         if serial:
             for text in link_warnings(cfg):
                 log.warning(text)
-            clock = self.get_clock()
-            self._source = SerialSource(cfg.port, now_ns=lambda: clock.now().nanoseconds, clock_window=cfg.clock_window,
+            clock = self.get_clock()  # the system clock unless ROS time (use_sim_time) is active: read directly
+            now_ns = lambda: clock.now().nanoseconds if clock.ros_time_is_active else time.time_ns()  # noqa: E731
+            self._source = SerialSource(cfg.port, now_ns=now_ns, clock_window=cfg.clock_window,
                                         protocol=cfg.protocol, baudrate=cfg.baudrate, rate_hz=cfg.rate_hz or None,
                                         queue_size=FRAME_QUEUE, stall_timeout=max(cfg.stale_timeout, 0.2))
             self._thread = threading.Thread(target=self._serial_loop, name=FRAME_THREAD, daemon=True)
