@@ -43,9 +43,9 @@ from . import log as ros_log
 from . import status
 from .params import PARAMETERS, NodeConfig
 from .sinks import Publishers
-from .sinks import msg_class as _msg_class  # noqa: F401 - the tests' name
 from .sources import TopicSource
-from .startup import as_double, check_inputs, failure_cause, init_ros, link_warnings, main, own_args, refuse_unknown, usage  # noqa: F401 - the entry point (setup.py), re-exported
+from .startup import INSTALLED_CONFIG, as_double, check_inputs, failure_cause, link_warnings, refuse_unknown, usage  # noqa: F401
+from .startup import main as _main
 
 #: Frames the driver keeps for the frame thread; when it falls behind the oldest is dropped (counted
 #: as ``dropped_overflow``): a controller wants the newest frame, not a backlog, so at most this many
@@ -86,13 +86,8 @@ class CstomoSensorNode(LifecycleNode):
 
     processor = property(lambda self: self.stream, doc="The frame stream (the name the tests and tools knew it by).")
 
-    @property
-    def reference_source(self) -> str:
-        return self.stream.reference_source if self.stream is not None else "none"
-
-    @property
-    def tare_refused(self) -> str:
-        return self.stream.tare_refused if self.stream is not None else ""
+    reference_source = property(lambda self: self.stream.reference_source if self.stream is not None else "none")
+    tare_refused = property(lambda self: self.stream.tare_refused if self.stream is not None else "")
 
     @property
     def _driver(self):
@@ -294,6 +289,11 @@ class CstomoSensorNode(LifecycleNode):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [self.diagnostics()]
         self._diag_pub.publish(arr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cstomo_sensor_node`` (:func:`.startup.main`)."""
+    return _main(CstomoSensorNode, argv)
 
 
 if __name__ == "__main__":

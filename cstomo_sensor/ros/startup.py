@@ -154,18 +154,16 @@ def link_warnings(cfg) -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``)."""
+def main(node_class, argv: list[str] | None = None) -> int:
+    """``cstomo_sensor_node`` (``ros2 run cstomo_sensor cstomo_sensor_node``) with the node ``node_class``."""
     argv, own = own_args(argv)
     if "-h" in own or "--help" in own:
         print(usage())
         return 0
     if not init_ros("cstomo_sensor_node", argv):
         return 2
-    from .node import CstomoSensorNode  # the node imports this module
-
     try:
-        node = CstomoSensorNode()
+        node = node_class()
     except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused
         print(f"cstomo_sensor_node: {err}", file=sys.stderr)
         rclpy.try_shutdown()
