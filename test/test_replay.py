@@ -38,7 +38,7 @@ def read_bag(path):
     from rclpy.serialization import deserialize_message
     from rosbags.rosbag2 import Reader
 
-    from cstomo_sensor.ros.node import _msg_class
+    from cstomo_sensor.ros.sinks import msg_class as _msg_class
 
     out: dict[str, list] = {}
     with Reader(path) as r:

@@ -1,16 +1,20 @@
-"""Serial driver for the board: a pyserial port opened by URL, a reader thread, a bounded queue.
+"""Serial driver for the board: a pyserial port opened by URL, a bounded queue, and a reader thread
+or none (``thread=False``: the thread calling :meth:`BoardDriver.get` reads, as
+:class:`cstomo_sensor.sources.SerialSource` does: no hand-over between threads).
 
-The reader thread decodes frames (binary or text mode, docs/protocol.md), counts lost frames once
+The reader decodes frames (binary or text mode, docs/protocol.md), counts lost frames once
 each (by sequence number: lost to corruption or to a gap), drops and counts duplicated and late
 (reordered) frames, drops the oldest frame when the user falls behind, and reconnects when the port
 disappears (retrying every 0.05..0.25 s: a replugged board is back within a second) or the board
-stops sending for longer than a few of its own frame periods. Nothing raises out of the thread.
+stops sending for longer than a few of its own frame periods (``on_reconnect`` is called when it
+is back). Nothing raises out of the reader.
 """
 from __future__ import annotations
 
 import logging
 import math
 import os
+import select
 import stat
 import threading
 import time
@@ -41,6 +45,14 @@ def set_os_thread_name(name: str) -> None:
     except (OSError, AttributeError):
         pass
 
+def _fd_ports() -> tuple[type, ...]:
+    """The port classes read through their file descriptor (:meth:`BoardDriver._read`)."""
+    from .protocol_virtual import Serial as VirtualSerial
+
+    posix = getattr(getattr(serial, "serialposix", None), "Serial", None)
+    return (VirtualSerial,) if posix is None else (VirtualSerial, posix)
+
+
 if __package__ not in serial.protocol_handler_packages:  # virtual://NAME: .protocol_virtual, an in-process board
     serial.protocol_handler_packages.append(__package__)
 
@@ -53,6 +65,7 @@ FIRST_PERIOD_WAIT = 2.5
 #: A frame up to this many sequence numbers behind the newest is a late (reordered) one or a
 #: duplicate; further back, the board restarted its counter.
 REORDER_WINDOW = 256
+_FD_PORTS = _fd_ports()
 
 @dataclass(frozen=True)
 class DriverStats:
@@ -158,6 +171,10 @@ class BoardDriver:
         largest bounds how long a replugged board waits to be opened again.
     rate_hz : float or None
         Rate asked for in START; None asks for the board's default rate.
+    thread : bool
+        Read in a background thread (default); False: :meth:`get` reads in the caller's thread.
+    on_reconnect : callable or None
+        Called (by the reading thread) when the port is open again after losing it.
 
     Raises
     ------
@@ -176,6 +193,8 @@ class BoardDriver:
         stall_timeout: float = 1.0,
         reconnect_backoff: tuple[float, float] = (0.05, 0.25),
         rate_hz: float | None = None,
+        thread: bool = True,
+        on_reconnect=None,
     ) -> None:
         if protocol not in PROTOCOLS:
             raise ConfigError(f"{protocol=}: expected one of {PROTOCOLS}")
@@ -213,13 +232,30 @@ class BoardDriver:
         self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
         self._last_error = ""
         self.identity: Identity | None = None
-        self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
-        self._thread.start()
+        self.on_reconnect = on_reconnect
+        self._backoff_now = self._backoff[0]
+        self._fd: int | None = None  # the open port's file descriptor, when it is read directly (_read)
+        self._next_open = 0.0  # monotonic time of the next attempt to open the port
+        self._last_byte = 0.0
+        self._thread: threading.Thread | None = None
+        if thread:
+            self._thread = threading.Thread(target=self._run, name=f"BoardDriver({url})", daemon=True)
+            self._thread.start()
 
     # --- user side ---------------------------------------------------------------------------
 
     def get(self, timeout: float) -> DataFrame | None:
-        """The oldest queued frame, waiting up to ``timeout`` seconds; None if none came."""
+        """The oldest queued frame, waiting up to ``timeout`` seconds; None if none came. Without a
+        reader thread the caller reads the port meanwhile."""
+        if self._thread is None:
+            q = self._queue
+            if not q:
+                deadline = time.monotonic() + timeout
+                while not q and not self._closing.is_set():
+                    self._step(deadline)
+                    if time.monotonic() >= deadline:
+                        break
+            return q.popleft() if q else None
         with self._cond:
             if not self._queue:
                 self._cond.wait_for(lambda: self._queue or self._closing.is_set(), timeout)
@@ -261,7 +297,7 @@ class BoardDriver:
         self._closing.set()
         with self._cond:
             self._cond.notify_all()
-        if self._thread is not threading.current_thread():
+        if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
         self._close_port()
 
@@ -306,6 +342,7 @@ class BoardDriver:
             self._error(f"open failed: {err}")
             return False
         _set_low_latency(port, self.url)
+        self._fd = port.fileno() if isinstance(port, _FD_PORTS) else None
         self._decoder.reset()
         with self._port_lock:
             self._port = port
@@ -329,32 +366,57 @@ class BoardDriver:
 
     def _run(self) -> None:
         set_os_thread_name(READER_THREAD)
-        backoff = self._backoff[0]
         while not self._closing.is_set():
-            if self._port is None:
-                if not self._open():
-                    self._closing.wait(backoff)
-                    backoff = min(2 * backoff, self._backoff[1])
-                    continue
-                backoff = self._backoff[0]
-                last_byte = time.monotonic()
-                self._last_frame_at = None  # no period across a reconnect
-            try:
-                data = self._port.read(max(1, self._port.in_waiting))
-            except (serial.SerialException, OSError) as err:
-                self._error(f"read failed: {err}")
-                self._close_port()
-                continue
+            self._step(math.inf)
+
+    def _step(self, deadline: float) -> None:
+        """One read of the port (up to ``read_timeout``), or one attempt to open it (waiting for the
+        back-off, at most until ``deadline``): its frames are queued."""
+        if self._port is None:
             now = time.monotonic()
-            if not data:
-                stall = self._stall_after()
-                if now - last_byte > stall:
-                    self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
-                    self._intervals.clear()  # its rate may have changed: measured again
-                    self._close_port()
-                continue
-            last_byte = now
-            self._handle(self._decoder.feed(data, marks=True))
+            if now < self._next_open:
+                self._closing.wait(min(self._next_open, deadline) - now)
+                return
+            if not self._open():
+                self._next_open = time.monotonic() + self._backoff_now
+                self._backoff_now = min(2 * self._backoff_now, self._backoff[1])
+                return
+            self._backoff_now = self._backoff[0]
+            self._last_byte = time.monotonic()
+            self._last_frame_at = None  # no period across a reconnect
+            if self._opens > 1 and self.on_reconnect is not None:
+                self.on_reconnect()
+        try:
+            data = self._read()
+        except (serial.SerialException, OSError) as err:
+            self._error(f"read failed: {err}")
+            self._close_port()
+            return
+        now = time.monotonic()
+        if not data:
+            stall = self._stall_after()
+            if now - self._last_byte > stall:
+                self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
+                self._intervals.clear()  # its rate may have changed: measured again
+                self._close_port()
+            return
+        self._last_byte = now
+        self._handle(self._decoder.feed(data, marks=True))
+
+    def _read(self) -> bytes:
+        """What the port holds, waiting up to ``read_timeout`` for the first byte: on a device or a
+        virtual link one wait and one read of the file descriptor (pyserial's own read of what is
+        waiting costs an ioctl and two waits and reads per frame), else pyserial's read."""
+        fd = self._fd
+        if fd is None:
+            return self._port.read(max(1, self._port.in_waiting))
+        if not select.select((fd,), (), (), self._read_timeout)[0]:
+            return b""
+        data = os.read(fd, 65536)
+        if not data:  # ready, yet nothing: the device went away (pyserial says the same)
+            raise serial.SerialException("device reports readiness to read but returned no data "
+                                         "(device disconnected or multiple access on port?)")
+        return data
 
     def _handle(self, messages: list) -> None:
         for msg in messages:

@@ -51,6 +51,10 @@ class Serial(SerialBase):
             raise PortNotOpenError()
         return self._socket
 
+    def fileno(self) -> int:
+        """The link's socket: the driver waits on it and reads it directly (board/driver.py)."""
+        return self._checked().fileno()
+
     @property
     def in_waiting(self) -> int:
         return struct.unpack("I", fcntl.ioctl(self._checked(), termios.FIONREAD, b"\0" * 4))[0]

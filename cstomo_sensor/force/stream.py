@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..frames_io import check_frame
+from ..outputs import OUTPUTS, output_set  # noqa: F401 - the output set (re-exported)
 from ..settings import default
 from .creep import creep_problem
 from .device import read_reference
@@ -42,23 +43,6 @@ from .taring import Taring
 
 log = logging.getLogger(__name__)
 
-#: Every output a stream can produce, in publishing order: name -> what it holds. The node publishes
-#: each as ``~/<name>``, replay writes each as a topic, ``cstomo_sensor_node --help`` lists them.
-OUTPUTS: dict[str, str] = {
-    "wrench": "geometry_msgs/WrenchStamped: the force on the socket (N) in frame_id, zero torque",
-    "wrench_sigma": "geometry_msgs/Vector3Stamped: the 1-sigma uncertainty (N) of the wrench's fx, fy, fz, "
-                    "under the wrench's stamp and frame_id (force/sigma.py)",
-    "wrench_filtered": "the wrench through a first-order low-pass (wrench_filter_hz; none when 0)",
-    "force_magnitude": "std_msgs/Float64: |F| (N)",
-    "force_elevation": "std_msgs/Float64: the force's elevation (rad)",
-    "force_azimuth": "std_msgs/Float64: the force's azimuth (rad)",
-    "consistency": "std_msgs/Float64: how well the frame fits a load on the socket (above its limit: "
-                   "a foreign load)",
-    "stress_field": "sensor_msgs/PointCloud2: the EIT image (conductivity change, compression, pressure) "
-                    "every stress_field_every frames (none when 0)",
-    "scene_stress_field": "sensor_msgs/PointCloud2: the mechanics' field of the estimated force, with "
-                          "stress_field (socket sensors)",
-}
 
 
 @dataclass(frozen=True)
@@ -94,17 +78,6 @@ class StreamConfig:
             raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade, why)
 
 
-def output_set(config: StreamConfig, scene_field: bool) -> tuple[str, ...]:
-    """The outputs a stream with ``config`` produces (a subset of :data:`OUTPUTS`, in its order);
-    ``scene_field``: the pipeline has the mechanics' field (a socket sensor)."""
-    off = set()
-    if not config.wrench_filter_hz:
-        off.add("wrench_filtered")
-    if not config.stress_field_every:
-        off |= {"stress_field", "scene_stress_field"}
-    if not scene_field:
-        off.add("scene_stress_field")
-    return tuple(n for n in OUTPUTS if n not in off)
 
 
 @dataclass
@@ -137,6 +110,7 @@ class FrameStream:
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
+        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them)
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -327,7 +301,7 @@ class FrameStream:
         self.update_mask(saturated, contact_ok)
         every, k = self.config.stress_field_every, self.processed
         self.processed += 1
-        result = pipe.process(values, every > 0 and k % every == 0, True, slow.scale, slow.offset)
+        result = pipe.process(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset)
         if not result.valid or self.counter.implausible_run:
             self.counter.plausible(result)
         if self.noise_state.estimate is not None and not pipe.noise_measured:

@@ -30,7 +30,8 @@ from rclpy.task import Future
 
 from ..errors import ConfigError
 from . import log as ros_log
-from .node import CstomoSensorNode, init_ros, own_args
+from .node import CstomoSensorNode
+from .startup import init_ros, own_args
 
 
 def usage() -> str:

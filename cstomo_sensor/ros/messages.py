@@ -21,22 +21,8 @@ from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension
 from ..board.wire import N_VALUES as N_MEAS
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame
+from ..outputs import CLOUD, FLOAT64, OUTPUTS, RAW_TOPIC, TOPIC_TYPES, VECTOR, WRENCH  # noqa: F401 - TOPIC_TYPES
 
-RAW_TOPIC = "raw_voltages"
-#: Message type of every topic, as rosbag2 names it: the stream's outputs (force/stream.py OUTPUTS,
-#: the one list of what the node publishes and replay writes) and the raw frames.
-TOPIC_TYPES = {
-    "wrench": "geometry_msgs/msg/WrenchStamped",
-    "wrench_sigma": "geometry_msgs/msg/Vector3Stamped",
-    "wrench_filtered": "geometry_msgs/msg/WrenchStamped",
-    "force_magnitude": "std_msgs/msg/Float64",
-    "force_elevation": "std_msgs/msg/Float64",
-    "force_azimuth": "std_msgs/msg/Float64",
-    "consistency": "std_msgs/msg/Float64",
-    "stress_field": "sensor_msgs/msg/PointCloud2",
-    "scene_stress_field": "sensor_msgs/msg/PointCloud2",
-    RAW_TOPIC: "sensor_msgs/msg/Image",
-}
 #: The raw frames' type before they carried a stamp: still read by replay and calibrate (old bags).
 LEGACY_RAW_TYPE = "std_msgs/msg/Float32MultiArray"
 #: The raw frame as an image: one row of 208 float32 volts (little endian).
@@ -143,6 +129,8 @@ class OutputMessages:
         self._cloud_tpl = bytearray(serialize_message(cloud))
         self._cloud_at = len(self._cloud_tpl) - 1 - self._cloud.nbytes  # data, then is_dense (1 byte)
         self._float64 = bytearray(serialize_message(Float64()))
+        self._encode = {WRENCH: self.wrench, VECTOR: self.vector, FLOAT64: lambda v, _s: self.float64(v),
+                        CLOUD: self.stress_field}
 
     def _cloud_msg(self) -> PointCloud2:
         buf = self._cloud
@@ -189,31 +177,20 @@ class OutputMessages:
         tpl[self._cloud_at:self._cloud_at + buf.nbytes] = buf.tobytes()
         return bytes(tpl)
 
-    def build(self, result: object, stamp_ns: int, filtered=None) -> dict[str, bytes]:
+    def build(self, result: object, stamp_ns: int, filtered=None, names=None) -> dict[str, bytes]:
         """CDR messages of one :class:`~cstomo_sensor.force.pipeline.FrameResult` at ``stamp_ns``, keyed
-        by topic name (relative to the node), in the order of the stream's outputs:
-        ``wrench_sigma`` when the result has its uncertainty (under the wrench's stamp),
-        ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given, ``consistency`` when the
-        result has the statistic, ``stress_field`` and ``scene_stress_field`` only when the result
-        carries those fields (same layout)."""
-        out = {"wrench": self.wrench(result.force, stamp_ns)}
-        sigma = getattr(result, "sigma", None)
-        if sigma is not None:
-            out["wrench_sigma"] = self.vector(sigma, stamp_ns)
-        if filtered is not None:
-            out["wrench_filtered"] = self.wrench(filtered, stamp_ns)
-        out.update({
-            "force_magnitude": self.float64(result.magnitude),
-            "force_elevation": self.float64(result.elevation),
-            "force_azimuth": self.float64(result.azimuth),
-        })
-        c = getattr(result, "consistency", float("nan"))
-        if c == c:  # not NaN
-            out["consistency"] = self.float64(c)
-        if getattr(result, "field", None) is not None:
-            out["stress_field"] = self.stress_field(result.field, stamp_ns)
-        if getattr(result, "scene_field", None) is not None:
-            out["scene_stress_field"] = self.stress_field(result.scene_field, stamp_ns)
+        by topic name (relative to the node), of the outputs ``names`` (default: every output of
+        :data:`~cstomo_sensor.outputs.OUTPUTS`, in its order) whose value this frame has
+        (:class:`~cstomo_sensor.outputs.Output`: ``wrench_sigma`` when the result has its uncertainty,
+        under the wrench's stamp; ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given;
+        ``consistency`` when the result has the statistic; the stress fields when it carries them)."""
+        out = {}
+        encode = self._encode
+        for name in OUTPUTS if names is None else names:
+            o = OUTPUTS[name]
+            v = o.value(result, filtered)
+            if v is not None:
+                out[name] = encode[o.type](v, stamp_ns)
         return out
 
 

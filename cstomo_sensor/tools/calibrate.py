@@ -246,16 +246,16 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
     frames/s): their force magnitudes through the stream, neither creep nor drift compensated."""
     from ..force.creep import fit_creep
     from ..force.stream import FrameStream, StreamConfig
+    from ..loop import Results, run
+    from ..sources import ArraySource
 
     if not rate > 0:
         raise ConfigError.bad_value("--creep-rate", rate, "frames per second > 0")
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, drift_tracking=False,
                                             creep_per_decade=0.0, noise_estimation=False))
-    mags = np.full(len(frames), np.nan)
-    for k, v in enumerate(frames):
-        out = stream.push(v, stamp_ns=int(1e9 * (1 + k / rate)))
-        if out is not None and out.result.valid:
-            mags[k] = out.result.magnitude
+    rows = Results(stream, every_frame=True)
+    run(ArraySource(frames, rate_hz=rate, start_s=1.0), stream, [rows])
+    mags = np.array([r.magnitude if r.valid else np.nan for r in rows.results])
     try:
         return fit_creep(np.arange(len(frames)) / rate + 1.0 / rate, mags)
     except ValueError as err:

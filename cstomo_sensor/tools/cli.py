@@ -17,15 +17,17 @@ import numpy as np
 from ..errors import ConfigError, CstomoError
 from ..force.device import read_reference
 from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level
-from ..force.pipeline import FrameResult, Pipeline
+from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream, StreamConfig
-from ..frames_io import atomic_write, read_frames, write_forces, write_frames
+from ..frames_io import atomic_write, read_frames, write_frames
 from ..inverse.reconstruction import build_model
+from ..loop import Results, run
 from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SENSOR, load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
+from ..sources import ArraySource
 from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -114,17 +116,12 @@ def cmd_estimate(a) -> int:
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
     cal = pipe.calibration
     print(f"calibration: {cal.path} ({cal.accuracy})" if cal else "calibration: none (the nominal model)", file=sys.stderr)
-    period_ns = round(1e9 / a.rate)  # frames in file order, a.rate per second (the drift tracker's clock)
-    outputs = [stream.push(f, stamp_ns=(i + 1) * period_ns) for i, f in enumerate(frames)]  # None: a row without a force
-    results = [o.result if o is not None else FrameResult.implausible(stream.counts.reject_reason) for o in outputs]
-    forces = np.array([r.force for r in results])
-    valid = np.array([r.valid for r in results])
-    # the optional valid column (docs/formats.md#forces-file) is written when a frame was rejected as
-    # implausible; without it, every row holds a force
-    write_forces(a.out, forces, valid=None if valid.all() else valid,
-                 consistency=np.array([r.consistency for r in results]),
-                 foreign_load=np.array([r.foreign_load for r in results]),
-                 sigma_n=np.array([r.sigma_n for r in results]))
+    # frames in file order, a.rate per second (the drift tracker's clock), one row each (a frame without
+    # a force: implausible); the optional valid column (docs/formats.md#forces-file) is written when a
+    # frame was rejected as implausible; without it, every row holds a force
+    rows = Results(stream, every_frame=True, path=a.out, valid_column="auto")
+    run(ArraySource(frames, rate_hz=a.rate), stream, [rows])
+    results, valid = rows.results, rows.valid
     for i, r in enumerate(results):
         if not r.valid:
             print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)

@@ -5,7 +5,9 @@ publishes it, or the std_msgs/Float32MultiArray of older recordings; sqlite3 or 
 marks a measurement the board flagged) with the ``rosbags``
 library and writes a new bag with the node's output topics under the same namespace as the input
 topic, with the same message types and the same numbers the live node publishes: both push the
-frames through a :class:`~cstomo_sensor.force.stream.FrameStream` and build the messages with
+frames through a :class:`~cstomo_sensor.force.stream.FrameStream` in the one frame loop
+(:func:`cstomo_sensor.loop.run`: a :class:`~cstomo_sensor.ros.sources.BagSource` in, a
+:class:`~cstomo_sensor.ros.sinks.BagWriter` and the forces file out) and build the messages with
 :class:`~cstomo_sensor.ros.messages.OutputMessages`; the topics are the stream's outputs for the
 settings given (``wrench_filtered`` with a filter, the stress fields with ``--stress-field-every``).
 
@@ -34,16 +36,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from rclpy._rclpy_pybind11 import RMWError
-from rclpy.serialization import deserialize_message
-from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray
 
-from ..errors import ConfigError, CstomoError, FrameError
+from ..errors import ConfigError, CstomoError
 from ..force.pipeline import Pipeline, PipelineConfig
 from ..force.stream import FrameStream, StreamConfig
-from ..frames_io import write_forces
-from ..ros.messages import LEGACY_RAW_TYPE, RAW_TOPIC, TOPIC_TYPES, OutputMessages, frame_from_raw_msg
+from ..loop import Results, run
+from ..outputs import RAW_TOPIC
+from ..ros.sinks import BagWriter
+from ..ros.sources import BagSource
 from ..settings import default
 from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
@@ -72,25 +72,6 @@ def _typestore():
 
     store = getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST
     return get_typestore(store)
-
-
-def find_raw_topic(connections, topic: str | None = None) -> str:
-    """The input topic: ``topic`` if given, else the one topic whose name ends in ``raw_voltages``;
-    its messages must be of the raw voltages' type."""
-    names = sorted({c.topic for c in connections})
-    if topic is not None:
-        if topic not in names:
-            raise ConfigError(f"topic={topic!r}: not in the bag; it holds {names}")
-    else:
-        raw = [n for n in names if n.rstrip("/").endswith(RAW_TOPIC)]
-        if len(raw) != 1:
-            raise ConfigError(f"bag topics {names}: expected exactly one ending in '{RAW_TOPIC}' (or name it with --topic)")
-        topic = raw[0]
-    types = sorted({c.msgtype for c in connections if c.topic == topic})
-    if len(types) != 1 or types[0] not in (TOPIC_TYPES[RAW_TOPIC], LEGACY_RAW_TYPE):
-        raise ConfigError(f"topic {topic}: message type {', '.join(types)}, expected {TOPIC_TYPES[RAW_TOPIC]} "
-                          f"(or {LEGACY_RAW_TYPE} of older recordings)")
-    return topic
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
@@ -123,7 +104,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         Also write the results as a forces file (docs/formats.md#forces-file) with the ``valid``,
         ``consistency`` and ``foreign_load`` columns, one row per processed frame.
     """
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer  # optional: the [full] extra
+    from rosbags.rosbag2 import StoragePlugin, Writer  # optional: the [full] extra
 
     if storage not in STORAGES:
         raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
@@ -137,62 +118,39 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     stream_cfg = StreamConfig(tare_frames=tare_frames, stress_field_every=stress_field_every,
                               wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking,
                               creep_per_decade=creep_per_decade)
-    with Reader(in_bag) as reader:  # the inputs are checked before any model is loaded
-        raw_topic = find_raw_topic(reader.connections, topic)
-    pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
-    pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
-    stream = FrameStream(pipe, stream_cfg)
-    if reference is not None:
-        stream.use_reference(reference)
-    else:
-        stream.start_tare()
-    out = OutputMessages(pipe.centers, frame_id)
-    store = _typestore()
-    n_in = n_out = 0
-    rows = []  # the forces file's results
-    prefix = raw_topic[: -len(RAW_TOPIC)]
-    names = stream.outputs
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    work = Path(tempfile.mkdtemp(prefix=f".{out_bag.name}.partial", dir=out_bag.parent))  # moved when complete
-    partial = work / out_bag.name  # the bag's files are named after its directory
+    source = BagSource(in_bag, topic)  # the inputs are checked before any model is loaded
     try:
-        with Reader(in_bag) as reader, Writer(partial, version=9, storage_plugin=plugin) as writer:
-            conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=store) for n in names}
-            inputs = [c for c in reader.connections if c.topic == raw_topic]
-            cls = Image if inputs[0].msgtype == TOPIC_TYPES[RAW_TOPIC] else Float32MultiArray
-            for _conn, t_ns, raw in reader.messages(connections=inputs):
-                n_in += 1
-                try:
-                    values, flagged, stamp_ns = frame_from_raw_msg(deserialize_message(bytes(raw), cls))
-                except (RMWError, FrameError) as err:  # not a frame: dropped and counted, as the node does
-                    stream.drop(FrameError(f"frame {n_in - 1} at {t_ns} ns: {str(err).split(',')[0]}"), corrupt=True)
-                    continue
-                output = stream.push(values, flagged, None, stamp_ns or t_ns)
-                if output is None:
-                    continue
-                rows.append(output.result)
-                if not output.result.valid:
-                    continue  # implausible: no message, as the node publishes none
-                n_out += 1
-                for name, data in out.build(output.result, output.stamp_ns, output.filtered).items():  # CDR bytes
-                    writer.write(conns[name], t_ns, data)  # at the input's bag time, stamped as the node stamps
-        corrupt = stream.counts.corrupt + stream.counts.rejected
-        if n_in and corrupt == n_in:
-            raise ConfigError(f"{in_bag}: none of the {n_in} messages of {raw_topic} could be read as frames; "
-                              "no output written")
-        if forces_file is not None:
-            write_forces(forces_file, np.array([r.force for r in rows]).reshape(-1, 3),
-                         valid=np.array([r.valid for r in rows], bool),
-                         consistency=np.array([r.consistency for r in rows]),
-                         foreign_load=np.array([r.foreign_load for r in rows], bool),
-                         sigma_n=np.array([r.sigma_n for r in rows], float))
-        os.replace(partial, out_bag)
+        pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
+        pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
+        stream = FrameStream(pipe, stream_cfg)
+        if reference is not None:
+            stream.use_reference(reference)
+        else:
+            stream.start_tare()
+        prefix = source.topic[: -len(RAW_TOPIC)]
+        names = stream.outputs
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        work = Path(tempfile.mkdtemp(prefix=f".{out_bag.name}.partial", dir=out_bag.parent))  # moved when complete
+        partial = work / out_bag.name  # the bag's files are named after its directory
+        try:
+            with Writer(partial, version=9, storage_plugin=plugin) as writer:
+                bag = BagWriter(writer, names, prefix, pipe.centers, frame_id, _typestore())
+                results = Results(path=forces_file)
+                run(source, stream, [bag, results])
+            n_in = source.messages
+            corrupt = stream.counts.corrupt + stream.counts.rejected
+            if n_in and corrupt == n_in:
+                raise ConfigError(f"{in_bag}: none of the {n_in} messages of {source.topic} could be read as frames; "
+                                  "no output written")
+            os.replace(partial, out_bag)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
     finally:
-        shutil.rmtree(work, ignore_errors=True)
+        source.close()
     if stream.taring:
         log.warning("the bag ended during the tare (%d frames): no output", n_in)
-    return ReplaySummary(n_in, n_out, corrupt, raw_topic, tuple(prefix + n for n in names), stream.implausible,
-                         sum(r.foreign_load for r in rows))
+    return ReplaySummary(n_in, bag.results, corrupt, source.topic, tuple(prefix + n for n in names), stream.implausible,
+                         sum(r.foreign_load for r in results.results))
 
 
 def parser() -> argparse.ArgumentParser:

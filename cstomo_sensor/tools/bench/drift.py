@@ -31,7 +31,6 @@ Writes drift.csv (and the markdown table) in ``--out``.
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +39,11 @@ from ...angles import angle_between, force_from_angles
 from ...force.estimate import ESTIMATORS
 from ...force.pipeline import Pipeline, PipelineConfig
 from ...force.stream import FrameStream, StreamConfig
+from ...loop import Trace, run
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.simulate import Load, Truth, add_noise
 from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, temperature_gradient, warmup_30min
+from ...sources import ArraySource
 from .report import write_rows
 from .timing import one_core
 
@@ -88,13 +89,11 @@ def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | 
     plan += [(v_unloaded, None, True)] * int(2 * REST_S * RATE)
     for i in range(len(forces)):
         plan += [(v_loaded[i], i, False)] * int(HOLD_S * RATE) + [(v_unloaded, None, True)] * int(REST_S * RATE)
-    zero, ang, mag, cost = [], [], [], []
-    for k, (v, i, measured_rest) in enumerate(plan):
-        frame = add_noise(v, ref, SNR_DB, rng)
-        t0 = time.perf_counter()
-        out = stream.push(frame, stamp_ns=int(1e9 * (1 + k / RATE)))
-        cost.append(time.perf_counter() - t0)
-        f = out.result.force if out is not None and out.result.valid else np.full(3, np.nan)
+    frames = np.array([add_noise(v, ref, SNR_DB, rng) for v, _, _ in plan])
+    trace = Trace()
+    run(ArraySource(frames, rate_hz=RATE, start_s=1.0), stream, [trace])
+    zero, ang, mag, cost = [], [], [], trace.seconds
+    for (_, i, measured_rest), f in zip(plan, np.array(trace.forces, float)):
         if measured_rest:
             zero.append(f)
         elif i is not None and np.isfinite(f).all():
@@ -167,17 +166,10 @@ def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int 
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking,
                                             creep_per_decade=tl.spec.creep if creep is None else creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
-    est = np.full((len(times), 3), np.nan)
-    scale = np.ones(len(times))
-    cost = np.empty(len(times))
-    for k, (t, v) in enumerate(zip(times, frames)):
-        t0 = time.perf_counter()
-        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
-        cost[k] = time.perf_counter() - t0
-        if out is not None and out.result.valid:
-            est[k] = out.result.force
-        scale[k] = stream.slow.scale
-    return times, est, forces, state, scale, 1e6 * float(np.median(cost))
+    trace = Trace(lambda: stream.slow.scale)
+    run(ArraySource(frames, (1e9 * (1 + np.asarray(times))).astype(np.int64)), stream, [trace])
+    est, scale = np.array(trace.forces, float).reshape(-1, 3), np.array(trace.probed)
+    return times, est, forces, state, scale, 1e6 * float(np.median(trace.seconds))
 
 
 def _errors(est, forces, rest_after: float, times) -> dict:

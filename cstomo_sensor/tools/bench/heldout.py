@@ -87,12 +87,13 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
     noise updates, milliseconds each, included), with the drift tracking on (the node's default) and off.
     Writes heldout_one_frame.csv."""
     from ...force.stream import FrameStream, StreamConfig
+    from ...loop import Results, run
+    from ...sources import ArraySource
 
     scenes = SceneSet(n, cache_dir, say)
     builder = Builder(cache_dir, say)
     forces = np.repeat(scenes.forces, HOLD_FRAMES, axis=0)
     true_mag = np.linalg.norm(forces, axis=1)
-    period_ns = round(1e9 / RATE_HZ)
     rows = []
     for snr in (60.0, 40.0):
         ref1, frames = scenes.noisy(scenes.clean, HOLD_FRAMES, snr, NOISE_SEED + int(snr))
@@ -106,8 +107,9 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
                 stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, creep_per_decade=0.0,
                                                         noise_estimation=estimation, drift_tracking=tracking))
                 stream.set_reference(ref50 if n_ref > 1 else ref1, noise50 if given else None, n_ref, case)
-                res = [stream.push(f, stamp_ns=(i + 1) * period_ns) for i, f in enumerate(frames)]
-                res = [o.result for o in res if o is not None]
+                got = Results()
+                run(ArraySource(frames, rate_hz=RATE_HZ), stream, [got])
+                res = got.results
                 valid = np.array([r.valid for r in res])
                 est = np.array([r.force for r in res])
                 ang, mag = errors(est, forces)

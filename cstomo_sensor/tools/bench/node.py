@@ -33,8 +33,9 @@ subscriber, so the measuring side stays small), the CPU of every node process an
   that falls behind under load sends fewer frames than asked, which the first ratio cannot see);
 * CPU per frame of the first node process (``/s0``'s, or the host's) by thread: the CPU time of each of
   its threads over the window (``/proc/<pid>/task/<tid>/schedstat``, ns; by OS thread name,
-  ``/proc/<pid>/task/<tid>/comm``) grouped as the frame thread (``cstomo_frames``), the driver's reader
-  thread (``cstomo_reader``; the node names both for the OS), the executor (the main thread and the
+  ``/proc/<pid>/task/<tid>/comm``) grouped as the frame thread (``cstomo_frames``: it reads the port,
+  decodes and processes), a driver's reader thread (``cstomo_reader``: none in the node since it reads on
+  its frame thread, issue 27; kept for a threaded driver), the executor (the main thread and the
   threads named as it: the executor's pool) and the other threads (the middleware's), in microseconds
   per frame the process received (its sensors' diagnostics ``frames``), next to the process total
   (``node0_cpu_us_per_frame``) and every thread name's figure (``node0_threads``);

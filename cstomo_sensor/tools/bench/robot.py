@@ -48,8 +48,10 @@ from ...angles import angle_between
 from ...force.calibration import calibrate
 from ...force.pipeline import Pipeline, PipelineConfig
 from ...force.stream import FrameStream, StreamConfig
+from ...loop import Trace, run
 from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...sources import ArraySource
 from .report import write_csv
 from .scenes import random_forces
 
@@ -120,16 +122,9 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
     times, frames, forces, _ = tl.frames(rate, rng=rng)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare")
-    est = np.full((len(times), 3), np.nan)
-    scale = np.ones(len(times))
-    sigma = np.full(len(times), np.nan)
-    for k, (t, v) in enumerate(zip(times, frames)):
-        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
-        if out is not None and out.result.valid:
-            est[k] = out.result.force
-            sigma[k] = out.result.sigma_n
-        scale[k] = stream.slow.scale
-    return times, est, forces, scale, sigma
+    trace = Trace(lambda: stream.slow.scale)
+    run(ArraySource(frames, (1e9 * (1 + np.asarray(times))).astype(np.int64)), stream, [trace])
+    return times, np.array(trace.forces, float).reshape(-1, 3), forces, np.array(trace.probed), np.array(trace.sigma_n)
 
 
 def window_errors(est, forces, scale, sel, sigma=None) -> dict:

@@ -1,0 +1,102 @@
+"""Sinks of the frame loop (:mod:`cstomo_sensor.loop`) that speak ROS: the node's publishers and a
+rosbag2 writer. Both build the messages of :class:`~.messages.OutputMessages` (CDR bytes, the same
+for both), the publishers only those of the topics someone subscribes to.
+"""
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+from rclpy.event_handler import PublisherEventCallbacks
+
+from ..outputs import OUTPUTS, RAW_TOPIC, TOPIC_TYPES
+from .messages import OutputMessages, RawVoltagesCdr
+
+
+def msg_class(type_name: str):
+    """The message class of a rosbag2 type name (``geometry_msgs/msg/WrenchStamped``)."""
+    pkg, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class Publishers:
+    """The node's publishers of ``topics`` (outputs, and :data:`RAW_TOPIC` for the raw frames as
+    measured), as a sink: a frame's messages are built and published while ``active()``, for the
+    topics with a subscriber only. Who subscribes is followed by the publishers' matched events (the
+    executor's thread) and :meth:`refresh` (the node's diagnostics timer), never asked per frame.
+    ``published``: messages per topic since they were made (the diagnostics' ``messages_published``).
+
+    ``stream``: the frame stream (its flags of a raw frame; its fields are computed only while someone
+    subscribes to a field's topic: ``fields_wanted``).
+    """
+
+    def __init__(self, node, topics: tuple[str, ...], centers, frame_id: str, qos, stream,
+                 active: Callable[[], bool]) -> None:
+        self.node, self.stream, self.active = node, stream, active
+        self.out = OutputMessages(centers, frame_id)
+        self.raw = RawVoltagesCdr(frame_id)
+        self.pubs = {}
+        for t in topics:
+            events = PublisherEventCallbacks(matched=lambda info, t=t: self._matched(t, info.current_count))
+            self.pubs[t] = node.create_lifecycle_publisher(msg_class(TOPIC_TYPES[t]), f"~/{t}", qos,
+                                                           event_callbacks=events)
+        self.published: dict[str, int] = {}
+        self._subscribed: set[str] = set()
+        self.wanted: tuple[str, ...] = ()  # the outputs with a subscriber, in publishing order
+        self.raw_wanted = False
+        self.refresh()
+
+    def _matched(self, topic: str, count: int) -> None:
+        (self._subscribed.add if count > 0 else self._subscribed.discard)(topic)
+        self._update()
+
+    def refresh(self) -> None:
+        """Ask every publisher how many subscribe (a subscriber the matched events missed)."""
+        self._subscribed = {t for t, p in self.pubs.items() if p.get_subscription_count() > 0}
+        self._update()
+
+    def _update(self) -> None:
+        subs = self._subscribed
+        self.wanted = tuple(t for t in self.pubs if t in subs and t in OUTPUTS)
+        self.raw_wanted = RAW_TOPIC in subs
+        self.stream.fields_wanted = any(OUTPUTS[t].heavy for t in self.wanted)
+
+    def __call__(self, frame, output) -> None:
+        if not self.active():
+            return
+        counts = self.published
+        if self.raw_wanted:  # the raw frame as measured, NaN where the board flagged a measurement
+            flagged = self.stream.flagged(frame.saturated, frame.contact_ok)
+            self.pubs[RAW_TOPIC].publish(self.raw(frame.values, frame.stamp_ns, flagged))
+            counts[RAW_TOPIC] = counts.get(RAW_TOPIC, 0) + 1
+        if output is None or not output.result.valid or not self.wanted:
+            return  # an implausible frame is no force: counted by the stream, shown in diagnostics
+        pubs = self.pubs
+        for topic, data in self.out.build(output.result, output.stamp_ns, output.filtered, self.wanted).items():
+            pubs[topic].publish(data)  # CDR bytes
+            counts[topic] = counts.get(topic, 0) + 1
+
+    def close(self) -> None:
+        """Destroy the publishers."""
+        for pub in self.pubs.values():
+            self.node.destroy_lifecycle_publisher(pub)
+        self.pubs = {}
+        self.wanted, self.raw_wanted = (), False
+
+
+class BagWriter:
+    """A sink writing the outputs ``names`` of every valid frame into a rosbag2 ``writer`` (rosbags)
+    under ``prefix``, at the input frame's bag time, stamped as the node stamps them."""
+
+    def __init__(self, writer, names: tuple[str, ...], prefix: str, centers, frame_id: str, typestore) -> None:
+        self.writer, self.names = writer, names
+        self.out = OutputMessages(centers, frame_id)
+        self.conns = {n: writer.add_connection(prefix + n, TOPIC_TYPES[n], typestore=typestore) for n in names}
+        self.results = 0
+
+    def __call__(self, frame, output) -> None:
+        if output is None or not output.result.valid:
+            return  # implausible: no message, as the node publishes none
+        self.results += 1
+        for name, data in self.out.build(output.result, output.stamp_ns, output.filtered, self.names).items():
+            self.writer.write(self.conns[name], frame.t_ns, data)
