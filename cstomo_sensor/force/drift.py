@@ -62,6 +62,23 @@ ACCEL = 2e-5
 #: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
 #: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
 RATE_MEMORY = 30.0
+#: A loaded frame's own measurement of the scale (:class:`JointScale`, the load marginalised) counts
+#: as this fraction of one independent measurement: the frames of one held load share the model's
+#: mismatch with the device (not white noise), so their measurements do not average like noise.
+LOADED_WEIGHT = 0.02
+#: A restart from a saved tare (:meth:`DriftTracker.widen`): the scale's 1-sigma grows with the tare's
+#: age as ``RESTART_SIGMA * sqrt(age / 1 h)``, between :data:`RESTART_MIN` and :data:`RESTART_MAX`
+#: (section 9: a morning 5 K colder than the tare is about -4 %); its rate's as :data:`RESTART_RATE`
+#: (a joint warming at 0.8 %/K by 15 K in 30 min: 7e-5/s); each other state's (the contacts', the
+#: gradient's: measured at rest only) by what reads as :data:`RESTART_OTHER_N` newtons of force (a
+#: contact's 1 % reads as 0.02-0.05 N, a gradient's 1 % as 4 N: after hours off the block is near
+#: its equilibrium, without a gradient).
+RESTART_SIGMA, RESTART_MIN, RESTART_MAX = 0.015, 0.003, 0.05
+RESTART_RATE = 1e-4
+RESTART_OTHER_N = 0.15
+#: A controller's expected load (``FrameStream.expect_load``) holds for frames up to this many seconds
+#: after its stamp (a dynamics model's output at its own rate, tens of Hz or more).
+EXPECTED_HOLD = 0.5
 #: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
 DEFAULT_PERIOD = 0.01
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
@@ -102,6 +119,67 @@ def gradient_directions(model) -> np.ndarray:
     lo, hi = c.min(axis=0), c.max(axis=0)
     xi = (c - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
     return -(model.S @ xi).T
+
+
+class JointScale:
+    """One frame's own measurement of the device's uniform scale with its load marginalised (issue 26,
+    item 2): the model estimator's last fit (``ModelEstimator.last_fit``: the surrogate's residual and
+    Jacobian at the force it found, in its whitened basis) extended by the scale's direction.
+
+    A scale error ``d`` of the frame's change ``y`` adds ``d (r + y)`` (``r = V_ref / y_scale``); with
+    ``J`` the load's Jacobian, ``rho`` the fit's residual and a controller's expected load ``e`` of
+    information ``L`` (None: none), the joint least squares over the force step ``dx`` and ``d``::
+
+        |rho - J dx - d_w d|^2 + (dx - e)^T L (dx - e)
+
+    profiled over ``dx`` gives ``d``'s information ``H = |d_w|^2 - g^T A^-1 g`` and its estimate
+    ``b / H`` (``A = J^T J + L``, ``g = J^T d_w``): the part of the frame's change along ``r`` that no
+    load explains. The part of ``d_w`` outside the estimator's basis (no load makes it) is taken from
+    dot products over the full change. :meth:`measure` returns it with the force's step for a given
+    ``d``: ``dF = u - v d`` (N).
+    """
+
+    def __init__(self, estimator, r: np.ndarray) -> None:
+        self.est = estimator
+        rw = np.asarray(r, float)[estimator.keep] * estimator.w
+        self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
+        self.dof = max(len(rw) - 4, 1)
+
+    def measure(self, expected: tuple | None = None) -> tuple[float, float, np.ndarray, np.ndarray] | None:
+        """(d, its variance, u, v) of the estimator's latest frame (module docstring); ``expected``:
+        (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives nothing."""
+        est = self.est
+        if est.last_fit is None:
+            return None
+        yw, step, x_hat = est.last_fit
+        out, k = est._out, est.scale
+        Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
+        rho = np.dot(np.asarray(step, float), Jt)  # the residual at the final force: By - s(x) to first order
+        rho -= out[0]
+        By = est._d0 - est._d0_target
+        Bd = self.Brw + By
+        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
+        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
+        dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
+        A = np.dot(Jt, Jt.T)
+        rhs = np.dot(Jt, np.stack((rho, Bd), axis=1))  # (3, 2): J^T rho, g = J^T d_w
+        if expected is not None:
+            f, sig = expected
+            lam = (k / sig) ** 2
+            A[np.diag_indices(3)] += lam
+            rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
+        try:
+            sol = _solve(A, rhs)
+        except np.linalg.LinAlgError:
+            return None
+        g = rhs[:, 1]
+        H = dd - float(g.dot(sol[:, 1]))
+        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
+        if not H > 0:
+            return None
+        chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
+        inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
+        return b / H, inflate / (H * LOADED_WEIGHT), k * sol[:, 0], k * sol[:, 1]
 
 
 class DriftTracker:
@@ -161,6 +239,7 @@ class DriftTracker:
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
         self.P = np.zeros((m + 1, m + 1))
         self.rest_frames = 0  # frames measured as at rest (all time)
+        self.force_step: np.ndarray | None = None  # observe()'s joint force step (N) of the latest frame
         self._t: float | None = None
 
     def with_mask(self, keep: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
@@ -189,10 +268,12 @@ class DriftTracker:
         if self.m > 1:
             np.dot(self.gradient, self._Dg, out=self.offset)
 
-    def observe(self, y: np.ndarray, t: float | None = None) -> bool:
+    def observe(self, y: np.ndarray, t: float | None = None, joint: tuple | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
         :data:`DEFAULT_PERIOD` after the previous frame), formed with the current state; returns True
-        if the frame was taken as at rest."""
+        if the frame was taken as at rest. ``joint``: the frame's :meth:`JointScale.measure` (None: the
+        linear estimator, no joint fit: a loaded frame measures nothing); then :attr:`force_step` is
+        the frame's force step (N) for the scale as updated (None without it)."""
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
         if t is not None:  # a stepped clock: one frame's step is clipped, the next ones count from it
             self._t = t
@@ -217,9 +298,27 @@ class DriftTracker:
             rest = math.sqrt(float(f.dot(f))) < self.rest_force
         step = self.rate * dt
         self.rate *= a
-        if not rest:  # under load nothing is measured: a load's change is not the device's (a lateral
-            self.scale *= 1.0 + step  # one looks like a gradient); the scale goes on at its rate
-            self.P = P
+        self.force_step = None
+        if not rest:  # under load the frame measures the scale alone, its load marginalised (JointScale:
+            # a lateral load looks like a gradient, so the other states are measured at rest only);
+            # without a joint fit (the linear estimator) nothing: the scale goes on at its rate
+            if joint is None:
+                self.scale *= 1.0 + step
+                self.P = P
+                return False
+            z, var, u, v = joint
+            Pc = P[:, 0].copy()
+            gain = Pc / (Pc[0] + var)
+            delta = gain * (z - step)
+            d = delta.tolist()
+            if all(map(math.isfinite, d)):
+                self.scale *= (1.0 + step) * (1.0 + d[0])
+                self.rate += d[m]
+                if m > 1:
+                    self._set_gradient(self.gradient + delta[1:m])
+                P = P - np.outer(gain, Pc)
+                self.force_step = u - v * (step + d[0])  # the force given the scale now known
+            self.P = 0.5 * (P + P.T)
             return False
         self.rest_frames += 1
         # the information matrix N and vector of this frame's measurement of the change: the gain
@@ -237,8 +336,24 @@ class DriftTracker:
             if m > 1:
                 self._set_gradient(self.gradient + delta[1:m])
             P = gain
+            if joint is not None:
+                self.force_step = joint[2] - joint[3] * (step + d[0])
         self.P = 0.5 * (P + P.T)
         return True
+
+    def widen(self, age_s: float) -> None:
+        """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
+        amount (module constants :data:`RESTART_SIGMA` ...): the states' covariance widened, so that the
+        first frames, loaded or not, measure them (their own shape) and their forces say how unsure."""
+        if not (age_s >= 0 and math.isfinite(age_s)):
+            raise ValueError(f"tare age {age_s!r}: expected seconds >= 0")
+        s = min(RESTART_MAX, max(RESTART_MIN, RESTART_SIGMA * math.sqrt(age_s / 3600.0)))
+        m = self.m
+        add = np.zeros(m + 1)
+        if self._W is not None and m > 1:
+            add[1:m] = (RESTART_OTHER_N / np.maximum(np.linalg.norm(self._W @ self._Dg.T, axis=0), 1e-12)) ** 2
+        add[0], add[m] = s * s, RESTART_RATE ** 2
+        self.P = self.P + np.diag(add)
 
     @property
     def kelvin_text(self) -> str:

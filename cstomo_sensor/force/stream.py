@@ -43,12 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..angles import force_angles3
 from ..errors import ConfigError, CstomoError, FrameError, NoUsableChannelsError
 from ..frames_io import check_frame
 from ..model.pattern import MeasurementPattern
 from .creep import DEFAULT_CREEP, CreepCompensator, creep_problem
 from .device import read_reference, write_reference
-from .drift import DriftTracker, gradient_directions
+from .drift import EXPECTED_HOLD, DriftTracker, JointScale, gradient_directions
 from .filter import LowPass
 from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, noise_level, snr_db
 from .pipeline import NOISE_ASSUMED, FrameResult, Pipeline
@@ -360,6 +361,9 @@ class FrameStream:
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
         self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
         self.sigma_source = ""  # where the calibration residual of the sigma comes from
+        self._joint: JointScale | None = None  # the joint fit of the scale (issue 26 item 2), for _joint_for
+        self._joint_for: DriftTracker | None = None
+        self._expected: tuple | None = None  # a controller's expected load (force, sigma, t): expect_load
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -374,7 +378,8 @@ class FrameStream:
         count): :meth:`set_reference` of what :func:`~.device.read_reference` reads."""
         return self.set_reference(*read_reference(path, self.pipe.n_meas), source=f"{what} {path}")
 
-    def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str) -> str:
+    def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str,
+                      age_s: float | None = None) -> str:
         """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
         (None: assumed), if it is a plausible frame of this sensor (:func:`tare_problem`); returns the
         tare report's message. Raises :class:`ConfigError` naming ``source`` and what is wrong."""
@@ -384,6 +389,8 @@ class FrameStream:
         report = self.pipe.set_reference(ref, noise, n_frames)
         self._keep_estimate()
         self._new_drift()
+        if age_s is not None and self.drift is not None:  # issue 26: a restart from a saved tare of this age
+            self.drift.widen(age_s)
         self.reference_source = source
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
                                                    self.noise_text, report.message)
@@ -406,7 +413,10 @@ class FrameStream:
                     why = f"saved tare {path} unusable ({err})"
                 else:
                     try:
-                        self.set_reference(*saved, source=f"saved tare {path}")
+                        # the device moved since the tare was saved: its age (the file's time) widens the
+                        # drift tracker's states (issue 26, force/drift.py DriftTracker.widen)
+                        age = max(time.time() - path.stat().st_mtime, 0.0)
+                        self.set_reference(*saved, source=f"saved tare {path}", age_s=age)
                         return ""
                     except ConfigError as err:
                         why = str(err)
@@ -900,14 +910,45 @@ class FrameStream:
         if self.pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
             y = self.pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
             if drift is not None:
-                drift.observe(y, t)
+                # issue 26 items 2, 4: every frame measures the scale jointly with its force (force/drift.py
+                # JointScale; a controller's expected load, expect_load, sharpens it); the force follows
+                joint = self._joint_scale(t)
+                drift.observe(y, t, joint)
                 self.pipe.scale = drift.scale
+                if drift.force_step is not None and result.valid:
+                    result.force = result.force + drift.force_step
+                    result.magnitude, result.elevation, result.azimuth = force_angles3(result.force)
             if creep is not None:
                 creep.observe(y, t, self._mask if self.excluded.channels else None)
             self._apply_offsets()
         if sig is not None:  # the tracker's covariance after this frame's predict and update
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f)
         return result
+
+    def _joint_scale(self, t: float | None):
+        """The latest frame's joint measurement of the scale (force/drift.py JointScale), None for an
+        estimator without a joint fit (``linear``); with the controller's expected load (:meth:`expect_load`)
+        when it is at most :data:`EXPECTED_HOLD` s older than the frame (or the frame has no time)."""
+        est = self.pipe.estimator
+        if getattr(est, "last_fit", None) is None:
+            return None
+        if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
+            self._joint, self._joint_for = JointScale(est, self.drift._D[0]), self.drift
+        e = self._expected
+        use = e is not None and (t is None or not e[2] or 0.0 <= t - e[2] <= EXPECTED_HOLD)
+        return self._joint.measure(e[:2] if use else None)
+
+    def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
+        """A controller's expected load now (issue 26 item 4: its dynamics model, the link's weight):
+        ``force`` (3,) N in the wrench frame, its 1-sigma ``sigma`` (N, per axis), at ``stamp_ns`` (the
+        frames' clock; 0: the next frames). Used as a measurement of the force in the joint fit of the
+        device's scale (force/drift.py JointScale) for frames up to :data:`EXPECTED_HOLD` s after it."""
+        f = np.asarray(force, float).reshape(-1)
+        if f.shape != (3,) or not np.isfinite(f).all():
+            raise ConfigError.bad_value("expected load", force, "3 finite force components in newtons")
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise ConfigError.bad_value("expected load sigma", sigma, "a 1-sigma > 0 in newtons")
+        self._expected = (f, float(sigma), stamp_ns * 1e-9)
 
     def _sigma_model(self) -> ForceSigma:
         """The force's uncertainty for the estimator, tracker and creep in use (rebuilt when one changes)."""

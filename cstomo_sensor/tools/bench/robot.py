@@ -112,18 +112,23 @@ def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print) -> dict:
     return pipes
 
 
-def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7):
+def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7,
+               tare_age: float | None = None, expected_sigma: float | None = None):
     """A fresh stream given ``tare`` (frames of the device's tare state) as its reference, then the
     timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale,
     sigma_n (NaN when refused))."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare")
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=tare_age)
     est = np.full((len(times), 3), np.nan)
+    if expected_sigma is not None:  # a controller that knows the load to expected_sigma (its own error drawn once per frame)
+        noisy = forces + rng.normal(0.0, expected_sigma, forces.shape)
     scale = np.ones(len(times))
     sigma = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):
+        if expected_sigma is not None:
+            stream.expect_load(noisy[k], expected_sigma, int(1e9 * (1 + t)))
         out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
         if out is not None and out.result.valid:
             est[k] = out.result.force
