@@ -92,6 +92,11 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
+#: With a joint fit (:class:`JointScale`) a rest frame also has a joint force, averaged over the
+#: latest :data:`REST_TIME` seconds (exponentially), below :data:`REST_MEAN_FORCE` N: at 60 dB the mean
+#: of 30 frames carries 0.05 N of noise, a held 1 N load reads 0.8-1 N.
+REST_TIME = 0.3
+REST_MEAN_FORCE = 0.3
 #: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
 #: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
@@ -145,8 +150,8 @@ class JointScale:
         self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
         self.dof = max(len(rw) - 4, 1)
 
-    def measure(self, expected: tuple | None = None) -> tuple[float, float, np.ndarray, np.ndarray] | None:
-        """(d, its variance, u, v) of the estimator's latest frame (module docstring); ``expected``:
+    def measure(self, expected: tuple | None = None) -> tuple | None:
+        """(d, its variance, u, v, the frame's force) of the estimator's latest frame (class docstring); ``expected``:
         (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives nothing."""
         est = self.est
         if est.last_fit is None:
@@ -179,7 +184,7 @@ class JointScale:
             return None
         chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
-        return b / H, inflate / (H * LOADED_WEIGHT), k * sol[:, 0], k * sol[:, 1]
+        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k)
 
 
 class DriftTracker:
@@ -226,6 +231,10 @@ class DriftTracker:
             self._W, self._Wr = W, W @ D[0]
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
+        self._N_others = self._N.copy()  # the information of the states other than the scale
+        self._N_others[0, :] = self._N_others[:, 0] = 0.0
+        self._tot = np.zeros(m + 1)
+        self._mean_force = np.zeros(3)  # the joint fit's force over the latest REST_TIME (N)
         self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
         self._b = np.empty(m + 1)
@@ -297,49 +306,60 @@ class DriftTracker:
             f = np.dot(self._W, y) - self._Wr * best
             rest = math.sqrt(float(f.dot(f))) < self.rest_force
         step = self.rate * dt
+        if joint is not None:
+            # and the joint fit's force, averaged over REST_TIME, reads none: a small load held still
+            # passes the frame's own bounds (1 N straight down at 60 dB), never this mean
+            fj = joint[2] - joint[3] * step
+            fj += joint[4]
+            c = min(dt / REST_TIME, 1.0)
+            self._mean_force += c * (fj - self._mean_force)
+            rest = rest and math.sqrt(float(self._mean_force.dot(self._mean_force))) < REST_MEAN_FORCE
         self.rate *= a
         self.force_step = None
-        if not rest:  # under load the frame measures the scale alone, its load marginalised (JointScale:
-            # a lateral load looks like a gradient, so the other states are measured at rest only);
-            # without a joint fit (the linear estimator) nothing: the scale goes on at its rate
-            if joint is None:
-                self.scale *= 1.0 + step
-                self.P = P
-                return False
-            z, var, u, v = joint
+        tot = self._tot  # the states' change since the frame was formed: the step, then the updates
+        tot[:] = 0.0
+        tot[0] = step
+        if joint is not None:
+            # every frame, at rest or loaded: the scale measured with the frame's load marginalised
+            # (JointScale), so that a load is never taken for the device; a loaded frame counts as
+            # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise)
+            z, var, u, v, _ = joint
+            if not rest:
+                var = var / LOADED_WEIGHT
             Pc = P[:, 0].copy()
             gain = Pc / (Pc[0] + var)
             delta = gain * (z - step)
-            d = delta.tolist()
-            if all(map(math.isfinite, d)):
-                self.scale *= (1.0 + step) * (1.0 + d[0])
-                self.rate += d[m]
-                if m > 1:
-                    self._set_gradient(self.gradient + delta[1:m])
+            if np.isfinite(delta).all():
+                tot += delta
                 P = P - np.outer(gain, Pc)
-                self.force_step = u - v * (step + d[0])  # the force given the scale now known
-            self.P = 0.5 * (P + P.T)
-            return False
-        self.rest_frames += 1
-        # the information matrix N and vector of this frame's measurement of the change: the gain
-        # (P^-1 + N)^-1 = P (I + N P)^-1 without inverting P, its transpose solving (I + P N) G' = P
-        # (A = I + N P in C order is I + P N in Fortran's, as LAPACK takes it; P is symmetric)
-        A = np.dot(self._N, P)
-        A += self._eye
-        gain = _solve(A.T, P.T).T
-        delta = np.dot(gain, b - self._N0 * step)  # the innovation: what the predicted step leaves
-        d = delta.tolist()
-        if all(map(math.isfinite, d)):
-            # the frame was formed with the scale before this frame's step: the step and the update
-            self.scale *= (1.0 + step) * (1.0 + d[0])
-            self.rate += d[m]
-            if m > 1:
-                self._set_gradient(self.gradient + delta[1:m])
-            P = gain
+        if rest:
+            # at rest the other states (the contacts', the gradient's) are measured with their full
+            # directions; the scale too without a joint fit (the linear estimator). The information
+            # matrix N and vector of this frame: the gain (P^-1 + N)^-1 = P (I + N P)^-1 without
+            # inverting P, its transpose solving (I + P N) G' = P (A = I + N P in C order is I + P N
+            # in Fortran's, as LAPACK takes it; P is symmetric)
+            self.rest_frames += 1
+            N = self._N if joint is None else self._N_others
+            A = np.dot(N, P)
+            A += self._eye
+            gain = _solve(A.T, P.T).T
+            innov = b - np.dot(self._N, tot)  # what the step and the joint update leave
             if joint is not None:
-                self.force_step = joint[2] - joint[3] * (step + d[0])
+                innov[0] = 0.0
+            delta = np.dot(gain, innov)
+            if np.isfinite(delta).all():
+                tot += delta
+                P = gain
+        d = tot.tolist()
+        # the frame was formed with the scale before this frame's step: the step and the updates
+        self.scale *= (1.0 + step) * (1.0 + d[0] - step)
+        self.rate += d[m]
+        if m > 1 and (rest or joint is not None):
+            self._set_gradient(self.gradient + tot[1:m])
+        if joint is not None:
+            self.force_step = joint[2] - joint[3] * d[0]  # the force given the scale now known
         self.P = 0.5 * (P + P.T)
-        return True
+        return rest
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown

@@ -1,0 +1,89 @@
+"""A load is never taken for the device (issue 26, items 2 and 4; force/drift.py JointScale): held
+socket loads straight down, the direction closest to a uniform change, read what they are through a
+fresh tare with the drift tracking on, and a controller's expected load (``expect_load``) helps the
+tracker find the device's change under load.
+
+Honest simulation: the nominal sensor's truth on its own finer mesh (not the model's), 60 dB; the
+voltages between solved loads are interpolated linearly in the load (2 N/s: 0.02 N per frame)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import PIPE
+
+from cstomo_sensor.model.simulate import Load, Truth, add_noise
+
+RATE = 100.0  # frames per second
+
+
+@pytest.fixture(scope="module")
+def model_pipe(warm_model):
+    """The test's pipeline with the default estimator (``model``: the one with the joint fit)."""
+    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+
+    return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
+
+
+@pytest.fixture(scope="module")
+def down(warm_model):
+    """(reference, {magnitude N: voltages}) for loads straight down of 0..10 N, noise-free."""
+    truth = Truth(warm_model.geometry, seed=31)
+    mags = np.arange(0.0, 10.5, 1.0)
+    volts = {float(m): truth.forward.voltages(truth.conductivity(Load("socket", force=(0.0, 0.0, -m))))
+             if m else truth.forward.voltages(truth.forward.sigma0) for m in mags}
+    return volts[0.0], volts
+
+
+def _voltages(volts, m):
+    lo = min(int(m), 9)
+    return volts[float(lo)] + (volts[float(lo + 1)] - volts[float(lo)]) * (m - lo)
+
+
+def _run(pipe, down_, profile, seconds, tracking=True, expected=None):
+    """The forces read (n, 3) for the magnitude ``profile(t)`` straight down, from a fresh tare."""
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+
+    ref, volts = down_
+    rng = np.random.default_rng(11)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=0.0))
+    tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    t = np.arange(int(seconds * RATE)) / RATE
+    out = np.full((len(t), 3), np.nan)
+    for k, tk in enumerate(t):
+        m = profile(tk)
+        stamp = int(1e9 * (1 + tk))
+        if expected is not None:
+            stream.expect_load((0.0, 0.0, -m), expected, stamp)
+        o = stream.push(add_noise(_voltages(volts, m), ref, 60, rng), stamp_ns=stamp)
+        if o is not None and o.result.valid:
+            out[k] = o.result.force
+    return t, out, stream
+
+
+@pytest.mark.parametrize("held", [1.0, 2.0])
+def test_a_small_load_held_straight_down_reads_within_10_pct(model_pipe, down, held):
+    t, f, stream = _run(model_pipe, down, lambda tk: held if tk >= 1.0 else 0.0, 11.0)
+    late = t >= 2.0
+    read = -np.nanmean(f[late, 2])
+    print(f"{held} N held: reads {read:.3f} N (1 s means {[-np.nanmean(f[(t >= s) & (t < s + 1), 2]).round(3) for s in range(1, 11)]}),"
+          f" tracked change {stream.drift.change:+.5f}, rest frames {stream.drift.rest_frames}")
+    for s in range(2, 11):  # every second's mean, not only the average
+        assert abs(-np.nanmean(f[(t >= s) & (t < s + 1), 2]) - held) < 0.1 * held, s
+    assert abs(stream.drift.change) < 0.001  # not taken for a uniform change (1 N straight down ~ 0.08 %)
+
+
+@pytest.mark.slow
+def test_a_ramp_to_10_n_then_held_30_s_reads_within_10_pct(model_pipe, down):
+    profile = lambda tk: float(np.clip(2.0 * (tk - 1.0), 0.0, 10.0))  # noqa: E731 - 2 N/s from 1 s, 10 N at 6 s
+    t, f, stream = _run(model_pipe, down, profile, 36.0)
+    mags = np.array([profile(x) for x in t])
+    ramp = (mags >= 2.0) & (mags < 10.0)
+    rel = np.abs(-f[:, 2] - mags) / np.maximum(mags, 1e-9)
+    held = t >= 6.5
+    print(f"ramp: median rel err {np.nanmedian(rel[ramp]):.3f}, held: mean {-np.nanmean(f[held, 2]):.3f} N, "
+          f"last 5 s {-np.nanmean(f[t >= 31, 2]):.3f} N, tracked {stream.drift.change:+.5f}")
+    assert np.nanmedian(rel[ramp]) < 0.10
+    for s in range(7, 36):
+        assert abs(-np.nanmean(f[(t >= s) & (t < s + 1), 2]) - 10.0) < 1.0, s
+    assert abs(stream.drift.change) < 0.002
