@@ -92,11 +92,6 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
-#: With a joint fit (:class:`JointScale`) a rest frame also has a joint force, averaged over the
-#: latest :data:`REST_TIME` seconds (exponentially), below :data:`REST_MEAN_FORCE` N: at 60 dB the mean
-#: of 30 frames carries 0.05 N of noise, a held 1 N load reads 0.8-1 N.
-REST_TIME = 0.3
-REST_MEAN_FORCE = 0.3
 #: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
 #: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
@@ -234,7 +229,6 @@ class DriftTracker:
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
         self._tot = np.zeros(m + 1)
-        self._mean_force = np.zeros(3)  # the joint fit's force over the latest REST_TIME (N)
         self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
         self._b = np.empty(m + 1)
@@ -306,14 +300,6 @@ class DriftTracker:
             f = np.dot(self._W, y) - self._Wr * best
             rest = math.sqrt(float(f.dot(f))) < self.rest_force
         step = self.rate * dt
-        if joint is not None:
-            # and the joint fit's force, averaged over REST_TIME, reads none: a small load held still
-            # passes the frame's own bounds (1 N straight down at 60 dB), never this mean
-            fj = joint[2] - joint[3] * step
-            fj += joint[4]
-            c = min(dt / REST_TIME, 1.0)
-            self._mean_force += c * (fj - self._mean_force)
-            rest = rest and math.sqrt(float(self._mean_force.dot(self._mean_force))) < REST_MEAN_FORCE
         self.rate *= a
         self.force_step = None
         tot = self._tot  # the states' change since the frame was formed: the step, then the updates

@@ -922,7 +922,8 @@ class FrameStream:
                 creep.observe(y, t, self._mask if self.excluded.channels else None)
             self._apply_offsets()
         if sig is not None:  # the tracker's covariance after this frame's predict and update
-            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f)
+            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
+                                               drift.change if drift is not None else 0.0)
         return result
 
     def _joint_scale(self, t: float | None):

@@ -30,6 +30,7 @@ from dataclasses import replace
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -197,6 +198,8 @@ class CstomoSensorNode(LifecycleNode):
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
         self._free_sub = self.create_subscription(Empty, "~/joint_free", self._on_joint_free, 10)
+        # issue 26 item 4: a controller's expected load, a measurement of the device's states (docs/node.md)
+        self._expected_sub = self.create_subscription(WrenchStamped, "~/expected_wrench", self._on_expected, 10)
         self._tare_forced_srv = self.create_service(Trigger, "~/tare_forced", self._on_tare_forced,
                                                     callback_group=self._tare_group)
         self._stop.clear()
@@ -314,6 +317,15 @@ class CstomoSensorNode(LifecycleNode):
         """A controller's hint (``~/joint_free``, std_msgs/Empty): re-zero now, as a tare with its rules."""
         if self.stream is not None and not self.stream.joint_free():
             self.get_logger().info("~/joint_free: a tare is already pending")
+
+    def _on_expected(self, msg: WrenchStamped) -> None:
+        """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis."""
+        f, st = msg.wrench.force, msg.header.stamp
+        if self.stream is not None and self.config is not None:
+            try:
+                self.stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, st.sec * 10**9 + st.nanosec)
+            except ConfigError as err:
+                self.get_logger().warning(f"~/expected_wrench ignored: {err}")
 
     def _on_tare_forced(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """``~/tare_forced``: :meth:`_on_tare` whose load checks do not refuse (docs/node.md#tare)."""
@@ -496,6 +508,8 @@ def usage() -> str:
               "loaded (the answer says what it overrode)",
               "subscribes:", f"  {'~/joint_free':<21} std_msgs/Empty: a controller's hint that the joint is free "
               "now: re-zero at once (a tare with its rules, refused under load)",
+              f"  {'~/expected_wrench':<21} geometry_msgs/WrenchStamped: the load a controller expects now (to "
+              "expected_wrench_sigma), a measurement of the device's change under load",
               f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages (input: topic)",
               "(docs/node.md)", "", "parameters (default):"]
     for name, (default, desc) in PARAMETERS.items():

@@ -76,6 +76,10 @@ _DESCRIPTORS: dict[str, ParameterDescriptor] = {
     "max_sigma_n": _d("Newtons: a published force whose 1-sigma uncertainty (the rms of its error's norm, "
                       "~/wrench_sigma) exceeds it is counted and said in the diagnostics (WARN); 0 = no check",
                       read_only=True, lo=0.0, hi=100000.0),
+    "expected_wrench_sigma": _d("Newtons: the 1-sigma per axis of the load a controller expects on ~/expected_wrench "
+                                "(geometry_msgs/WrenchStamped, its force used for 0.5 s after its stamp), a measurement "
+                                "of the device's change under load (force/drift.py JointScale)", read_only=True,
+                                lo=0.01, hi=1000.0),
     "qos_depth": _d("History depth of publishers and subscription", read_only=True, lo=1, hi=10_000),
     "qos_reliability": _d("'system_default', 'reliable' or 'best_effort' (REP 2003)",
                                              read_only=True),
@@ -113,6 +117,7 @@ class NodeConfig:
     drift_tracking: bool = StreamConfig.drift_tracking
     creep_per_decade: float = StreamConfig.creep_per_decade
     max_sigma_n: float = StreamConfig.max_sigma_n
+    expected_wrench_sigma: float = 2.0
     qos_depth: int = 10
     qos_reliability: str = RELIABILITIES[0]
     stale_timeout: float = StreamConfig.stale_timeout
