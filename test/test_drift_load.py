@@ -87,3 +87,50 @@ def test_a_ramp_to_10_n_then_held_30_s_reads_within_10_pct(model_pipe, down):
     for s in range(7, 36):
         assert abs(-np.nanmean(f[(t >= s) & (t < s + 1), 2]) - 10.0) < 1.0, s
     assert abs(stream.drift.change) < 0.002
+
+
+def _restart_under_load(pipe, ref, loaded, expected, rng):
+    """A stream started from a tare 2 hours old while the drive is 2 % up (every voltage x 1.02) and the
+    joint carries ``loaded`` (its noise-free voltages) from the first frame; ``expected``: a controller's
+    1-sigma (its expected load drawn around the truth per frame), None: none. The forces read over 3 s."""
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
+    tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "saved tare", age_s=7200.0)
+    force, v = loaded
+    out = np.full((300, 3), np.nan)
+    for k in range(300):
+        stamp = int(1e9 * (1 + k / RATE))
+        if expected is not None:
+            stream.expect_load(np.add(force, rng.normal(0.0, expected, 3)), expected, stamp)
+        o = stream.push(add_noise(1.02 * v, 1.02 * ref, 60, rng), stamp_ns=stamp)
+        if o is not None and o.result.valid:
+            out[k] = o.result.force
+    return out, stream
+
+
+def test_a_restart_under_load_finds_the_change_and_an_expected_load_helps(model_pipe, down):
+    ref, volts = down
+    force = (0.0, 0.0, -2.0)
+    err = {}
+    for expected in (None, 0.5):
+        out, stream = _restart_under_load(model_pipe, ref, (force, volts[2.0]), expected, np.random.default_rng(3))
+        e = np.linalg.norm(out - force, axis=1)
+        err[expected] = float(np.nanmedian(e[10:100]))
+        print(f"expected {expected}: error 0.1-1 s {err[expected]:.3f} N, 1-3 s {np.nanmedian(e[100:]):.3f} N, "
+              f"tracked {stream.drift.change:+.5f}")
+        assert stream.drift.change == pytest.approx(0.02, abs=0.001)  # found under load from the first frame
+        assert np.nanmedian(e[100:]) < 0.3 * 2.0  # untracked: 36 N (a 2 % scale reads as 18 N per %)
+    assert err[0.5] < 0.9 * err[None]  # measured 0.66 against 0.83 N
+
+
+def test_an_expected_load_is_checked(model_pipe):
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.force.stream import FrameStream
+
+    stream = FrameStream(model_pipe)
+    with pytest.raises(ConfigError, match="sigma"):
+        stream.expect_load((0.0, 0.0, -2.0), 0.0)
+    with pytest.raises(ConfigError, match="3 finite"):
+        stream.expect_load((0.0, -2.0), 1.0)

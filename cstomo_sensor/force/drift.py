@@ -66,6 +66,10 @@ RATE_MEMORY = 30.0
 #: as this fraction of one independent measurement: the frames of one held load share the model's
 #: mismatch with the device (not white noise), so their measurements do not average like noise.
 LOADED_WEIGHT = 0.02
+#: ... and a rest frame's (the rest test's frame: no load the shape shows; a small load held still
+#: passes it at 60 dB, 1-2 N straight down, and its misfit by the model along the uniform change would
+#: go into the scale as fast as the rest frames' weight lets it).
+REST_WEIGHT = 0.1
 #: A restart from a saved tare (:meth:`DriftTracker.widen`): the scale's 1-sigma grows with the tare's
 #: age as ``RESTART_SIGMA * sqrt(age / 1 h)``, between :data:`RESTART_MIN` and :data:`RESTART_MAX`
 #: (section 9: a morning 5 K colder than the tare is about -4 %); its rate's as :data:`RESTART_RATE`
@@ -310,8 +314,7 @@ class DriftTracker:
             # (JointScale), so that a load is never taken for the device; a loaded frame counts as
             # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise)
             z, var, u, v, _ = joint
-            if not rest:
-                var = var / LOADED_WEIGHT
+            var = var / (REST_WEIGHT if rest else LOADED_WEIGHT)
             Pc = P[:, 0].copy()
             gain = Pc / (Pc[0] + var)
             delta = gain * (z - step)
