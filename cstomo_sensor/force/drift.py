@@ -70,11 +70,6 @@ LOADED_WEIGHT = 0.005
 #: passes it at 60 dB, 1-2 N straight down, and its misfit by the model along the uniform change would
 #: go into the scale as fast as the rest frames' weight lets it).
 REST_WEIGHT = 0.1
-#: A rest frame measures the scale with its full direction (as without a joint fit) when the joint
-#: fit's force, averaged over the latest :data:`REST_TIME` seconds, is below :data:`REST_MEAN_FORCE` N
-#: (at 60 dB the mean of 30 frames carries 0.05 N of noise; a held 1 N load reads 0.8-1 N).
-REST_TIME = 0.3
-REST_MEAN_FORCE = 0.3
 #: A restart from a saved tare (:meth:`DriftTracker.widen`): the scale's 1-sigma grows with the tare's
 #: age as ``RESTART_SIGMA * sqrt(age / 1 h)``, between :data:`RESTART_MIN` and :data:`RESTART_MAX`
 #: (section 9: a morning 5 K colder than the tare is about -4 %); its rate's as :data:`RESTART_RATE`
@@ -238,7 +233,6 @@ class DriftTracker:
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
         self._tot = np.zeros(m + 1)
-        self._mean_force = np.zeros(3)  # the joint fit's force over the latest REST_TIME (N)
         self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
         self._b = np.empty(m + 1)
@@ -316,15 +310,6 @@ class DriftTracker:
         tot[:] = 0.0
         tot[0] = step
         use_joint = joint is not None
-        if use_joint:
-            # the joint fit's force over the latest REST_TIME: a rest frame whose mean reads none (a
-            # true rest, the tracking in hand) measures the scale with its full direction (the most
-            # precise); one that reads some (a small load held still passes the frame's own bounds at
-            # 60 dB: 1-2 N straight down) only through the joint fit, its load marginalised
-            fj = joint[2] - joint[3] * step
-            fj += joint[4]
-            self._mean_force += min(dt / REST_TIME, 1.0) * (fj - self._mean_force)
-            use_joint = not (rest and math.sqrt(float(self._mean_force.dot(self._mean_force))) < REST_MEAN_FORCE)
         if use_joint:
             # every frame, at rest or loaded: the scale measured with the frame's load marginalised
             # (JointScale), so that a load is never taken for the device; a loaded frame counts as
