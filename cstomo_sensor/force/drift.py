@@ -148,6 +148,7 @@ class JointScale:
         rw = np.asarray(r, float)[estimator.keep] * estimator.w
         self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
         self.dof = max(len(rw) - 4, 1)
+        self._M = np.empty((len(self.Brw), 2))
 
     def measure(self, expected: tuple | None = None) -> tuple | None:
         """(d, its variance, u, v, the frame's force) of the estimator's latest frame (class docstring); ``expected``:
@@ -166,7 +167,10 @@ class JointScale:
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
         dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
         A = np.dot(Jt, Jt.T)
-        rhs = np.dot(Jt, np.stack((rho, Bd), axis=1))  # (3, 2): J^T rho, g = J^T d_w
+        M = self._M
+        M[:, 0] = rho
+        M[:, 1] = Bd
+        rhs = np.dot(Jt, M)  # (3, 2): J^T rho, g = J^T d_w
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
@@ -319,9 +323,9 @@ class DriftTracker:
             Pc = P[:, 0].copy()
             gain = Pc / (Pc[0] + var)
             delta = gain * (z - step)
-            if np.isfinite(delta).all():
+            if math.isfinite(float(delta.sum())):
                 tot += delta
-                P = P - np.outer(gain, Pc)
+                P -= np.multiply.outer(gain, Pc)
         if rest:
             # at rest the other states (the contacts', the gradient's) are measured with their full
             # directions; the scale too without a joint fit (the linear estimator). The information
@@ -337,7 +341,7 @@ class DriftTracker:
             if use_joint:
                 innov[0] = 0.0
             delta = np.dot(gain, innov)
-            if np.isfinite(delta).all():
+            if math.isfinite(float(delta.sum())):
                 tot += delta
                 P = gain
         d = tot.tolist()
