@@ -150,3 +150,26 @@ def test_an_expected_load_is_checked(model_pipe):
         stream.expect_load((0.0, 0.0, -2.0), 0.0)
     with pytest.raises(ConfigError, match="3 finite"):
         stream.expect_load((0.0, -2.0), 1.0)
+
+
+def test_the_node_takes_a_controllers_expected_wrench(ros, tmp_path, source, warm_model):
+    """``~/expected_wrench`` (geometry_msgs/WrenchStamped) reaches the stream as an expected load with
+    the node's ``expected_wrench_sigma`` and the message's stamp (docs/node.md)."""
+    from conftest import start, wait_for
+    from geometry_msgs.msg import WrenchStamped
+
+    h, board = start(ros, tmp_path, source, expected_wrench_sigma=1.5)
+    try:
+        pub = h.probe.create_publisher(WrenchStamped, "/cstomo_sensor/expected_wrench", 10)
+        assert wait_for(lambda: pub.get_subscription_count() == 1, 5.0)
+        msg = WrenchStamped()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 500
+        msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = 1.0, -2.0, -9.5
+        pub.publish(msg)
+        assert wait_for(lambda: h.node.stream._expected is not None, 5.0)
+        force, sigma, t = h.node.stream._expected
+        np.testing.assert_allclose(force, [1.0, -2.0, -9.5])
+        assert sigma == 1.5 and t == pytest.approx(12.0000005)
+    finally:
+        board.close()
+        h.close()
