@@ -19,8 +19,15 @@ of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a s
   and that reads no force once that ``delta`` is taken out (below :data:`REST_FORCE_SIGMAS` times the
   force's noise), is a frame without load; it measures every state with its full direction (a noise
   of about 1e-5 per frame at 60 dB). A lateral load looks like a gradient: it is never taken for rest.
-- **under load** nothing is measured: the scale goes on at its tracked rate (a warming joint keeps
-  warming during a 30 s task), the other states stay; they follow again at the next rest.
+- **every frame, loaded or not** (issue 26), with the ``model`` estimator: the frame's force and the
+  scale fitted jointly (:class:`JointScale`: the load's own uncertainty marginalised, a controller's
+  expected load as a measurement of the force), the tracker's mean and covariance the scale's prior: a
+  tight prior (a recent rest) leaves the force as it was, a wide one (minutes of load, a restart from an
+  old tare: :meth:`DriftTracker.widen`) lets the frame's shape separate them. A loaded frame counts as
+  :data:`LOADED_WEIGHT` of a measurement, a rest frame as :data:`REST_WEIGHT`; the other states are
+  measured at rest only (a lateral load looks like a gradient). With ``linear`` (no joint fit) a
+  loaded frame measures nothing: the scale goes on at its tracked rate, and the rest frames measure the
+  scale with its full direction as before.
 - **time**: the states are random walks of :data:`RATE` per square-root second, the scale's rate one
   of :data:`ACCEL`; a Kalman filter weighs each rest frame's measurement against them. Loads move in
   tenths of seconds, the device in minutes: a load the shape takes for rest moves the scale little.
@@ -31,8 +38,10 @@ What it cannot separate, said plainly:
   gradient that is not linear, the model's contact response against a real device's (a uniform 10 %
   resistivity change with the contacts unchanged, a scaling plus a contact change: 0.17 N remain).
   That remainder stays in the change, reads as a small force and raises the consistency statistic;
-- a load held still below the rest bounds (about 0.7 N at 60 dB, 5 N at 40 dB) is taken for rest:
-  the part of it along the directions goes slowly into the states;
+- a load held still whose change the estimator's model misfits along the uniform direction (1-2 N
+  straight down, below the calibration's smallest load: about 30 % of it goes into the scale within
+  10 s); with ``linear``, a load held still below the rest bounds (about 0.7 N at 60 dB, 5 N at 40 dB)
+  is taken for rest and goes slowly into the states;
 - a change of rate during a long load (the warming slows while the joint is loaded: followed at the
   next rest), and a change much faster than the rates above (a step of the drive current is followed
   over a second or so at 60 dB).
