@@ -110,3 +110,80 @@ def test_the_silently_wrong_share_counts_errors_beyond_half_a_newton_at_rest_or_
     assert r["wrong_pct"] == pytest.approx(100 * 2 / 5)  # 0.6 N at rest and 1.2 N of 10 N; the refused frame not published
     assert r["implausible"] == 1
     assert r["zero_p99_n"] == pytest.approx(np.percentile([0.4, 0.6], 99))
+
+
+# --- issue 26 items 2-4: following the device under load and across restarts (force/drift.py JointScale) ---
+# The bench's device_b (the least sensitive corner) on its own coarse truth mesh (4 mm: the test judges
+# the tracking, not a mesh), calibrated on 20 loads with the tests' coarse model and the default
+# estimator (model). Aims from issue 26; the bounds pinned below are what was measured, with a margin
+# (the report of the commit that added them gives the figures).
+
+
+@pytest.fixture(scope="module")
+def device_b(tmp_path_factory):
+    from conftest import PIPE
+
+    sc, fine = robot.device_truth(scene=robot.DEVICE_SCENES[1])
+    truth = Truth(fine.geometry, truth_h=4.0e-3, z_rel=sc.z_rel, jitter=sc.jitter, seed=sc.seed)
+    pipe = robot.calibrated_pipes(truth, sc.snr_db, say=lambda m: None, estimators=("model",),
+                                  **{**PIPE, "grid": tuple(PIPE["grid"])})["model"]
+    tare = Timeline(TimelineSpec(duration=1.0), snr_db=sc.snr_db, seed=robot.SEED, truth=truth).tare(
+        20, np.random.default_rng([robot.SEED, 22]))
+    return sc, truth, pipe, tare
+
+
+def _win(out, sel):
+    """``robot.window_errors`` of a ``run_stream`` result over the frames ``sel``."""
+    times, est, forces, scale, sigma = out
+    return robot.window_errors(est, forces, scale, sel, sigma)
+
+
+def _run(device, spec, tracking, rate, **kw):
+    sc, truth, pipe, tare = device
+    tl = Timeline(spec, snr_db=sc.snr_db, seed=robot.SEED, truth=truth).prepare()
+    return robot.run_stream(pipe, tl, tare, tracking, rate, 0.0, **kw)
+
+
+@pytest.mark.slow
+def test_a_loaded_warm_up_is_followed_without_a_rest(device_b):
+    warm = _run(device_b, robot.loaded_warmup(True), True, robot.LOADED_RATE)
+    still = _run(device_b, robot.loaded_warmup(False), False, robot.LOADED_RATE)
+    last = warm[0] >= 240.0
+    w, s = _win(warm, last), _win(still, last)
+    print(f"loaded warm-up, last minute: {w['angle_deg']:.2f} deg / {w['magnitude_pct']:.2f} % against "
+          f"{s['angle_deg']:.2f} / {s['magnitude_pct']:.2f} without warming; > 3 sigma {w['over3sigma_pct']:.2f} %, "
+          f"sigma/error {w['sigma_ratio']:.2f}, tracked {w['tracked_change']:+.4f}")
+    assert w["tracked_change"] == pytest.approx(0.02, abs=0.002)  # it followed the 2 % under load
+    assert w["angle_deg"] <= 1.5 * s["angle_deg"] and w["magnitude_pct"] <= 1.6 * s["magnitude_pct"]  # issue 26's aims
+    assert w["over3sigma_pct"] <= 1.0
+    assert _win(warm, warm[0] >= 0)["over3sigma_pct"] <= 1.0  # every minute, not only the last
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("change", [0.02, -0.02])
+def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(device_b, change):
+    still = _run(device_b, robot.restart(0.0, False), False, robot.RATE)
+    out = _run(device_b, robot.restart(change, False), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
+    late = out[0] >= 1.0
+    r, base = _win(out, late), _win(still, late)
+    print(f"restart at rest {change:+.0%}: zero p99 from 1 s {r['zero_p99_n']:.3f} N (no change, untracked "
+          f"{base['zero_p99_n']:.3f}); > 3 sigma {r['over3sigma_pct']:.2f} %, tracked {r['tracked_change']:+.4f}")
+    # the aim is 0.5 N; this device's own noise at rest gives a p99 near it without any change (the
+    # fine-mesh bench: 0.74 N with the change, 0.78 N without it): pinned against its baseline
+    assert r["zero_p99_n"] <= max(0.5, 1.15 * base["zero_p99_n"])
+    assert _win(out, out[0] >= 0)["over3sigma_pct"] <= 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("change", [0.02, -0.02])
+def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(device_b, change):
+    still = _run(device_b, robot.restart(0.0, True), False, robot.RATE)
+    out = _run(device_b, robot.restart(change, True), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
+    late = out[0] >= 5.0
+    r, base = _win(out, late), _win(still, late)
+    print(f"restart loaded {change:+.0%}: {r['angle_deg']:.2f} deg / {r['magnitude_pct']:.2f} % against "
+          f"{base['angle_deg']:.2f} / {base['magnitude_pct']:.2f} unchanged; > 3 sigma {r['over3sigma_pct']:.2f} %, "
+          f"sigma/error {r['sigma_ratio']:.2f}, tracked {r['tracked_change']:+.4f}")
+    assert r["angle_deg"] <= 1.5 * base["angle_deg"] and r["magnitude_pct"] <= 1.6 * base["magnitude_pct"]
+    assert _win(out, out[0] >= 0)["over3sigma_pct"] <= 1.0  # from the first frame on
+    assert r["sigma_ratio"] <= 4.0  # informative (measured 2.3-3)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cstomo_sensor.force.sigma import ForceSigma, relative_error
+from cstomo_sensor.force.sigma import UNDESCRIBED, ForceSigma, relative_error
 from cstomo_sensor.force.stream import WARN, FrameStream, StreamConfig
 
 
@@ -20,12 +20,14 @@ def test_sigma_is_the_covariance_diagonal_and_its_trace():
     P = L @ L.T
     f, o = np.array([3.0, -4.0, -12.0]), rng.normal(size=n) * 1e-3
     s = ForceSigma(W, noise, keep, D, 0.05, 0.29)
-    sigma, sigma_n = s(f, P, s.creep_force(o))
+    sigma, sigma_n = s(f, P, s.creep_force(o), 0.03)
     Wk = W * keep
     WD = Wk @ (D * keep).T
+    wr = np.linalg.norm(WD[:, 0])  # the force of a unit uniform change: its undescribed share (UNDESCRIBED)
     WD[:, 0] += f
     c = 0.29 * Wk @ o
-    cov = (Wk * noise) @ (Wk * noise).T + WD @ P[:m, :m] @ WD.T + 0.05**2 * (f @ f) / 3 * np.eye(3) + np.outer(c, c)
+    cov = (Wk * noise) @ (Wk * noise).T + WD @ P[:m, :m] @ WD.T + 0.05**2 * (f @ f) / 3 * np.eye(3) + np.outer(c, c) \
+        + (UNDESCRIBED * wr * 0.03) ** 2 / 3 * np.eye(3)
     np.testing.assert_allclose(sigma, np.sqrt(np.diag(cov)), rtol=1e-9)
     assert sigma_n == pytest.approx(np.sqrt(np.trace(cov)), rel=1e-9)
 

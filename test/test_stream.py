@@ -98,7 +98,8 @@ def test_help_lists_exactly_the_stream_outputs():
 
     text = usage()
     listed = set(re.findall(r"^\s+~/(\w+)\s", text, flags=re.M))
-    assert listed == set(OUTPUTS) | {"raw_voltages", "tare", "tare_forced", "raw_voltages_in", "joint_free"}, listed
+    assert listed == set(OUTPUTS) | {"raw_voltages", "tare", "tare_forced", "raw_voltages_in", "joint_free",
+                                     "expected_wrench"}, listed
 
 
 def test_two_sensors_in_two_namespaces_have_distinct_diagnostics_names(tmp_path, warm_model):

@@ -230,6 +230,7 @@ class ModelEstimator:
         # so that one product gives the residual (with its sign changed) and the Jacobian
         self._coef = self.surrogate.coefficients.copy()
         self._d0, self._d0_target = self.surrogate.coefficients[len(forces)], self._coef[len(forces)]
+        self.last_fit: tuple | None = None
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
@@ -249,6 +250,7 @@ class ModelEstimator:
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
+        self.last_fit = (yw, step, x)  # with the last iteration's out: the joint fit's (force/drift.py JointScale)
         k = self.scale
         return np.array((x[0] * k, x[1] * k, x[2] * k))
 

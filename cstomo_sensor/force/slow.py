@@ -11,10 +11,14 @@ estimator, the mask, the calibration) when the stream tells it one of them chang
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from ..angles import force_angles3
+from ..errors import ConfigError
 from .creep import CreepCompensator
-from .drift import DriftTracker, gradient_directions
+from .drift import EXPECTED_HOLD, DriftTracker, JointScale, gradient_directions
 from .scene_field import change_noise
 from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
 
@@ -41,6 +45,9 @@ class SlowStates:
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
         self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
         self.sigma_source = ""  # where the calibration residual of the sigma comes from
+        self._joint: JointScale | None = None  # the joint fit of force and scale (force/drift.py), for _joint_for
+        self._joint_for: DriftTracker | None = None
+        self._expected: tuple | None = None  # a controller's expected load (force, sigma, t): expect_load
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -50,8 +57,9 @@ class SlowStates:
         fitted = getattr(calibration, "creep_per_decade", None) if calibration is not None else None
         return float(fitted) if fitted is not None else self.creep_setting
 
-    def reset(self, pipe) -> None:
-        """A tracker and a compensator for the reference ``pipe`` has just set (none without one)."""
+    def reset(self, pipe, age_s: float | None = None) -> None:
+        """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
+        ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states."""
         self.drift = self.creep = None
         if pipe.reference is not None:
             if self.tracking:
@@ -62,6 +70,8 @@ class SlowStates:
                 self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
                                           change_noise(pipe.estimator.noise, pipe.reference_frames),
                                           ~pipe.bad_channels, force_map(pipe))
+                if age_s is not None:
+                    self.drift.widen(age_s)
             c = self.creep_per_decade(pipe.calibration)
             if c > 0:
                 self.creep = CreepCompensator(c, pipe.n_meas)
@@ -94,13 +104,44 @@ class SlowStates:
         if pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
             y = pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
             if drift is not None:
-                drift.observe(y, t)
+                # every frame measures the scale jointly with its force (force/drift.py JointScale; a
+                # controller's expected load sharpens it); the force follows the scale's update
+                drift.observe(y, t, self._joint_scale(pipe, t))
                 self.scale = drift.scale
+                if drift.force_step is not None and result.valid:
+                    result.force = result.force + drift.force_step
+                    result.magnitude, result.elevation, result.azimuth = force_angles3(result.force)
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
         if sig is not None:  # the tracker's covariance after this frame's predict and update
-            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f)
+            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
+                                               drift.change if drift is not None else 0.0)
+
+    def _joint_scale(self, pipe, t: float | None):
+        """The latest frame's joint measurement of the scale (force/drift.py JointScale), None for an
+        estimator without a joint fit (``linear``); with the controller's expected load (:meth:`expect_load`)
+        when it is at most :data:`~.drift.EXPECTED_HOLD` s older than the frame (or the frame has no time)."""
+        est = pipe.estimator
+        if getattr(est, "last_fit", None) is None:
+            return None
+        if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
+            self._joint, self._joint_for = JointScale(est, self.drift._D[0]), self.drift
+        e = self._expected
+        use = e is not None and (t is None or not e[2] or 0.0 <= t - e[2] <= EXPECTED_HOLD)
+        return self._joint.measure(e[:2] if use else None)
+
+    def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
+        """A controller's expected load now: ``force`` (3,) N in the wrench frame, its 1-sigma ``sigma``
+        (N, per axis), at ``stamp_ns`` (the frames' clock; 0: the next frames). Used as a measurement of
+        the force in the joint fit of the device's scale for frames up to :data:`~.drift.EXPECTED_HOLD` s
+        after it."""
+        f = np.asarray(force, float).reshape(-1)
+        if f.shape != (3,) or not np.isfinite(f).all():
+            raise ConfigError.bad_value("expected load", force, "3 finite force components in newtons")
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise ConfigError.bad_value("expected load sigma", sigma, "a 1-sigma > 0 in newtons")
+        self._expected = (f, float(sigma), stamp_ns * 1e-9)
 
     def _offsets(self) -> None:
         d = self.drift.offset if self.drift is not None else None

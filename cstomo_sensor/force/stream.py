@@ -140,23 +140,24 @@ class FrameStream:
         """:meth:`set_reference` of the file ``path`` (:func:`~.device.read_reference`)."""
         return self.set_reference(*read_reference(path, self.pipe.n_meas), source=f"{what} {path}")
 
-    def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str) -> str:
+    def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str,
+                      age_s: float | None = None) -> str:
         """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
         (None: assumed) if plausible (:func:`~.tare.tare_problem`, else :class:`ConfigError` naming
         ``source``); returns the tare report's message."""
         why = tare_problem(ref, self.pipe.model_reference)
         if why:
             raise ConfigError(f"{source} not used: {why}")
-        report = self._new_reference(ref, noise, n_frames)
+        report = self._new_reference(ref, noise, n_frames, age_s)
         self.tares.reference_from(source)
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
                                                    self.noise_text, report.message)
         return report.message
 
-    def _new_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int):
+    def _new_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, age_s: float | None = None):
         report = self.pipe.set_reference(ref, noise, n_frames)
         self._use_noise(self.noise_state.kept(self.pipe))  # an estimated noise stays in use
-        self.slow.reset(self.pipe)
+        self.slow.reset(self.pipe, age_s)
         return report
 
     def init_reference(self, tare_on_start: bool) -> str:
@@ -166,7 +167,9 @@ class FrameStream:
         saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
         if saved is not None:
             try:
-                self.set_reference(*saved, source=f"saved tare {self.tare_file}")
+                # the device moved since the tare was saved: its age (the file's time) widens the slow states
+                age = max(time.time() - Path(self.tare_file).stat().st_mtime, 0.0)
+                self.set_reference(*saved, source=f"saved tare {self.tare_file}", age_s=age)
                 return ""
             except ConfigError as err:
                 why = str(err)
@@ -308,6 +311,12 @@ class FrameStream:
             self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
         slow.observe(pipe, result, t, self.channels.frozen)
         return result
+
+    def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
+        """A controller's expected load now (its dynamics model: the link's weight): ``force`` (3,) N in
+        the wrench frame, its 1-sigma ``sigma`` (N, per axis), at ``stamp_ns`` (the frames' clock; 0:
+        the next frames): a measurement of the device's states (:meth:`.slow.SlowStates.expect_load`)."""
+        self.slow.expect_load(force, sigma, stamp_ns)
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> Output | None:

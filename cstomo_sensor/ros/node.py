@@ -7,13 +7,10 @@ sensor's :class:`~cstomo_sensor.force.stream.FrameStream` to the publishers
 (:class:`~.sinks.Publishers`: one per output of :data:`~cstomo_sensor.outputs.OUTPUTS`, each message
 built only while someone subscribes). ``cstomo replay`` and ``cstomo estimate`` are the same loop.
 
-configure: read the parameters into one frozen :class:`~.params.NodeConfig`, load (or build) the
-:class:`~cstomo_sensor.force.pipeline.Pipeline`, make the frame stream, open the input and set the
-reference (the saved tare, else a tare on the first frames). activate: publish. deactivate: stop
-publishing. cleanup/shutdown: release port, thread, stream. With ``autostart`` (default) the node
-walks itself to active, so ``ros2 run`` needs no manager. Parameters and the config are in
-:mod:`.params`, the entry point's helpers in :mod:`.startup`; the library's log records reach
-``/rosout`` through :mod:`.log`. See docs/node.md.
+configure: one frozen :class:`~.params.NodeConfig` from the parameters, the pipeline, the stream, the
+input and the reference (the saved tare, else a tare on the first frames); activate: publish;
+deactivate: stop; cleanup/shutdown: release. ``autostart`` (default) walks to active by itself.
+Parameters: :mod:`.params`; entry point: :mod:`.startup`; logs to ``/rosout``: :mod:`.log`. docs/node.md.
 """
 from __future__ import annotations
 
@@ -24,6 +21,7 @@ import traceback
 from dataclasses import replace
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import WrenchStamped
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -33,6 +31,7 @@ from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.driver import set_os_thread_name
+from ..errors import ConfigError
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..loop import connect, run, step
@@ -76,7 +75,8 @@ class CstomoSensorNode(LifecycleNode):
         self._active = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._source = self._pubs = self._free_sub = None
+        self._source = self._pubs = None
+        self._subs: list = []  # a controller's inputs: ~/joint_free, ~/expected_wrench
         self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
         self._tare_group = MutuallyExclusiveCallbackGroup()
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
@@ -100,13 +100,11 @@ class CstomoSensorNode(LifecycleNode):
 
     @property
     def diagnostics_name(self) -> str:
-        """The status name in ``/diagnostics``: the node's full name, namespace included, so two
-        sensors never merge in an aggregator."""
+        """The status name in ``/diagnostics``: the node's full name (two sensors never merge)."""
         return f"{self.get_fully_qualified_name()}: sensor"
 
     def _parameters_set(self, params: list[Parameter]) -> None:
-        """Apply a run-time change (rclpy refused the read-only parameters already, with the reason
-        "read-only"): ``stale_timeout`` is the only one that may change while running."""
+        """A run-time change: ``stale_timeout`` is the only one (rclpy refuses the read-only others)."""
         for p in params:
             if p.name == "stale_timeout" and self.config is not None:
                 self.config = replace(self.config, stale_timeout=p.value)
@@ -169,7 +167,8 @@ class CstomoSensorNode(LifecycleNode):
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
-        self._free_sub = self.create_subscription(Empty, "~/joint_free", self._on_joint_free, 10)
+        self._subs = [self.create_subscription(Empty, "~/joint_free", self._on_joint_free, 10),
+                      self.create_subscription(WrenchStamped, "~/expected_wrench", self._on_expected, 10)]
         self._tare_forced_srv = self.create_service(Trigger, "~/tare_forced", self._on_tare_forced,
                                                     callback_group=self._tare_group)
         self._stop.clear()
@@ -215,18 +214,15 @@ class CstomoSensorNode(LifecycleNode):
         if self._source is not None:
             self._source.close()
             self._source = None
-        if self._free_sub is not None:
-            self.destroy_subscription(self._free_sub)
+        for sub in self._subs:
+            self.destroy_subscription(sub)
         if self._pubs is not None:
             self._pubs.close()
-        self._free_sub = self._pubs = None
-        if self._diag_timer is not None:
-            self.destroy_timer(self._diag_timer)
-        if self._diag_pub is not None:
-            self.destroy_publisher(self._diag_pub)
-        for srv in (self._tare_srv, self._tare_forced_srv):
-            if srv is not None:
-                self.destroy_service(srv)
+        self._subs, self._pubs = [], None
+        for destroy, what in ((self.destroy_timer, self._diag_timer), (self.destroy_publisher, self._diag_pub),
+                              (self.destroy_service, self._tare_srv), (self.destroy_service, self._tare_forced_srv)):
+            if what is not None:
+                destroy(what)
         self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
         if self.stream is not None:
             self.stream.close()  # a tare still being written is saved before the node stops
@@ -253,11 +249,17 @@ class CstomoSensorNode(LifecycleNode):
         if self.stream is not None and not self.stream.joint_free():
             self.get_logger().info("~/joint_free: a tare is already pending")
 
+    def _on_expected(self, msg: WrenchStamped) -> None:
+        """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis."""
+        f, st = msg.wrench.force, msg.header.stamp
+        try:
+            self.stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, st.sec * 10**9 + st.nanosec)
+        except (ConfigError, AttributeError) as err:  # a non-finite force; or no stream (not configured)
+            self.get_logger().warning(f"~/expected_wrench ignored: {err}", throttle_duration_sec=5.0)
+
     def _on_tare_forced(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """``~/tare_forced``: :meth:`_on_tare` whose load checks do not refuse (docs/node.md#tare)."""
         return self._on_tare(request, response, forced=True)
-
-    # --- frames ------------------------------------------------------------------------------------
 
     def _process_now(self) -> bool:
         return self._active or self.stream.taring
@@ -271,15 +273,12 @@ class CstomoSensorNode(LifecycleNode):
                 return  # ROS shut down (SIGINT) while this thread was publishing: stop quietly
             raise
 
-    # --- diagnostics -------------------------------------------------------------------------------
-
     def stale_reason(self) -> str:
         """Why the data is stale ('' when fresh)."""
         return status.stale_reason(self.config, self.stream, self._source)
 
     def diagnostics(self) -> DiagnosticStatus:
-        """The node's DiagnosticStatus now (resets the per-period figures): the stream's health, the
-        board's link and the staleness."""
+        """The node's DiagnosticStatus now (ends the stream's period): :func:`.status.diagnostics`."""
         return status.diagnostics(self)
 
     def _publish_diagnostics(self) -> None:

@@ -75,6 +75,8 @@ def usage() -> str:
               "loaded (the answer says what it overrode)",
               "subscribes:", f"  {'~/joint_free':<21} std_msgs/Empty: a controller's hint that the joint is free "
               "now: re-zero at once (a tare with its rules, refused under load)",
+              f"  {'~/expected_wrench':<21} geometry_msgs/WrenchStamped: the load a controller expects now (to "
+              "expected_wrench_sigma), a measurement of the device's change under load",
               f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages (input: topic)",
               "(docs/node.md)", "", "parameters (default):"]
     for name, (default, desc) in PARAMETERS.items():

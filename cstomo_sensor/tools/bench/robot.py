@@ -16,11 +16,14 @@ a. ``loaded warm-up``: the rubber warms by 2 % (uniform resistivity: 2.5 K at 0.
    unchanged) over 5 minutes while socket loads follow each other without rest from the first frame
    (3 s each, 5..30 N, elevations 15..85 deg; :class:`~cstomo_sensor.model.timeline.Tasks` without rests),
    against the same loads without warming (``loaded, no warming``); errors per minute.
-b. ``restart at rest +-2 %``: the node restarts from a tare saved on the unchanged device (a fresh
-   stream given that old reference, as :meth:`FrameStream.set_reference` at a start) after the rubber
-   changed by +-2 % (uniform); unloaded; the readings over the first 0.1 s and 1 s, the zero from 1 s.
+b. ``restart at rest +-2 %``: the node restarts from a tare saved on the unchanged device 2 hours
+   before (a fresh stream given that old reference and its age, as :meth:`FrameStream.set_reference` at
+   a start) after the rubber changed by +-2 % (uniform); unloaded; the readings over the first 0.1 s
+   and 1 s, the zero from 1 s.
 c. ``restart loaded +-2 %``: the same restart with the joint loaded from the first frame (loads back to
-   back, 3 s each); the first second, and the errors from 5 s on.
+   back, 3 s each); the first second, and the errors from 5 s on; ``+0 %`` the same loads without a
+   change (the aim's reference); ``expected load 2 N``: +2 % with a controller's expected load
+   (``FrameStream.expect_load``: the true force plus a 2 N error per axis, per frame; ``model``, tracking on).
 d. ``warm-up 30 min (rests)``: the existing 30-minute warm-up (timeline.warmup_30min: 15 K, gradient,
    contacts, drive, creep 4 %/decade compensated at 4 %, contact tasks with unannounced rests) on this
    device, against the same tasks without the drift (``warm-up baseline``).
@@ -48,7 +51,7 @@ from ...angles import angle_between
 from ...force.calibration import calibrate
 from ...force.pipeline import Pipeline, PipelineConfig
 from ...force.stream import FrameStream, StreamConfig
-from ...loop import Trace, run
+from ...loop import Trace, run, step
 from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
 from ...sources import ArraySource
@@ -67,7 +70,9 @@ HOLD_S = 3.0                # a, c: each load held 3 s, back to back
 RATE = 100.0                # b, c frames/s
 LOADED_RATE = 50.0          # a, d frames/s (the drift bench's warm-up rate)
 RESTART_S, RESTART_LOADED_S = 20.0, 60.0
+RESTART_AGE_S = 7200.0      # b, c: the saved tare is 2 hours old (FrameStream.set_reference's age_s)
 SEED = 31
+EXPECTED_SIGMA = 2.0        # N: c with a controller's expected load (FrameStream.expect_load), its error drawn per frame
 ZERO_TOL_N, LOAD_TOL = 0.5, 0.10   # the "silently wrong" bounds
 
 
@@ -92,21 +97,28 @@ def restart(change: float, loaded: bool) -> TimelineSpec:
                         tasks=back_to_back(duration, seed=SEED + 1) if loaded else None)
 
 
+def restart_changes(loaded: bool) -> tuple[float, ...]:
+    """The restarts' changes: +-2 %, and for the loaded restart 0 (the same loads without a change: what
+    the aim compares with)."""
+    return (WARM, -WARM, 0.0) if loaded else (WARM, -WARM)
+
+
 def device_truth(cache_dir=None, scene=DEVICE_SCENES[0]):
     sc = Scene.load(scene)
     return sc, sc.truth(cache_dir)
 
 
-def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print) -> dict:
-    """Both estimators' pipelines, calibrated on the device (unchanged) as ``cstomo calibrate`` does."""
+def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print, estimators=ESTIMATORS, **config) -> dict:
+    """The estimators' pipelines, calibrated on the device (unchanged) as ``cstomo calibrate`` does
+    (``config``: other PipelineConfig settings, e.g. the tests' coarser model)."""
     forces = random_forces(CAL_LOADS, CAL_SEED)
     ref, clean = truth.frames([Load("socket", force=tuple(f)) for f in forces])
     rng = np.random.default_rng(CAL_SEED)
     tare = add_noise(np.repeat(ref[None], 50, 0), ref, snr_db, rng)
     frames = add_noise(np.repeat(clean, CAL_FRAMES, 0), ref, snr_db, rng)
     pipes = {}
-    for name in ESTIMATORS:
-        pipe = Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or "")))
+    for name in estimators:
+        pipe = Pipeline.build(PipelineConfig(**{"cache_dir": str(cache_dir or ""), **config, "estimator": name}))
         pipe.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_frames=len(tare))
         pipe.set_calibration(calibrate(pipe, frames, np.repeat(forces, CAL_FRAMES, 0)))
         pipes[name] = pipe
@@ -114,16 +126,25 @@ def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print) -> dict:
     return pipes
 
 
-def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7):
+def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7,
+               tare_age: float | None = None, expected_sigma: float | None = None):
     """A fresh stream given ``tare`` (frames of the device's tare state) as its reference, then the
     timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale,
     sigma_n (NaN when refused))."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare")
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=tare_age)
     trace = Trace(lambda: stream.slow.scale)
-    run(ArraySource(frames, (1e9 * (1 + np.asarray(times))).astype(np.int64)), stream, [trace])
+    stamps = (1e9 * (1 + np.asarray(times))).astype(np.int64)
+    source = ArraySource(frames, stamps)
+    if expected_sigma is None:
+        run(source, stream, [trace])
+    else:  # a controller that knows the load to expected_sigma (its own error drawn per frame), told before each
+        noisy = forces + rng.normal(0.0, expected_sigma, forces.shape)
+        for k in range(len(times)):
+            stream.expect_load(noisy[k], expected_sigma, int(stamps[k]))
+            step(stream, [trace], source.recv(0.0))
     return times, np.array(trace.forces, float).reshape(-1, 3), forces, np.array(trace.probed), np.array(trace.sigma_n)
 
 
@@ -216,13 +237,17 @@ def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
         return w
 
     for loaded in (False, True):
-        for change in (WARM, -WARM):
+        for change in restart_changes(loaded):
             tl = timeline(restart(change, loaded))
             scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
             for name, pipe in pipes.items():
                 for tracking in (False, True):
-                    record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, RATE, 0.0),
-                           restart_windows(loaded))
+                    record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, RATE, 0.0,
+                                                                 tare_age=RESTART_AGE_S), restart_windows(loaded))
+                if loaded and change == WARM and name == "model":  # a controller that knows the load to 2 N
+                    record(scenario + ", expected load 2 N", name, True,
+                           *run_stream(pipe, tl, tare, True, RATE, 0.0, tare_age=RESTART_AGE_S,
+                                       expected_sigma=EXPECTED_SIGMA), restart_windows(loaded))
 
     spec = warmup_30min(seed=SEED)
     still = type(spec)(**{**spec.__dict__, "temperature": ZERO, "drive": ZERO, "gradient": ZERO})
@@ -275,8 +300,9 @@ def markdown(rows: list[dict]) -> str:
               "window from 1 s (at rest) or 5 s (loaded)", "",
               "| device | scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % "
               "| implausible | > 3 sigma % | sigma_n / error |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for dev, loaded, change in ((d, ld, c) for d in devices for ld in (False, True) for c in (WARM, -WARM)):
-        scenario = f"restart {'loaded' if loaded else 'at rest'} {change:+.0%}"
+    for dev, loaded, scenario in ((d, ld, f"restart {'loaded' if ld else 'at rest'} {c:+.0%}{x}") for d in devices
+                                  for ld in (False, True) for c in restart_changes(ld)
+                                  for x in (("", ", expected load 2 N") if ld and c == WARM else ("",))):
         w = "from 5 s" if loaded else "from 1 s"
         for est in ESTIMATORS:
             lines.append(f"| {short(dev)} | {scenario} | {est} | {off_on(scenario, est, 'first 0.1 s', 'err_n')} | "
