@@ -253,8 +253,9 @@ def _schedule(name: str) -> np.ndarray:
 
 def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int = 0):
     """(reading 1 s after the load was applied (N), at 600 s relative to it - 1, rest 1 s and 5 s after
-    its removal (N), at 60 s relative to the reading at 1 s - 1): the 20 N hold on the honest device creeping by ``rubber`` per decade (its own
-    3 mm mesh, the law applied to its strain), through a default stream compensating ``comp``. With
+    its removal (N), at 60 s relative to the reading at 1 s - 1): the 20 N hold on the honest device
+    creeping by ``rubber`` per decade (its own 3 mm mesh, the law applied to its strain), through a
+    default stream compensating ``comp``. With
     noise the readings are medians over 0.1 s (1 s), the hold's last 10 s and 1 s (rests)."""
     from cstomo_sensor.force.stream import FrameStream, StreamConfig
     from cstomo_sensor.model.simulate import add_noise
