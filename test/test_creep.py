@@ -224,3 +224,103 @@ def test_calibrate_fits_the_creep_from_the_recordings_held_loads_and_says_when_i
         assert DeviceCalibration.load(tmp_path / f"{name.replace(' ', '_')}.yaml").creep_per_decade is None
     assert DeviceCalibration.load(tmp_path / "given.yaml").creep_per_decade == 0.03
     assert "as given" in said["given"][0]
+
+
+# --- issue 26's aim, with the default estimator on the simulator's own mesh -------------------------
+
+HOLD_ON, HOLD_OFF = 1.0, 601.0  # 20 N straight down applied at 1 s, held 10 minutes, released
+
+
+@pytest.fixture(scope="module")
+def default_pipe():
+    """The default pipeline (`model` estimator, the node's and `cstomo estimate`'s)."""
+    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+
+    return Pipeline.build(PipelineConfig())
+
+
+def _schedule(name: str) -> np.ndarray:
+    """Frame times (s) over 0..631 s: a constant rate, or 100 frames/s within 20 s of each change of
+    load and 1 frame/s in between (600 s of hold for the cost of 5 s: the compensation must not
+    depend on the frame period, nor on its changes)."""
+    if name == "10/s":
+        return np.arange(6310) / 10.0
+    if name == "100/s":
+        return np.arange(63100) / 100.0
+    fast = np.arange(2100) / 100.0  # 0..21 s
+    return np.concatenate([fast, np.arange(21.0, 595.0, 1.0), 595.0 + np.arange(3600) / 100.0])
+
+
+def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int = 0):
+    """(reading 1 s after the load was applied (N), at 600 s relative to it - 1, rest 1 s and 5 s after
+    its removal (N), at 60 s relative to the reading at 1 s - 1): the 20 N hold on the honest device
+    creeping by ``rubber`` per decade (its own 3 mm mesh, the law applied to its strain), through a
+    default stream compensating ``comp``. With
+    noise the readings are medians over 0.1 s (1 s), the hold's last 10 s and 1 s (rests)."""
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.model.simulate import add_noise
+    from cstomo_sensor.model.timeline import Timeline, held_load_creep
+
+    tl = Timeline(held_load_creep(20.0, creep=rubber, on=HOLD_ON, off=HOLD_OFF, duration=631.0), "cuboid_joint",
+                  snr_db=snr_db, seed=31).prepare()
+    rng = np.random.default_rng(seed)
+    frames = add_noise(tl.voltages(times), tl.reference, snr_db, rng)
+    tare = tl.tare(50, rng)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=comp))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1) if snr_db else None, 50, "tare")
+    mag = np.full(len(times), np.nan)
+    for k, (t, v) in enumerate(zip(times, frames)):
+        out = stream.push(v, stamp_ns=int(1e9 * (10.0 + t)))
+        if out is not None and out.result.valid:
+            mag[k] = out.result.magnitude
+
+    def at(t, half):  # the frame at t without noise, else the median within +-half s
+        near = np.abs(times - t) <= (half if snr_db else 1e-6)
+        assert near.any(), t
+        return float(np.nanmedian(mag[near]))
+
+    first = at(HOLD_ON + 1.0, 0.05)
+    held = mag[(times >= HOLD_OFF - 10) & (times < HOLD_OFF)]  # the hold's last 10 s (its last frame without noise)
+    late = float(np.nanmedian(held) if snr_db else held[-1])
+    return first, late / first - 1, at(HOLD_OFF + 1.0, 0.5), at(HOLD_OFF + 5.0, 0.5), at(HOLD_ON + 60.0, 2.0) / first - 1
+
+
+def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default_pipe):
+    """Issue 26's creep aim without noise (what the compensation does; the drift tracking on, as by
+    default): 20 N held 10 minutes on a rubber at 4 % per decade compensated at 4 % reads within 0.3 %
+    of its reading 1 s after it was applied (aim 1 %; measured -0.08 %), and 5 s after its removal the
+    rest reads below 0.1 N (aim 0.5 N; measured 0.03 N), the same within 0.1 % and 0.02 N at 10 and 100
+    frames/s and at 100 frames/s near the changes with 1 frame/s in the hold (before the frame period
+    was the median of the last steps, the 1/s hold read +0.5 % at 60 s against -0.05 %). A
+    rubber at 2 or 6 % compensated at its own coefficient holds the same; uncompensated it reads
+    +10.9 % and 0.28 N (1.5 N with the tracking off)."""
+    rows = {}
+    for rubber, comp, sched in [(0.04, 0.04, "10/s"), (0.04, 0.04, "100/s"), (0.04, 0.04, "hold at 1/s"),
+                                (0.02, 0.02, "hold at 1/s"), (0.06, 0.06, "hold at 1/s"), (0.04, 0.0, "hold at 1/s")]:
+        rows[rubber, comp, sched] = r = _hold(default_pipe, rubber, comp, _schedule(sched), None)
+        print(f"rubber {rubber:.0%}, compensated at {comp:.0%}, {sched}: {r[0]:.3f} N at 1 s, {100 * r[1]:+.2f} % "
+              f"at 600 s ({100 * r[4]:+.2f} % at 60 s), rest {r[2]:.3f} N 1 s and {r[3]:.3f} N 5 s after the removal")
+    for (rubber, comp, sched), (_, drift, _, rest5, _) in rows.items():
+        if comp:
+            assert abs(drift) < 0.003 and rest5 < 0.1, (rubber, comp, sched, rows)
+        else:
+            assert drift > 0.08 and rest5 > 0.2, rows  # the tracker takes part of the recovery for the device
+    ref = rows[0.04, 0.04, "100/s"]
+    for sched in ("10/s", "hold at 1/s"):
+        r = rows[0.04, 0.04, sched]
+        assert abs(r[1] - ref[1]) < 0.001 and abs(r[4] - ref[4]) < 0.001, (sched, rows)
+        assert abs(r[2] - ref[2]) < 0.02 and abs(r[3] - ref[3]) < 0.02, (sched, rows)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_issue_26s_creep_aim_at_60_db(default_pipe, seed):
+    """Issue 26's creep aim as a board sees it: 60 dB, 100 frames/s, every default (4 % compensated,
+    the drift tracking on) on a rubber at 4 % per decade: the hold's last 10 s within 1 % of its
+    reading 1 s after it was applied (a median over 0.1 s: 11 frames), the rest 5 s after its removal
+    at most 0.5 N. Measured over six noise draws: -0.78 to +0.55 % (the drift tracker's rate during
+    the hold; -0.13 to +0.08 % with the tracking off, docs/node.md#creep), rest 0.11-0.13 N."""
+    first, drift, rest1, rest5, _ = _hold(default_pipe, 0.04, 0.04, _schedule("100/s"), 60, seed)
+    print(f"seed {seed}: {first:.3f} N at 1 s, {100 * drift:+.2f} % at 600 s, rest {rest1:.3f} N 1 s and "
+          f"{rest5:.3f} N 5 s after the removal")
+    assert abs(drift) < 0.01 and rest5 <= 0.5, (first, drift, rest1, rest5)
