@@ -287,8 +287,10 @@ def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int
 
 def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default_pipe):
     """Issue 26's creep aim without noise (what the compensation does; the drift tracking on, as by
-    default): 20 N held 10 minutes on a rubber at 4 % per decade compensated at 4 % reads within 0.3 %
-    of its reading 1 s after it was applied (aim 1 %; measured -0.08 %), and 5 s after its removal the
+    default): 20 N held 10 minutes on a rubber at 4 % per decade compensated at 4 % reads within 0.7 %
+    of its reading 1 s after it was applied (aim 1 %; measured -0.08 % before the drift tracker measured
+    the scale under load, +0.53 % since: the joint fit takes 0.5 % of this load's misfit for the device
+    within the first minute, force/drift.py JointScale), and 5 s after its removal the
     rest reads below 0.1 N (aim 0.5 N; measured 0.03 N), the same within 0.1 % and 0.02 N at 10 and 100
     frames/s and at 100 frames/s near the changes with 1 frame/s in the hold (before the frame period
     was the median of the last steps, the 1/s hold read +0.5 % at 60 s against -0.05 %). A
@@ -302,7 +304,7 @@ def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default
               f"at 600 s ({100 * r[4]:+.2f} % at 60 s), rest {r[2]:.3f} N 1 s and {r[3]:.3f} N 5 s after the removal")
     for (rubber, comp, sched), (_, drift, _, rest5, _) in rows.items():
         if comp:
-            assert abs(drift) < 0.003 and rest5 < 0.1, (rubber, comp, sched, rows)
+            assert abs(drift) < 0.007 and rest5 < 0.1, (rubber, comp, sched, rows)
         else:
             assert drift > 0.08 and rest5 > 0.2, rows  # the tracker takes part of the recovery for the device
     ref = rows[0.04, 0.04, "100/s"]
