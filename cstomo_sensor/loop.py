@@ -3,7 +3,7 @@
 ``run(source, stream, sinks)`` is the node (the serial board or a topic in, ROS publishers out),
 ``cstomo replay`` (a bag in, a bag writer and a forces file out), ``cstomo estimate`` (a frames file
 in, a forces file out), ``cstomo calibrate`` and the benchmarks: the same loop with other sources and
-sinks, so they cannot disagree (docs/node.md, ../shared/DESIGN.md "The frame path").
+sinks, so they cannot disagree (docs/node.md, "One frame stream").
 
 A sink is a callable ``sink(frame, output)`` given every frame the source yields with what the stream
 made of it (:class:`~cstomo_sensor.force.stream.Output`, or None: a tare frame, a late or dropped
