@@ -159,13 +159,19 @@ def test_a_loaded_warm_up_is_followed_without_a_rest(device_b):
     assert _win(warm, warm[0] >= 0)["over3sigma_pct"] <= 1.0  # every minute, not only the last
 
 
+def _restart(device, change: float, loaded: bool, after: float):
+    """A restart from a 2 h old tare after a ``change`` of the device, tracked, and the same frames of an
+    unchanged device untracked: (the run, its window from ``after`` s, the baseline's window)."""
+    still = _run(device, robot.restart(0.0, loaded), False, robot.RATE)
+    out = _run(device, robot.restart(change, loaded), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
+    late = out[0] >= after
+    return out, _win(out, late), _win(still, late)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("change", [0.02, -0.02])
 def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(device_b, change):
-    still = _run(device_b, robot.restart(0.0, False), False, robot.RATE)
-    out = _run(device_b, robot.restart(change, False), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
-    late = out[0] >= 1.0
-    r, base = _win(out, late), _win(still, late)
+    out, r, base = _restart(device_b, change, False, 1.0)
     print(f"restart at rest {change:+.0%}: zero p99 from 1 s {r['zero_p99_n']:.3f} N (no change, untracked "
           f"{base['zero_p99_n']:.3f}); > 3 sigma {r['over3sigma_pct']:.2f} %, tracked {r['tracked_change']:+.4f}")
     # the aim is 0.5 N; this device's own noise at rest gives a p99 near it without any change (the
@@ -177,10 +183,7 @@ def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(devic
 @pytest.mark.slow
 @pytest.mark.parametrize("change", [0.02, -0.02])
 def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(device_b, change):
-    still = _run(device_b, robot.restart(0.0, True), False, robot.RATE)
-    out = _run(device_b, robot.restart(change, True), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
-    late = out[0] >= 5.0
-    r, base = _win(out, late), _win(still, late)
+    out, r, base = _restart(device_b, change, True, 5.0)
     print(f"restart loaded {change:+.0%}: {r['angle_deg']:.2f} deg / {r['magnitude_pct']:.2f} % against "
           f"{base['angle_deg']:.2f} / {base['magnitude_pct']:.2f} unchanged; > 3 sigma {r['over3sigma_pct']:.2f} %, "
           f"sigma/error {r['sigma_ratio']:.2f}, tracked {r['tracked_change']:+.4f}")

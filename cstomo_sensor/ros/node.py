@@ -251,15 +251,15 @@ class CstomoSensorNode(LifecycleNode):
 
     def _on_expected(self, msg: WrenchStamped) -> None:
         """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis."""
-        f, st = msg.wrench.force, msg.header.stamp
+        f, st, stream = msg.wrench.force, msg.header.stamp, self.stream
         try:
-            self.stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, st.sec * 10**9 + st.nanosec)
-        except (ConfigError, AttributeError) as err:  # a non-finite force; or no stream (not configured)
+            if stream is not None:  # None: released meanwhile
+                stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, st.sec * 10**9 + st.nanosec)
+        except ConfigError as err:  # a non-finite force
             self.get_logger().warning(f"~/expected_wrench ignored: {err}", throttle_duration_sec=5.0)
 
     def _on_tare_forced(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """``~/tare_forced``: :meth:`_on_tare` whose load checks do not refuse (docs/node.md#tare)."""
-        return self._on_tare(request, response, forced=True)
+        return self._on_tare(request, response, forced=True)  # the load checks do not refuse (docs/node.md#tare)
 
     def _process_now(self) -> bool:
         return self._active or self.stream.taring
