@@ -1,8 +1,8 @@
 """Every setting of the node, declared once: name, default, range or choices, unit and description.
 
-The node's parameters (their ROS descriptors: ros/params.py), the defaults of
-:class:`~.force.pipeline.PipelineConfig`, :class:`~.force.stream.StreamConfig` and the node's
-``NodeConfig``, the command-line flags that mirror a setting (:func:`.tools.common.add_setting_arg`),
+The node's parameters (their ROS descriptors: ros/params.py), the defaults and range checks
+(:func:`check_config`) of :class:`~.force.config.PipelineConfig`, :class:`~.force.config.StreamConfig`
+and the node's ``NodeConfig``, the command-line flags that mirror a setting (:func:`.tools.common.add_setting_arg`),
 the launch arguments that override one (:mod:`.tools.launching`), ``cstomo_sensor_node --help``,
 ``config/cstomo_sensor.yaml`` and the parameter table of docs/node.md all come from :data:`SETTINGS`;
 the last two are written by ``python -m cstomo_sensor.settings yaml|markdown`` and held equal by
@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import sys
 import textwrap
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from .board.wire import PROTOCOLS
 from .errors import ConfigError
@@ -159,6 +159,22 @@ SETTING: dict[str, Setting] = {s.name: s for s in SETTINGS}
 def default(name: str):
     """The default of setting ``name``."""
     return SETTING[name].default
+
+
+def check_value(name: str, value: object) -> None:
+    """Raise :class:`ConfigError` ``name=value: expected ...`` unless ``value`` is one of setting ``name``'s."""
+    why = SETTING[name].problem(value)
+    if why:
+        raise ConfigError.bad_value(name, value, why)
+
+
+def check_config(config) -> None:
+    """:func:`check_value` of every field of the config dataclass ``config`` that is a setting (a string
+    without choices, e.g. a path, is taken as it comes)."""
+    for f in fields(config):
+        s = SETTING.get(f.name)
+        if s is not None and (s.choices or not isinstance(s.default, str)):
+            check_value(f.name, getattr(config, f.name))
 
 
 def _number(x: float) -> str:

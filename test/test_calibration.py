@@ -19,8 +19,9 @@ from conftest import MODEL_H
 
 from cstomo_sensor.errors import ConfigError, ModelMismatchError
 from cstomo_sensor.force.calibration import DeviceCalibration, calibrate, summary
+from cstomo_sensor.force.config import PipelineConfig
 from cstomo_sensor.force.device import reference_of
-from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.pipeline import Pipeline
 from cstomo_sensor.model.simulate import Load, Scene, add_noise
 
 pytestmark = pytest.mark.slow  # calibration effort: the held-out device's frames (~47 s) and node runs

@@ -84,7 +84,8 @@ def held(warm_model):
 
 
 def _magnitudes(pipe, held, creep, tracking=True):
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     times, frames, tare = held
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
@@ -139,7 +140,8 @@ def test_without_noise_the_compensated_hold_is_flat_to_a_tenth_of_a_percent(warm
 @pytest.mark.slow
 def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibration_file(warm_model, held, tmp_path):
     from cstomo_sensor.force.calibration import DeviceCalibration
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
     from cstomo_sensor.tools.calibrate import held_creep
 
     times, frames, tare = held
@@ -234,7 +236,8 @@ HOLD_ON, HOLD_OFF = 1.0, 601.0  # 20 N straight down applied at 1 s, held 10 min
 @pytest.fixture(scope="module")
 def default_pipe():
     """The default pipeline (`model` estimator, the node's and `cstomo estimate`'s)."""
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig())
 
@@ -257,7 +260,8 @@ def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int
     creeping by ``rubber`` per decade (its own 3 mm mesh, the law applied to its strain), through a
     default stream compensating ``comp``. With
     noise the readings are medians over 0.1 s (1 s), the hold's last 10 s and 1 s (rests)."""
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
     from cstomo_sensor.model.simulate import add_noise
     from cstomo_sensor.model.timeline import Timeline, held_load_creep
 

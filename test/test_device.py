@@ -11,6 +11,7 @@ from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import angle_between
 from cstomo_sensor.errors import ConfigError, FrameError
+from cstomo_sensor.force.config import PipelineConfig
 from cstomo_sensor.force.device import (
     UNEXPLAINED_WARN,
     ScaleReport,
@@ -18,7 +19,7 @@ from cstomo_sensor.force.device import (
     reference_of,
     write_reference,
 )
-from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.pipeline import Pipeline
 from cstomo_sensor.force.stream import FrameStream
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 

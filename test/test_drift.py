@@ -34,7 +34,8 @@ def device(warm_model):
 
 
 def _stream(pipe, ref, tracking, rng):
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
@@ -131,7 +132,7 @@ def test_an_all_zero_frame_does_not_move_the_scale(warm_model, device):
 
 
 def test_the_node_parameter_and_the_command_line_turn_it_off(warm_model):
-    from cstomo_sensor.force.stream import StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
     from cstomo_sensor.tools.common import add_pipeline_args  # noqa: F401 - the flags' module imports
 
@@ -148,7 +149,8 @@ def test_a_drifting_device_over_time_is_followed(warm_model):
     untracked it reads several newtons."""
     from pathlib import Path
 
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
     from cstomo_sensor.model.timeline import Timeline
 
     scene = Path(__file__).resolve().parents[1] / "scenes" / "timeline_drift_short.yaml"

@@ -19,7 +19,8 @@ RATE = 100.0  # frames per second
 @pytest.fixture(scope="module")
 def model_pipe(warm_model):
     """The test's pipeline with the default estimator (``model``: the one with the joint fit)."""
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
@@ -41,7 +42,8 @@ def _voltages(volts, m):
 
 def _run(pipe, down_, profile, seconds, tracking=True, expected=None):
     """The forces read (n, 3) for the magnitude ``profile(t)`` straight down, from a fresh tare."""
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     ref, volts = down_
     rng = np.random.default_rng(11)
@@ -109,7 +111,8 @@ def _restart_under_load(pipe, ref, loaded, expected, rng):
     """A stream started from a tare 2 hours old while the drive is 2 % up (every voltage x 1.02) and the
     joint carries ``loaded`` (its noise-free voltages) from the first frame; ``expected``: a controller's
     1-sigma (its expected load drawn around the truth per frame), None: none. The forces read over 3 s."""
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)

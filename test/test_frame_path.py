@@ -100,7 +100,8 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
 
     from reference_frame_path import drift_observe
 
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     pipe = warm_model
     rng = np.random.default_rng(6)

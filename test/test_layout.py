@@ -134,8 +134,8 @@ def test_core_modules_load_no_heavy_or_ros_package_at_import():
 
 
 def test_cli_flags_take_their_defaults_and_choices_from_the_config():
+    from cstomo_sensor.force.config import PipelineConfig
     from cstomo_sensor.force.estimate import ESTIMATORS
-    from cstomo_sensor.force.pipeline import PipelineConfig
     from cstomo_sensor.tools import cli
 
     d = PipelineConfig()
@@ -152,7 +152,7 @@ def test_cli_flags_take_their_defaults_and_choices_from_the_config():
 def test_node_parameter_defaults_are_the_config_defaults():
     pytest.importorskip("rclpy")
     from cstomo_sensor.board.wire import PROTOCOLS
-    from cstomo_sensor.force.pipeline import PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
 
     cfg = NodeConfig.from_parameters(lambda n: PARAMETERS[n][0])

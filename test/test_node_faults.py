@@ -25,7 +25,8 @@ LOADED = slice(30, 60)    # bag frames under a held 20 N socket load
 @pytest.fixture
 def pipe(warm_model):
     """A fresh Pipeline of its own (loaded from the cache warm_model filled)."""
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 

@@ -50,7 +50,8 @@ def _held(device, snr: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stream(pipe, estimation: bool):
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     return FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, noise_estimation=estimation))
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from conftest import PIPE
 
-from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.config import PipelineConfig
+from cstomo_sensor.force.pipeline import Pipeline
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 CONFIG = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})

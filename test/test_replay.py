@@ -21,7 +21,7 @@ FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 
 @pytest.fixture(scope="module")
 def config():
-    from cstomo_sensor.force.pipeline import PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
 
     return PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
 

@@ -18,8 +18,9 @@ from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import force_from_angles
 from cstomo_sensor.errors import ConfigError
+from cstomo_sensor.force.config import PipelineConfig
 from cstomo_sensor.force.estimate import CalibrationSpec, calibration_directions
-from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+from cstomo_sensor.force.pipeline import Pipeline
 from cstomo_sensor.force.scene_field import Consistency
 from cstomo_sensor.model import elasticity
 from cstomo_sensor.model.material import pressure_of_theta

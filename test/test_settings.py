@@ -40,8 +40,7 @@ def test_the_parameter_file_and_the_docs_table_are_written_from_the_settings():
 
 def test_the_config_dataclasses_take_their_defaults_from_the_settings():
     pytest.importorskip("rclpy")
-    from cstomo_sensor.force.pipeline import PipelineConfig
-    from cstomo_sensor.force.stream import StreamConfig
+    from cstomo_sensor.force.config import PipelineConfig, StreamConfig
     from cstomo_sensor.ros.params import NodeConfig
 
     seen = set()
@@ -64,11 +63,25 @@ def test_the_config_dataclasses_take_their_defaults_from_the_settings():
 def test_the_node_config_refuses_a_value_outside_the_declared_range_naming_it(name, value, why):
     pytest.importorskip("rclpy")
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.force.pipeline import PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
     from cstomo_sensor.ros.params import NodeConfig
 
     with pytest.raises(ConfigError, match=re.escape(f"parameter '{name}'={value!r}: expected {why}")):
         NodeConfig(pipeline=PipelineConfig(), **{name: value})
+
+
+@pytest.mark.parametrize("cls, name, value, why", [
+    ("StreamConfig", "tare_frames", 0, "1..100000"), ("StreamConfig", "stale_timeout", 0.0, "0.01..3600 seconds"),
+    ("StreamConfig", "creep_per_decade", 0.3, "0..0.2"), ("StreamConfig", "wrench_filter_hz", float("nan"), "a finite number"),
+    ("StreamConfig", "drift_tracking", 1, "true or false"), ("PipelineConfig", "estimator", "fast", "one of model, linear"),
+    ("PipelineConfig", "max_force", 0.0, "1..100000 N"), ("PipelineConfig", "grid", (6, 6), "3 numbers, each 1..64")])
+def test_the_config_dataclasses_refuse_a_value_outside_the_declared_range_naming_it(cls, name, value, why):
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.force import config
+
+    with pytest.raises(ConfigError, match=re.escape(f"{name}={value!r}: expected {why}")):
+        getattr(config, cls)(**{name: value})
+    getattr(config, cls)(**{name: SETTING[name].default})  # the default is one of its values
 
 
 def test_the_node_declares_every_setting_with_its_default_range_and_description(ros):

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cstomo_sensor.force.config import StreamConfig
 from cstomo_sensor.force.sigma import UNDESCRIBED, ForceSigma, relative_error
-from cstomo_sensor.force.stream import WARN, FrameStream, StreamConfig
+from cstomo_sensor.force.stream import WARN, FrameStream
 
 
 def test_sigma_is_the_covariance_diagonal_and_its_trace():

@@ -168,7 +168,7 @@ def test_estimate_and_replay_give_the_same_forces_through_the_loop(tmp_path, war
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from cstomo_sensor.force.pipeline import PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
     from cstomo_sensor.frames_io import read_forces, write_frames
     from cstomo_sensor.outputs import TOPIC_TYPES
     from cstomo_sensor.ros.messages import raw_voltages_msg

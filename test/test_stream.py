@@ -49,7 +49,8 @@ def _nodes(namespaces_params: list[tuple[str, dict]]):
 
 
 def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
-    from cstomo_sensor.force.stream import OUTPUTS, StreamConfig, output_set
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import OUTPUTS, output_set
     from cstomo_sensor.ros.messages import RAW_TOPIC, TOPIC_TYPES
 
     assert set(TOPIC_TYPES) == set(OUTPUTS) | {RAW_TOPIC}  # every output has its message type, nothing else
@@ -73,8 +74,8 @@ def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
 @pytest.mark.parametrize("case", CASES)
 def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
     pytest.importorskip("rosbags")
-    from cstomo_sensor.force.pipeline import PipelineConfig
-    from cstomo_sensor.force.stream import StreamConfig, output_set
+    from cstomo_sensor.force.config import PipelineConfig, StreamConfig
+    from cstomo_sensor.force.stream import output_set
     from cstomo_sensor.tools.replay import replay
 
     cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
@@ -135,7 +136,8 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
     """Issue 27 item 3: reading the health changes nothing (twice the same problems and figures);
     end_period returns the period's health and the next period starts without its rejected and
     implausible frames (the all-time counts stay)."""
-    from cstomo_sensor.force.stream import WARN, FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import WARN, FrameStream
 
     stream = FrameStream(warm_model, StreamConfig(stress_field_every=0))
     ref = warm_model.model_reference

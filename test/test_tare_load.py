@@ -179,7 +179,8 @@ def test_a_tare_pending_across_an_outage_is_refused_when_the_board_returns_loade
 
 @pytest.fixture
 def pipe(warm_model):
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 

@@ -15,7 +15,8 @@ from conftest import PIPE, wait_for
 @pytest.fixture
 def pipe(warm_model):
     """A fresh Pipeline of its own (loaded from the cache warm_model filled)."""
-    from cstomo_sensor.force.pipeline import Pipeline, PipelineConfig
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
@@ -43,7 +44,8 @@ def test_a_tare_file_whose_write_blocks_does_not_stop_the_frames(pipe, unloaded,
     every frame gives its force at once; close() says the file is late instead of waiting for ever;
     the tare is reported once the FIFO is read (before issue 27 the write held the frame lock: the
     tare's last frame never returned)."""
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     tare_file = tmp_path / "tare.csv"
     fifo = tmp_path / f".tare.noise.csv.tmp{os.getpid()}"  # frames_io.atomic_write's temporary name
@@ -83,7 +85,8 @@ def test_a_50_frame_tare_on_a_1_frame_per_s_board_completes(pipe, unloaded):
     """A ~/tare transaction of the default 50 frames on a board that sends one frame per second: its
     deadline, from the measured period, covers the 50 s; it completes, not cancelled as late (the
     old rule, stale_timeout + 0.1 s x 50 + 2 s = 7.5 s, cancelled it after 7 frames)."""
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
 
     cfg = StreamConfig(stress_field_every=0)
     assert cfg.tare_frames == 50

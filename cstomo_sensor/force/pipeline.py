@@ -20,13 +20,14 @@ from ..angles import force_angles3
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame
 from ..inverse.landweber import LandweberSVD
-from ..inverse.reconstruction import ReconSpec, ReconstructionModel, build_model
+from ..inverse.reconstruction import ReconstructionModel, build_model
 from ..model.geometry import SensorGeometry, load_sensor
 from ..model.material import StressField
-from ..settings import default
+from ..settings import check_value, default
 from .calibration import DeviceCalibration
+from .config import PipelineConfig
 from .device import DEFAULT_NOISE_DB, ScaleReport, check_noise
-from .estimate import ESTIMATORS, build_estimator
+from .estimate import build_estimator
 from .gate import PlausibilityGate
 from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
 
@@ -35,36 +36,6 @@ log = logging.getLogger(__name__)
 #: :attr:`Pipeline.noise_source` of the assumed noise, and of a noise measured by a tare of several frames.
 NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
 NOISE_MEASURED = "measured by the tare"
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Every setting of the per-frame path; their defaults, ranges and descriptions are declared
-    once in cstomo_sensor/settings.py."""
-
-    sensor: str = default("sensor")
-    cache_dir: str = default("cache_dir")  # '' = default_cache_dir()
-    estimator: str = default("estimator")
-    mesh_size: float = default("mesh_size")  # m
-    grid: tuple[int, int, int] = default("grid")
-    iterations: int = default("iterations")  # 0 = chosen by the discrepancy rule
-    damping: float = default("damping")
-    max_force: float = default("max_force")  # N; larger estimates (and frames no such load explains) are implausible
-    calibration_file: str = default("calibration_file")  # a device calibration (cstomo calibrate); '' = the nominal model
-
-    def __post_init__(self) -> None:
-        if self.estimator not in ESTIMATORS:
-            raise ConfigError.bad_value("estimator", self.estimator, f"one of {list(ESTIMATORS)}")
-        if not self.max_force > 0:
-            raise ConfigError.bad_value("max_force", self.max_force, "a force > 0 in newtons")
-        if self.iterations < 0:
-            raise ConfigError.bad_value("iterations", self.iterations, "0 (automatic) or a positive count")
-        object.__setattr__(self, "grid", self.recon_spec.grid)  # validates mesh_size, grid, damping
-
-    @property
-    def recon_spec(self) -> ReconSpec:
-        return ReconSpec(mesh_size=self.mesh_size, grid=tuple(self.grid),
-                         iterations=self.iterations or None, damping=self.damping)
 
 
 @dataclass
@@ -108,7 +79,7 @@ class Pipeline:
     """
 
     def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,
-                 image_dtype: type = np.float32, max_force: float = PipelineConfig.max_force,
+                 image_dtype: type = np.float32, max_force: float = default("max_force"),
                  scene_field: SceneField | None = None) -> None:
         self.geometry = geometry
         self.model = model
@@ -130,8 +101,7 @@ class Pipeline:
         self.change_plausible = False  # the latest frame passed the gate's change bounds
         self._y32 = np.empty(self.n_meas, dtype=self._dtype)
         self._x = np.empty(model.n_cells, dtype=self._dtype)
-        if not max_force > 0:
-            raise ConfigError.bad_value("max_force", max_force, "a force > 0 in newtons")
+        check_value("max_force", max_force)
         self.max_force = float(max_force)
         self.gate = PlausibilityGate(estimator.forces, estimator.y, model, self.max_force)
         self._y_scale = model.v_scale  # c * v_scale, c the device's global factor (set_reference)

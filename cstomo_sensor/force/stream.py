@@ -17,7 +17,6 @@ NaN in a used channel, every channel excluded, an unexpected error) is dropped, 
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -29,8 +28,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..frames_io import check_frame
 from ..outputs import OUTPUTS, output_set  # noqa: F401 - the output set (re-exported)
-from ..settings import default
-from .creep import creep_problem
+from .config import StreamConfig
 from .device import read_reference
 from .filter import LowPass
 from .health import ERROR, LOSS_ERROR, LOSS_WARN, OK, WARN, Health  # noqa: F401 - the stream's levels
@@ -42,42 +40,6 @@ from .tare import TARE_MAX_SPREAD, TARE_RECONNECTED, TareOutcome, tare_deadline,
 from .taring import Taring
 
 log = logging.getLogger(__name__)
-
-
-
-@dataclass(frozen=True)
-class StreamConfig:
-    """Every setting of the frame stream; the defaults, ranges and descriptions of those the node
-    has as parameters are declared once in cstomo_sensor/settings.py."""
-
-    tare_frames: int = default("tare_frames")
-    tare_max_spread: float = TARE_MAX_SPREAD
-    stress_field_every: int = default("stress_field_every")  # the fields of every N-th processed frame (the first); 0 never
-    wrench_filter_hz: float = default("wrench_filter_hz")  # 0 = no filtered wrench
-    stale_timeout: float = default("stale_timeout")  # s: a frame older is late (dropped); a gap longer restarts the filter
-    drift_tracking: bool = default("drift_tracking")  # follow the device's slow uniform change (force/drift.py)
-    creep_per_decade: float = default("creep_per_decade")  # the rubber's creep (force/creep.py) unless the calibration's; 0 off
-    noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
-    max_sigma_n: float = default("max_sigma_n")  # N: a force's 1-sigma above it is said in the diagnostics; 0 off
-
-    def __post_init__(self) -> None:
-        if isinstance(self.tare_frames, bool) or not self.tare_frames >= 1:
-            raise ConfigError.bad_value("tare_frames", self.tare_frames, ">= 1")
-        if not self.tare_max_spread > 0:
-            raise ConfigError.bad_value("tare_max_spread", self.tare_max_spread, "> 0 (a fraction of the reference rms)")
-        if not self.stress_field_every >= 0:
-            raise ConfigError.bad_value("stress_field_every", self.stress_field_every, ">= 0 (0 = off)")
-        if not (math.isfinite(self.wrench_filter_hz) and self.wrench_filter_hz >= 0):
-            raise ConfigError.bad_value("wrench_filter_hz", self.wrench_filter_hz, ">= 0 Hz (0 = off)")
-        if not self.stale_timeout > 0:
-            raise ConfigError.bad_value("stale_timeout", self.stale_timeout, "> 0 s")
-        if not (math.isfinite(self.max_sigma_n) and self.max_sigma_n >= 0):
-            raise ConfigError.bad_value("max_sigma_n", self.max_sigma_n, ">= 0 N (0 = no check)")
-        why = creep_problem(self.creep_per_decade)
-        if why:
-            raise ConfigError.bad_value("creep_per_decade", self.creep_per_decade, why)
-
-
 
 
 @dataclass

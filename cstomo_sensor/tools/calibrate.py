@@ -244,8 +244,9 @@ def recorded_noise(frames: np.ndarray, ref: np.ndarray) -> np.ndarray | None:
 def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
     """The creep per decade of a held load's frames (the first when the load was applied, ``rate``
     frames/s): their force magnitudes through the stream, neither creep nor drift compensated."""
+    from ..force.config import StreamConfig
     from ..force.creep import fit_creep
-    from ..force.stream import FrameStream, StreamConfig
+    from ..force.stream import FrameStream
     from ..loop import Results, run
     from ..sources import ArraySource
 

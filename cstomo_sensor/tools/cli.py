@@ -15,10 +15,11 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
+from ..force.config import StreamConfig
 from ..force.device import read_reference
 from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level
 from ..force.pipeline import Pipeline
-from ..force.stream import FrameStream, StreamConfig
+from ..force.stream import FrameStream
 from ..frames_io import atomic_write, read_frames, write_frames
 from ..inverse.reconstruction import build_model
 from ..loop import Results, run

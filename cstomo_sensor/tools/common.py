@@ -20,7 +20,7 @@ from typing import IO
 import yaml
 
 from ..errors import CstomoError
-from ..force.pipeline import PipelineConfig
+from ..force.config import PipelineConfig
 from ..settings import SETTING, text_of
 
 _SAME = object()

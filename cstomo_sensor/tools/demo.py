@@ -33,7 +33,8 @@ from geometry_msgs.msg import WrenchStamped
 
 from ..angles import angle_between, force_angles, force_from_angles
 from ..errors import CstomoError
-from ..force.pipeline import Pipeline, PipelineConfig
+from ..force.config import PipelineConfig
+from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
 from .common import NodeWithBoard, add_setting_arg, local_ros_env
 

@@ -38,8 +38,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.pipeline import Pipeline, PipelineConfig
-from ..force.stream import FrameStream, StreamConfig
+from ..force.config import PipelineConfig, StreamConfig
+from ..force.pipeline import Pipeline
+from ..force.stream import FrameStream
 from ..loop import Results, run
 from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter

@@ -36,9 +36,10 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import angle_between, force_from_angles
+from ...force.config import PipelineConfig, StreamConfig
 from ...force.estimate import ESTIMATORS
-from ...force.pipeline import Pipeline, PipelineConfig
-from ...force.stream import FrameStream, StreamConfig
+from ...force.pipeline import Pipeline
+from ...force.stream import FrameStream
 from ...loop import Trace, run
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 from ...model.simulate import Load, Truth, add_noise

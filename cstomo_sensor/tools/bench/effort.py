@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ...force.calibration import calibrate, errors
+from ...force.config import PipelineConfig
 from ...force.device import reference_of
-from ...force.pipeline import Pipeline, PipelineConfig
+from ...force.pipeline import Pipeline
 from ...model.simulate import Load, Scene, add_noise
 from .report import write_csv
 from .scenes import quantile, random_forces

@@ -86,7 +86,8 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
     is in use, included), the noise the stream ended with, and the stream's mean time per frame (its
     noise updates, milliseconds each, included), with the drift tracking on (the node's default) and off.
     Writes heldout_one_frame.csv."""
-    from ...force.stream import FrameStream, StreamConfig
+    from ...force.config import StreamConfig
+    from ...force.stream import FrameStream
     from ...loop import Results, run
     from ...sources import ArraySource
 

@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...force.config import PipelineConfig
 from ...force.estimate import build_estimator
-from ...force.pipeline import Pipeline, PipelineConfig
+from ...force.pipeline import Pipeline
 from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
 from ...model.geometry import DEFAULT_SENSOR, load_sensor
 

@@ -70,7 +70,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 
 from ...errors import CstomoError
-from ...force.pipeline import Pipeline, PipelineConfig
+from ...force.config import PipelineConfig
+from ...force.pipeline import Pipeline
 from ..common import NodeWithBoard, add_setting_arg, executable, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",

@@ -49,8 +49,9 @@ import numpy as np
 
 from ...angles import angle_between
 from ...force.calibration import calibrate
-from ...force.pipeline import Pipeline, PipelineConfig
-from ...force.stream import FrameStream, StreamConfig
+from ...force.config import PipelineConfig, StreamConfig
+from ...force.pipeline import Pipeline
+from ...force.stream import FrameStream
 from ...loop import Trace, run, step
 from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min

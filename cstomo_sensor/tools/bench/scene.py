@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import force_from_angles
+from ...force.config import PipelineConfig
 from ...force.estimate import CalibrationSpec, _noise_y
-from ...force.pipeline import Pipeline, PipelineConfig
+from ...force.pipeline import Pipeline
 from ...force.scene_field import Consistency, change_noise, mismatch_allowance
 from ...model import elasticity
 from ...model.material import pressure_of_theta

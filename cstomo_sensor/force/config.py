@@ -1,0 +1,57 @@
+"""The settings of the per-frame path (:class:`PipelineConfig`, force/pipeline.py) and of the frame
+stream (:class:`StreamConfig`, force/stream.py). The defaults, ranges and descriptions of those the node
+has as parameters are declared once in cstomo_sensor/settings.py and checked from there
+(:func:`~cstomo_sensor.settings.check_config`): a bad value is a :class:`ConfigError` naming it and its range.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..errors import ConfigError
+from ..inverse.reconstruction import ReconSpec
+from ..settings import check_config, default
+from .tare import TARE_MAX_SPREAD
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Every setting of the per-frame path."""
+
+    sensor: str = default("sensor")
+    cache_dir: str = default("cache_dir")  # '' = default_cache_dir()
+    estimator: str = default("estimator")
+    mesh_size: float = default("mesh_size")  # m
+    grid: tuple[int, int, int] = default("grid")
+    iterations: int = default("iterations")  # 0 = chosen by the discrepancy rule
+    damping: float = default("damping")
+    max_force: float = default("max_force")  # N; larger estimates (and frames no such load explains) are implausible
+    calibration_file: str = default("calibration_file")  # a device calibration (cstomo calibrate); '' = the nominal model
+
+    def __post_init__(self) -> None:
+        check_config(self)
+        object.__setattr__(self, "grid", self.recon_spec.grid)  # a tuple
+
+    @property
+    def recon_spec(self) -> ReconSpec:
+        return ReconSpec(mesh_size=self.mesh_size, grid=tuple(self.grid),
+                         iterations=self.iterations or None, damping=self.damping)
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Every setting of the frame stream."""
+
+    tare_frames: int = default("tare_frames")
+    tare_max_spread: float = TARE_MAX_SPREAD  # a fraction of the reference rms (force/tare.py)
+    stress_field_every: int = default("stress_field_every")  # the fields of every N-th processed frame (the first); 0 never
+    wrench_filter_hz: float = default("wrench_filter_hz")  # 0 = no filtered wrench
+    stale_timeout: float = default("stale_timeout")  # s: a frame older is late (dropped); a gap longer restarts the filter
+    drift_tracking: bool = default("drift_tracking")  # follow the device's slow uniform change (force/drift.py)
+    creep_per_decade: float = default("creep_per_decade")  # the rubber's creep (force/creep.py) unless the calibration's; 0 off
+    noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
+    max_sigma_n: float = default("max_sigma_n")  # N: a force's 1-sigma above it is said in the diagnostics; 0 off
+
+    def __post_init__(self) -> None:
+        check_config(self)
+        if not self.tare_max_spread > 0:  # no node setting
+            raise ConfigError.bad_value("tare_max_spread", self.tare_max_spread, "> 0 (a fraction of the reference rms)")
