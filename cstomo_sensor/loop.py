@@ -6,7 +6,7 @@ in, a forces file out), ``cstomo calibrate`` and the benchmarks: the same loop w
 sinks, so they cannot disagree (docs/node.md, "One frame stream").
 
 A sink is a callable ``sink(frame, output)`` given every frame the source yields with what the stream
-made of it (:class:`~cstomo_sensor.force.stream.Output`, or None: a tare frame, a late or dropped
+made of it (:class:`~cstomo_sensor.outputs.FrameOutput`, or None: a tare frame, a late or dropped
 one, no reference yet); a sink builds only what it is asked for (the node's publishers only the
 topics someone subscribes to). ``close()`` is called on the sinks that have it when the source is
 exhausted.
@@ -29,7 +29,7 @@ def connect(source: FrameSource, stream) -> None:
     (:meth:`~cstomo_sensor.force.stream.FrameStream.reconnected`), an input that is no frame is counted
     as corrupt."""
     source.on_reconnect = stream.reconnected
-    source.on_corrupt = lambda err: stream.drop(err, corrupt=True)
+    source.on_corrupt = lambda err: stream.counter.drop(err, corrupt=True)
 
 
 def step(stream, sinks: Sequence[Callable], frame: StampedFrame, process: bool = True):

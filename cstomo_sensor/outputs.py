@@ -4,13 +4,17 @@ value it carries, and which of them a configuration produces. No ROS imports.
 The node publishes each output as ``~/<name>`` (:mod:`.ros.node`), ``cstomo replay`` writes each as a
 topic, ``cstomo_sensor_node --help`` lists them (:func:`help_lines`); the messages are encoded by type
 in :mod:`.ros.messages` (:class:`~.ros.messages.OutputMessages`), from the value :attr:`Output.value`
-takes out of a processed frame. An output whose value is None for a frame (no sigma, a NaN
-consistency, no field on this frame) is not built for it.
+takes out of a processed frame (:class:`FrameOutput`: what the frame stream emits). An output whose
+value is None for a frame (no sigma, a NaN consistency, no field on this frame) is not built for it.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .force.pipeline import FrameResult
 
 #: The raw frames' topic (the serial node's input as measured) and its type (rosbag2's spelling).
 RAW_TOPIC = "raw_voltages"
@@ -18,6 +22,16 @@ RAW_TYPE = "sensor_msgs/msg/Image"
 
 WRENCH, VECTOR, FLOAT64, CLOUD = ("geometry_msgs/msg/WrenchStamped", "geometry_msgs/msg/Vector3Stamped",
                                   "std_msgs/msg/Float64", "sensor_msgs/msg/PointCloud2")
+
+
+@dataclass
+class FrameOutput:
+    """What the frame stream emits for one processed frame (:meth:`~.force.stream.FrameStream.push`):
+    the result, the filtered force (None without the filter) and the frame's stamp (ns)."""
+
+    result: FrameResult
+    filtered: tuple[float, float, float] | None
+    stamp_ns: int
 
 
 def _consistency(r, _f):

@@ -89,7 +89,8 @@ def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_i
 def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     """60 dB noise passes for 2..20 frames; a 20 N load arriving during the tare is refused and the
     old reference stays; without any reference a refused or cancelled tare starts over."""
-    from cstomo_sensor.force.stream import TARE_MAX_SPREAD, FrameStream
+    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.force.tare import TARE_MAX_SPREAD
 
     ended = []
     proc = FrameStream(pipe, on_tare=ended.append)
@@ -262,7 +263,7 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
 
 
 def test_tare_on_a_moving_joint_is_refused_and_changes_nothing(ros, tmp_path, source, warm_model):
-    from cstomo_sensor.force.stream import TARE_MAX_SPREAD
+    from cstomo_sensor.force.tare import TARE_MAX_SPREAD
 
     script = Script(source, t_load=0.0, wobble=0.4)  # 0 -> 20 N -> 0 every 0.4 s
     h, board = start(ros, tmp_path, script, rate=100.0, tare_frames=20)

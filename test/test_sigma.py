@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from cstomo_sensor.force.config import StreamConfig
+from cstomo_sensor.force.health import WARN
 from cstomo_sensor.force.sigma import UNDESCRIBED, ForceSigma, relative_error
-from cstomo_sensor.force.stream import WARN, FrameStream
+from cstomo_sensor.force.stream import FrameStream
 
 
 def test_sigma_is_the_covariance_diagonal_and_its_trace():

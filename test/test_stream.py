@@ -1,4 +1,4 @@
-"""The frame stream's one list of outputs (force/stream.py OUTPUTS) against what the node publishes,
+"""The frame stream's one list of outputs (outputs.py OUTPUTS) against what the node publishes,
 what replay writes and what ``cstomo_sensor_node --help`` says; and two sensors in two namespaces
 with distinct diagnostics names."""
 from __future__ import annotations
@@ -50,7 +50,7 @@ def _nodes(namespaces_params: list[tuple[str, dict]]):
 
 def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
     from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import OUTPUTS, output_set
+    from cstomo_sensor.outputs import OUTPUTS, output_set
     from cstomo_sensor.ros.messages import RAW_TOPIC, TOPIC_TYPES
 
     assert set(TOPIC_TYPES) == set(OUTPUTS) | {RAW_TOPIC}  # every output has its message type, nothing else
@@ -75,7 +75,7 @@ def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
 def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
     pytest.importorskip("rosbags")
     from cstomo_sensor.force.config import PipelineConfig, StreamConfig
-    from cstomo_sensor.force.stream import output_set
+    from cstomo_sensor.outputs import output_set
     from cstomo_sensor.tools.replay import replay
 
     cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
@@ -94,7 +94,7 @@ def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
 
 
 def test_help_lists_exactly_the_stream_outputs():
-    from cstomo_sensor.force.stream import OUTPUTS
+    from cstomo_sensor.outputs import OUTPUTS
     from cstomo_sensor.ros.node import usage
 
     text = usage()
@@ -137,7 +137,8 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
     end_period returns the period's health and the next period starts without its rejected and
     implausible frames (the all-time counts stay)."""
     from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import WARN, FrameStream
+    from cstomo_sensor.force.health import WARN
+    from cstomo_sensor.force.stream import FrameStream
 
     stream = FrameStream(warm_model, StreamConfig(stress_field_every=0))
     ref = warm_model.model_reference

@@ -235,7 +235,8 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
 
 
 def test_reconnect_ends_a_pending_tare_and_a_tare_at_start_starts_over(pipe, device):
-    from cstomo_sensor.force.stream import TARE_RECONNECTED, FrameStream
+    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.force.tare import TARE_RECONNECTED
 
     ref = device[1][0]
     rng = np.random.default_rng(4)

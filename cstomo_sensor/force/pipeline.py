@@ -1,17 +1,12 @@
 """The per-frame path: tared difference -> plausibility gate -> image -> stress field -> force.
-No ROS, no serial.
-
-Everything the node does with a frame is here, so the node, ``cstomo replay`` and the command line
-give the same numbers. Per frame: one normalisation, the plausibility gate (a norm, one per-channel
-comparison), one float32 matrix-vector product for the image (only when the field is asked for),
-the estimator, into preallocated buffers.
-
-The plausibility gate is :class:`~.gate.PlausibilityGate` (force/gate.py); the state that lives from
-frame to frame (tare, masks, filter, counts) is the frame stream's (force/stream.py).
+No ROS, no serial. Per frame: one normalisation, the plausibility gate (force/gate.py: a norm, one
+per-channel comparison), one float32 matrix-vector product for the image (only when the field is asked
+for), the estimator, into preallocated buffers. Its settings: force/config.py; the state that lives
+from frame to frame (tare, masks, filter, counts) is the frame stream's (force/stream.py), which the
+node, ``cstomo replay`` and the command line share, so they give the same numbers.
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,8 +26,6 @@ from .estimate import build_estimator
 from .gate import PlausibilityGate
 from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
 
-log = logging.getLogger(__name__)
-
 #: :attr:`Pipeline.noise_source` of the assumed noise, and of a noise measured by a tare of several frames.
 NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
 NOISE_MEASURED = "measured by the tare"
@@ -42,7 +35,7 @@ NOISE_MEASURED = "measured by the tare"
 class FrameResult:
     """One frame's outputs. ``force`` in newtons in the wrench frame; angles in radians.
 
-    ``valid`` is False when the plausibility gate rejected the frame (module docstring): then
+    ``valid`` is False when the plausibility gate rejected the frame (force/gate.py): then
     ``reason`` says why, and force, angles and residual are NaN and there is no field.
     ``scene_field`` is the mechanics' field of the estimated force (socket sensors, with the
     field); ``consistency`` the frame's statistic against the socket load model and
@@ -75,7 +68,7 @@ class Pipeline:
 
     Ready when constructed; :meth:`build` loads everything from the cache (or builds it).
     ``image_dtype`` is the precision of the per-frame image product (float32, or float64 to
-    measure what float32 costs). ``max_force`` (N) sets the plausibility gate (module docstring).
+    measure what float32 costs). ``max_force`` (N) sets the plausibility gate (force/gate.py).
     """
 
     def __init__(self, geometry: SensorGeometry, model: ReconstructionModel, estimator,

@@ -3,11 +3,10 @@ outputs and needs state from frame to frame. No ROS, no serial. The node, ``csto
 ``cstomo estimate`` push their frames through a :class:`FrameStream`, so they cannot disagree.
 
 It coordinates stages that own their state and rules and hand their results on as arguments: the
-tare transaction (force/taring.py; its rules: force/tare.py), the channel mask (force/mask.py), the
-per-frame core (:class:`~.pipeline.Pipeline`), the device's slow states and the force's 1-sigma
-(force/slow.py), the noise in use (force/noise_state.py), the filtered wrench (:class:`~.filter.LowPass`,
-reset on a tare, a reconnect and gaps), health (force/health.py), and the outputs a configuration
-produces (:data:`OUTPUTS`, :func:`output_set`: the node's publishers, replay's topics, ``--help``).
+tare transaction (force/taring.py, force/tare.py), the channel mask (force/mask.py), the per-frame
+core (force/pipeline.py), the device's slow states and the force's 1-sigma (force/slow.py), the noise
+in use (force/noise_state.py), the filtered wrench (force/filter.py: reset on a tare, a reconnect and
+gaps) and health (force/health.py). Its settings: force/config.py; its outputs: outputs.py.
 
 A frame comes with a stamp (ns on the caller's clock: the filter runs on it) and an age (ns on the
 monotonic clock: older than ``stale_timeout`` is late). A frame the stream cannot use (wrong length,
@@ -20,36 +19,25 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError
 from ..frames_io import check_frame
-from ..outputs import OUTPUTS, output_set  # noqa: F401 - the output set (re-exported)
+from ..outputs import FrameOutput, output_set
 from .config import StreamConfig
-from .device import read_reference
 from .filter import LowPass
-from .health import ERROR, LOSS_ERROR, LOSS_WARN, OK, WARN, Health  # noqa: F401 - the stream's levels
+from .health import Health
 from .mask import ChannelMask
 from .noise_state import NoiseState
 from .pipeline import FrameResult, Pipeline
 from .slow import SlowStates
-from .tare import TARE_MAX_SPREAD, TARE_RECONNECTED, TareOutcome, tare_deadline, tare_problem  # noqa: F401
+from .tare import TareOutcome, tare_deadline, tare_problem
 from .taring import Taring
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class Output:
-    """What one processed frame emits: the result, the filtered force (None without the filter) and
-    the frame's stamp (ns)."""
-
-    result: FrameResult
-    filtered: tuple[float, float, float] | None
-    stamp_ns: int
 
 
 class FrameStream:
@@ -97,10 +85,6 @@ class FrameStream:
     ready = property(lambda self: not self.taring and self.pipe.reference is not None)  # frames give results
 
     # --- reference and tare ----------------------------------------------------------------------
-
-    def use_reference(self, path: str | Path, what: str = "reference") -> str:
-        """:meth:`set_reference` of the file ``path`` (:func:`~.device.read_reference`)."""
-        return self.set_reference(*read_reference(path, self.pipe.n_meas), source=f"{what} {path}")
 
     def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str,
                       age_s: float | None = None) -> str:
@@ -220,10 +204,6 @@ class FrameStream:
 
     # --- per frame -------------------------------------------------------------------------------
 
-    def flagged(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> np.ndarray | None:
-        """The measurements a frame's flags exclude, or None when nothing is flagged (force/mask.py)."""
-        return self.channels.flagged(saturated, contact_ok)
-
     def update_mask(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None) -> bool:
         """Exclude saturated values and every row of a dead electrode; True if the mask changed. Raises
         :class:`NoUsableChannelsError` (nothing changed) when the flags exclude every measurement."""
@@ -281,9 +261,9 @@ class FrameStream:
         self.slow.expect_load(force, sigma, stamp_ns)
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
-             stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> Output | None:
+             stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> FrameOutput | None:
         """One frame measured ``age_ns`` ago, stamped ``stamp_ns``: counted, dropped if late, processed
-        unless ``process`` is False. Its :class:`Output` (an implausible one too: no filtered force),
+        unless ``process`` is False. Its :class:`~cstomo_sensor.outputs.FrameOutput` (an implausible one too: no filtered force),
         else None (a tare frame, no reference, late, dropped: counted, never raised)."""
         t0 = time.perf_counter()
         if self.counter.arrived(age_ns > self.config.stale_timeout * 1e9) or not process:
@@ -295,21 +275,17 @@ class FrameStream:
                 if result is not None and result.valid and self.filter is not None:
                     filtered = self.filter(result.force, stamp_ns * 1e-9)
         except Exception as err:  # noqa: BLE001 - the frame boundary: counted, logged, reported
-            self.drop(err)
+            self.counter.drop(err)  # counted and logged (throttled)
             return None
         finally:
             self.tares.finish()
         self.counter.passed(result, time.perf_counter() - t0)
-        return None if result is None else Output(result, filtered, int(stamp_ns))
-
-    def drop(self, err: BaseException, corrupt: bool = False) -> None:
-        """Count and log a frame that could not be used (``corrupt``: no frame at all): :meth:`~.health.Health.drop`."""
-        self.counter.drop(err, corrupt)
+        return None if result is None else FrameOutput(result, filtered, int(stamp_ns))
 
     # --- health ----------------------------------------------------------------------------------
 
     def health(self, now: float, board_losses: dict[str, int] | None = None) -> tuple[int, list[str], dict]:
-        """The level (:data:`OK`, :data:`WARN`, :data:`ERROR`), problems and figures of the period so far:
+        """The level (:data:`~.health.OK`, ``WARN``, ``ERROR``), problems and figures of the period so far:
         a snapshot (:meth:`end_period` starts the next). ``board_losses``: :meth:`~.health.Health.status`."""
         pipe = self.pipe
         return self.counter.status(now, board_losses, pipe, self.channels.status(), self.slow.sigma_source,

@@ -625,13 +625,6 @@ class Timeline:
             raise ConfigError("timeline: the resistivity factor reaches zero (resistivity_per_k x temperature)")
         return sigma / rho
 
-    def direct_voltages(self, t: float, n_steps: int | None = None) -> np.ndarray:
-        """Noise-free frame at time t by a direct solve (the drive factor included); ``n_steps`` the
-        steps in force (default: those with t_k <= t; fewer gives the instant just before a step)."""
-        t = min(float(t), self.spec.duration)
-        n = int(np.searchsorted(self.steps[0], t, side="right")) if n_steps is None else n_steps
-        return self._solve(t, n) * (1.0 + float(self.spec.drive(t)))
-
     def _solve(self, t: float, n: int) -> np.ndarray:
         tr = self.truth_model
         fm = tr.forward.with_contact_impedance(tr.z * self._contact_factor([t])[0])

@@ -57,12 +57,6 @@ def legacy_raw_voltages_msg(values: np.ndarray) -> Float32MultiArray:
     return msg
 
 
-def values_from_raw_msg(msg: Image | Float32MultiArray) -> np.ndarray:
-    """The (208,) float64 volts of a raw frame message; :class:`FrameError` if malformed or if the
-    board flagged a measurement (NaN: :func:`frame_from_raw_msg` reads those)."""
-    return check_frame(_raw_values(msg), N_MEAS, "raw_voltages message")
-
-
 def _raw_values(msg: Image | Float32MultiArray) -> np.ndarray:
     if isinstance(msg, Float32MultiArray):
         return np.asarray(msg.data, dtype=np.float64)

@@ -66,7 +66,7 @@ class Publishers:
             return
         counts = self.published
         if self.raw_wanted:  # the raw frame as measured, NaN where the board flagged a measurement
-            flagged = self.stream.flagged(frame.saturated, frame.contact_ok)
+            flagged = self.stream.channels.flagged(frame.saturated, frame.contact_ok)
             self.pubs[RAW_TOPIC].publish(self.raw(frame.values, frame.stamp_ns, flagged))
             counts[RAW_TOPIC] = counts.get(RAW_TOPIC, 0) + 1
         if output is None or not output.result.valid or not self.wanted:

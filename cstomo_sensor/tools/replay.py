@@ -39,6 +39,7 @@ import numpy as np
 
 from ..errors import ConfigError, CstomoError
 from ..force.config import PipelineConfig, StreamConfig
+from ..force.device import read_reference
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..loop import Results, run
@@ -125,7 +126,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
         stream = FrameStream(pipe, stream_cfg)
         if reference is not None:
-            stream.use_reference(reference)
+            stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}")
         else:
             stream.start_tare()
         prefix = source.topic[: -len(RAW_TOPIC)]
