@@ -407,7 +407,7 @@ class Decoder(_Splitter):
                 st.crc_errors += 1
                 return None
             msg = _data_frame(packet, _HEADER.size)
-            if not math.isfinite(msg.values @ msg.values):  # float32 volts: no overflow
+            if not math.isfinite(msg.values.dot(msg.values)):  # float32 volts: no overflow
                 st.bad_values += 1
                 return None
             st.messages += 1
@@ -430,7 +430,7 @@ class Decoder(_Splitter):
         if msg is None:
             st.bad_length += 1
             return None
-        if isinstance(msg, DataFrame) and not math.isfinite(msg.values @ msg.values):  # float32 volts: no overflow
+        if isinstance(msg, DataFrame) and not math.isfinite(msg.values.dot(msg.values)):  # float32 volts: no overflow
             st.bad_values += 1
             return None
         st.messages += 1

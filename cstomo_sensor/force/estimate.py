@@ -167,7 +167,7 @@ class LinearEstimator:
         self.W[:, self.keep] = Wk
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        return self.W @ y
+        return np.dot(self.W, y)  # np.dot, not @: the frame path uses one kind of product (issue 27)
 
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
@@ -236,7 +236,7 @@ class ModelEstimator:
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
-        np.subtract(self._d0, self.basis @ yw, out=self._d0_target)
+        np.subtract(self._d0, np.dot(self.basis, yw), out=self._d0_target)
         spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
         jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
