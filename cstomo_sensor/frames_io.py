@@ -21,8 +21,6 @@ def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame", used: np.
     """The one frame validator: ``v`` as float64 (n_meas,) volts (with ``batch``, also
     (n_frames, n_meas)), or :class:`FrameError` naming the problem. Values outside ``used`` (a bool
     (n_meas,) mask of the channels in use, default all) may be NaN/Inf: a masked channel carries no data."""
-    if v.__class__ is np.ndarray and v.shape == (n_meas,) and v.dtype == np.float64 and math.isfinite(v.dot(v)):
-        return v  # the common case, per frame: one product says every value is finite (a huge one: below)
     try:
         a = np.asarray(v, dtype=float)
     except (TypeError, ValueError) as err:
