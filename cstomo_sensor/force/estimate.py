@@ -167,7 +167,7 @@ class LinearEstimator:
         self.W[:, self.keep] = Wk
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        return np.dot(self.W, y)  # np.dot, not @: the frame path uses one kind of product (issue 27)
+        return self.W.dot(y)  # ndarray.dot: the frame path uses one kind of product, without np.dot's dispatch (issue 27)
 
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
@@ -236,14 +236,14 @@ class ModelEstimator:
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
-        np.subtract(self._d0, np.dot(self.basis, yw), out=self._d0_target)
+        np.subtract(self._d0, self.basis.dot(yw), out=self._d0_target)
         spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
         jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
             # the residual's negative -r (row 0 of out) and the Jacobian's transpose (rows 1..3) in
             # one product, then the normal equations in one more: G = [-J^T r | J^T J]
-            np.dot(spline.basis_rows(x), coef, out=out)
-            np.dot(jt, out_t, out=G)
+            spline.basis_rows(x).dot(coef, out=out)
+            jt.dot(out_t, out=G)
             (u, a, b, c), (v, d, e, f), (w, g, h, i) = G.tolist()
             step = _cramer3(a, b, c, d, e, f, g, h, i, -u, -v, -w)
             if step is None:  # a flat surrogate (far outside the calibration): least squares

@@ -84,7 +84,7 @@ class ThinPlateSpline:
         # (r^2 < 1e-284), where it keeps the log finite: phi is 1e-300 log(1e-300) there instead of 0,
         # and diff = 0
         np.multiply(diff, diff, out=self._sq[:-1])
-        np.dot(self._sum_half, self._sq, out=r2)
+        self._sum_half.dot(self._sq, out=r2)
         np.log(r2[0], out=g)  # 2 log r
         np.multiply(r2[1], g, out=self._phi_row)  # r^2 log r = (r^2 / 2) (2 log r)
         g += 1.0
