@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .board.clock import ClockMapper
+from .board.wire import ALL_CONTACTS_OK, NO_SATURATION
 from .errors import ConfigError
 
 
@@ -137,7 +138,8 @@ class ArraySource(FrameSource):
 class SerialSource(FrameSource):
     """The board on a serial port: :class:`~.board.driver.BoardDriver` without a reader thread (the
     thread calling :meth:`recv` reads, decodes and goes on with the frame), each frame stamped with
-    the consumer's clock ``now_ns()`` (the node's ROS clock) minus its age: the board clock mapped
+    the consumer's clock ``now_ns()`` (the node's ROS clock) minus its age (flags None when the board
+    flagged nothing, as a source without flags gives them): the board clock mapped
     onto the host's monotonic clock (:class:`~.board.clock.ClockMapper`, a window of ``clock_window``
     s; it cannot step); a text-mode frame (no board clock) is stamped now. A reconnect of the board
     calls ``on_reconnect`` from :meth:`recv`, before the returning frames.
@@ -167,7 +169,10 @@ class SerialSource(FrameSource):
         if frame.board_time_us is not None:
             mono_ns = time.monotonic_ns()
             age_ns = mono_ns - self.clock.stamp_ns(frame.board_time_us, mono_ns)
-        return StampedFrame(frame.values, now_ns - age_ns, age_ns, frame.saturated, frame.contact_ok, now_ns - age_ns)
+        # a frame without flags (the decoder's shared arrays) carries None: nothing flagged, no per-frame test
+        sat, ok = frame.saturated, frame.contact_ok
+        return StampedFrame(frame.values, now_ns - age_ns, age_ns, None if sat is NO_SATURATION else sat,
+                            None if ok is ALL_CONTACTS_OK else ok, now_ns - age_ns)
 
     def stats(self) -> dict:
         s = self.driver.stats()

@@ -450,7 +450,8 @@ class BoardDriver:
             if len(self._queue) == self._queue.maxlen:
                 self._dropped += 1
             self._queue.append(frame)
-            self._cond.notify()
+            if self._thread is not None:  # without a reader thread nobody waits (get reads)
+                self._cond.notify()
 
     def _in_order(self, seq: int, bad: int) -> bool:
         """Count what the sequence number ``seq`` says (``bad`` pieces were dropped since the last

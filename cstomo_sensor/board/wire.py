@@ -32,6 +32,10 @@ _DATA_LEN = _DATA_HEAD.size + _SAT_BYTES + 4 * N_VALUES  # 872
 _NO_SAT = bytes(_SAT_BYTES)  # the saturation bits of a frame without any
 _ALL_CONTACTS = (1 << N_ELECTRODES) - 1
 _CONTACT_BITS = 1 << np.arange(N_ELECTRODES)
+#: The flags of a frame without any, shared by the decoded frames (read-only): no arrays per frame.
+NO_SATURATION = np.zeros(N_VALUES, bool)
+ALL_CONTACTS_OK = np.ones(N_ELECTRODES, bool)
+NO_SATURATION.flags.writeable = ALL_CONTACTS_OK.flags.writeable = False
 #: Bytes of one DATA frame on the wire at most: delimiters, COBS overhead (one code byte per 254 bytes
 #: without a zero) and the 880-byte packet; 883..886 in practice (docs/protocol.md, section 1.9).
 DATA_WIRE_BYTES = 2 + (_HEADER.size + _DATA_LEN + _CRC.size) + -(-(_HEADER.size + _DATA_LEN + _CRC.size) // 254)
@@ -272,17 +276,7 @@ def _parse(kind: MsgType, p: bytes) -> Message | None:
     if kind is MsgType.DATA:
         if n != _DATA_LEN:
             return None
-        seq, t_us, contact = _DATA_HEAD.unpack_from(p)
-        sat = p[_DATA_HEAD.size:_DATA_HEAD.size + _SAT_BYTES]
-        values = np.frombuffer(p, "<f4", N_VALUES, _DATA_HEAD.size + _SAT_BYTES).astype(np.float64)
-        return DataFrame(
-            seq,
-            t_us,
-            values,
-            np.zeros(N_VALUES, bool) if sat == _NO_SAT else
-            np.unpackbits(np.frombuffer(sat, np.uint8), count=N_VALUES, bitorder="little").view(bool),
-            np.ones(N_ELECTRODES, bool) if contact == _ALL_CONTACTS else (contact & _CONTACT_BITS) != 0,
-        )
+        return _data_frame(p, 0)
     if kind in (MsgType.IDENTIFY, MsgType.STOP):
         return (Identify() if kind is MsgType.IDENTIFY else Stop()) if n == 0 else None
     if kind in (MsgType.START, MsgType.SET_CURRENT):
@@ -304,6 +298,23 @@ def _parse(kind: MsgType, p: bytes) -> Message | None:
             return None
         return Error(p[0], p[1], p[2:].decode("utf-8", "replace"))
     return None
+
+
+def _data_frame(p: bytes, at: int) -> DataFrame:
+    """The :class:`DataFrame` of the DATA payload at ``p[at:]`` (its length checked): built without
+    :meth:`DataFrame.__post_init__`'s checks (its arrays have their shapes by construction); a frame
+    without flags shares :data:`NO_SATURATION` and :data:`ALL_CONTACTS_OK`."""
+    seq, t_us, contact = _DATA_HEAD.unpack_from(p, at)
+    sat = p[at + _DATA_HEAD.size:at + _DATA_HEAD.size + _SAT_BYTES]
+    f = object.__new__(DataFrame)  # a frozen dataclass: its fields set as __init__ would set them
+    f.__dict__.update(
+        seq=seq,
+        board_time_us=t_us,
+        values=np.frombuffer(p, "<f4", N_VALUES, at + _DATA_HEAD.size + _SAT_BYTES).astype(np.float64),
+        saturated=NO_SATURATION if sat == _NO_SAT else
+        np.unpackbits(np.frombuffer(sat, np.uint8), count=N_VALUES, bitorder="little").view(bool),
+        contact_ok=ALL_CONTACTS_OK if contact == _ALL_CONTACTS else (contact & _CONTACT_BITS) != 0)
+    return f
 
 
 # --- decoders ---------------------------------------------------------------------------------
@@ -353,9 +364,8 @@ class _Splitter:
         out = []
         for p in pieces:
             if p:
-                before = self.stats.corrupt
-                m = self._decode(bytes(p))
-                if m is not None or (marks and self.stats.corrupt > before):
+                m = self._decode(p)
+                if m is not _SKIPPED and (m is not None or marks):
                     out.append(m)
         if len(self._buf) > self.MAX_PIECE:  # no delimiter for too long: drop it
             self._buf.clear()
@@ -364,8 +374,16 @@ class _Splitter:
                 out.append(None)
         return out
 
-    def _decode(self, piece: bytes):
+    def _decode(self, piece: bytearray):
+        """The message of one piece; None for a piece dropped (and counted), :data:`_SKIPPED` for one
+        that carries nothing (a comment line)."""
         raise NotImplementedError
+
+
+_SKIPPED = object()  # a piece that is neither a message nor a loss
+#: A decoded DATA packet starts with this header (version, type, payload length), and is this long.
+_DATA_PACKET_HEADER = _HEADER.pack(PROTOCOL_VERSION, MsgType.DATA, _DATA_LEN)
+_DATA_PACKET = _HEADER.size + _DATA_LEN + _CRC.size
 
 
 class Decoder(_Splitter):
@@ -380,9 +398,20 @@ class Decoder(_Splitter):
     DELIM = b"\0"
     MAX_PIECE = MAX_ENCODED
 
-    def _decode(self, frame: bytes) -> Message | None:
+    def _decode(self, frame: bytearray) -> Message | None:
         st = self.stats
         packet = cobs_decode(frame)
+        if packet is not None and len(packet) == _DATA_PACKET and packet.startswith(_DATA_PACKET_HEADER):
+            # the common case, per frame: a DATA packet (the same checks as below, in the same order)
+            if zlib.crc32(packet[:-4]) != _CRC.unpack_from(packet, _DATA_PACKET - 4)[0]:
+                st.crc_errors += 1
+                return None
+            msg = _data_frame(packet, _HEADER.size)
+            if not math.isfinite(msg.values.dot(msg.values)):  # float32 volts: no overflow
+                st.bad_values += 1
+                return None
+            st.messages += 1
+            return msg
         if packet is None or not _HEADER.size + _CRC.size <= len(packet) <= MAX_PACKET:
             st.bad_length += 1
             return None
@@ -401,7 +430,7 @@ class Decoder(_Splitter):
         if msg is None:
             st.bad_length += 1
             return None
-        if isinstance(msg, DataFrame) and not math.isfinite(msg.values @ msg.values):  # float32 volts: no overflow
+        if isinstance(msg, DataFrame) and not math.isfinite(msg.values.dot(msg.values)):  # float32 volts: no overflow
             st.bad_values += 1
             return None
         st.messages += 1
@@ -419,10 +448,10 @@ class TextDecoder(_Splitter):
     DELIM = b"\n"
     MAX_PIECE = MAX_TEXT_LINE
 
-    def _decode(self, raw: bytes) -> DataFrame | None:
+    def _decode(self, raw: bytearray) -> DataFrame | None:
         line = raw.strip()
         if not line or line.startswith(b"#"):
-            return None
+            return _SKIPPED
         if line.count(b",") != N_VALUES - 1:
             self.stats.bad_length += 1
             return None

@@ -254,10 +254,10 @@ class CreepCompensator:
                 s += d
             self._free.append(self._last)
             self._last, self._t_last, self._f_last = yq, te, fq
-        np.dot(self._cw, s, out=self.offset)
+        self._cw.dot(s, out=self.offset)
         part = due - self._t_last
         if part > max(1e-3 * self._period, STEP_ROUND / 2):  # the last change held on until due (a period that does not divide 0.1 s)
             d = np.subtract(self._last, s, out=d)
             if self._f_last is not None:
                 d[:, self._f_last] = 0.0
-            self.offset += np.dot(self._cw * self._factor(part)[:, 0], d)
+            self.offset += (self._cw * self._factor(part)[:, 0]).dot(d)

@@ -167,7 +167,7 @@ class LinearEstimator:
         self.W[:, self.keep] = Wk
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        return self.W @ y
+        return self.W.dot(y)  # ndarray.dot: the frame path uses one kind of product, without np.dot's dispatch (issue 27)
 
     def masked(self, keep: np.ndarray) -> LinearEstimator:
         return LinearEstimator(self.forces, self.y, self.noise, self.ridge, keep)
@@ -225,6 +225,7 @@ class ModelEstimator:
         self._all_kept = bool(self.keep.all())
         self._yw = np.empty(len(self.w))  # estimate()'s work arrays
         self._out = np.empty((4, len(self.basis)))
+        self._jt, self._out_t = self._out[1:], self._out.T  # its views, made once
         self._G = np.empty((3, 4))
         # the spline's coefficients with the frame's target taken from its constant term (row n),
         # so that one product gives the residual (with its sign changed) and the Jacobian
@@ -235,13 +236,14 @@ class ModelEstimator:
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
-        np.subtract(self._d0, self.basis @ yw, out=self._d0_target)
+        np.subtract(self._d0, self.basis.dot(yw), out=self._d0_target)
         spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
+        jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
             # the residual's negative -r (row 0 of out) and the Jacobian's transpose (rows 1..3) in
             # one product, then the normal equations in one more: G = [-J^T r | J^T J]
-            np.dot(spline.basis_rows(x), coef, out=out)
-            G = np.dot(out[1:], out.T, out=self._G)
+            spline.basis_rows(x).dot(coef, out=out)
+            jt.dot(out_t, out=G)
             (u, a, b, c), (v, d, e, f), (w, g, h, i) = G.tolist()
             step = _cramer3(a, b, c, d, e, f, g, h, i, -u, -v, -w)
             if step is None:  # a flat surrogate (far outside the calibration): least squares

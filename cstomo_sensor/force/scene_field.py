@@ -206,7 +206,7 @@ class Consistency:
     def __call__(self, y: np.ndarray) -> float:
         """The statistic of one frame's change ``y`` (n_meas,)."""
         z = np.multiply(y, self.w, out=self._z)
-        p = self.Q @ z
+        p = self.Q.dot(z)
         return float((z.dot(z) - p.dot(p)) / self.dof)
 
     def masked(self, keep: np.ndarray) -> Consistency:

@@ -111,7 +111,7 @@ class ForceSigma:
 
     def creep_force(self, offset: np.ndarray) -> np.ndarray:
         """The force of a creep offset (n_meas,): ``W o`` (taken before the compensator moves on)."""
-        return np.dot(self.W, offset)
+        return self.W.dot(offset)
 
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None,
                  change: float = 0.0) -> tuple[tuple[float, float, float], float]:
@@ -124,8 +124,8 @@ class ForceSigma:
         v = [x + cal for x in self.noise_var]
         if P is not None and self.WD is not None:
             # (WD + f e0^T) P (WD + f e0^T)^T: a scale error scales the load's change too; its diagonal
-            G = np.dot(self.WD, P)
-            M = np.dot(G, self._WDT).tolist()
+            G = self.WD.dot(P)
+            M = G.dot(self._WDT).tolist()
             u = G[:, 0].tolist()
             p00 = float(P[0, 0])
             c2 = self._change2 * change * change

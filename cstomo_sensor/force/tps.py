@@ -58,8 +58,10 @@ class ThinPlateSpline:
         self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
         self._diff = np.empty((d, n))
         self._sq = np.full((d + 1, n), 1e-300)  # the squared differences, and 1e-300
+        self._sq_d = self._sq[:-1]
         self._sum_half = np.array([[1.0] * (d + 1), [0.5] * (d + 1)])  # their sum and half of it
         self._r2 = np.empty((2, n))
+        self._r2_sum, self._r2_half = self._r2  # its rows' views, made once
         self._g = np.empty(n)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -77,16 +79,16 @@ class ThinPlateSpline:
         (n + 1 + d, m)) is the value (row 0) and the Jacobian's transpose (rows 1..d) at one point
         ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work
         array, overwritten by the next call."""
-        diff, r2, g = self._diff, self._r2, self._g
+        diff, g = self._diff, self._g
         self._x_row[:] = x
         np.subtract(self._x_col, self._pt, out=diff)  # (d, n)
         # r^2 + 1e-300 and its half as one product (einsum: 2x slower): the same r^2 but at a node
         # (r^2 < 1e-284), where it keeps the log finite: phi is 1e-300 log(1e-300) there instead of 0,
         # and diff = 0
-        np.multiply(diff, diff, out=self._sq[:-1])
-        np.dot(self._sum_half, self._sq, out=r2)
-        np.log(r2[0], out=g)  # 2 log r
-        np.multiply(r2[1], g, out=self._phi_row)  # r^2 log r = (r^2 / 2) (2 log r)
+        np.multiply(diff, diff, out=self._sq_d)
+        self._sum_half.dot(self._sq, out=self._r2)
+        np.log(self._r2_sum, out=g)  # 2 log r
+        np.multiply(self._r2_half, g, out=self._phi_row)  # r^2 log r = (r^2 / 2) (2 log r)
         g += 1.0
         np.multiply(diff, g, out=self._grad_rows)
         return self._Bt
