@@ -71,22 +71,6 @@ ACCEL = 2e-5
 #: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
 #: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
 RATE_MEMORY = 30.0
-#: The other states (the contacts', the gradient's) move with the temperature, so with the scale: while
-#: no rest measures them, each one's variance grows by ``(FOLLOW * ds)^2``, ``ds`` the scale's change
-#: since the last rest frame (section 9: a gradient up to 30 % of the mean change, contacts -0.5..-1.5
-#: %/K against +0.2..1.5 %/K). Without it they were as still during a task as at rest (RATE): at
-#: 1.5 %/K the first 20 s task carried them past the rest test, which then refused every rest for good
-#: (the bench's device_b: the zero 36 N after 6 minutes, its sigma 3.7 N; issue 26).
-FOLLOW = 0.3
-#: ... and a rest frame's other states move within this bound of their prior (``x_o^T P_oo^-1 x_o``,
-#: 3 sigma): the directions together explain much of a lateral load (a 10 N load on the bench's device_b
-#: to 1.4 times the noise), which the residual bound alone then took for rest.
-PRIOR_BOUND = 9.0
-#: ... but in the rest test each state's freedom reads at most this many newtons (1-sigma; its
-#: covariance scaled down, the sigma keeps it): a prior grown over minutes of load takes a held lateral
-#: load for a gradient (the bench's loaded warm-up without this cap: 5.8 deg in the last minute, 1.1
-#: without warming); a gradient stale by more than 3 times this waits until ... (see docs/node.md).
-ACQUIRE_N = 1.0
 #: A loaded frame's own measurement of the scale (:class:`JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
 #: mismatch with the device (not white noise), so their measurements do not average like noise.
@@ -259,12 +243,6 @@ class DriftTracker:
             self._W, self._Wr = W, W @ D[0]
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
-        # the rest test's other states, the scale profiled out (observe): their information and cross terms
-        No = self._N[1:m, 1:m] - np.outer(self._N[1:m, 0], self._N[0, 1:m]) / self._N00
-        self._No, self._N0o = No, np.ascontiguousarray(self._N[0, 1:m])
-        self._eye_o = np.eye(m - 1)
-        self._Wo = None if self._W is None else np.ascontiguousarray(self._W @ D[1:].T)  # (3, m - 1)
-        self._Wo2 = None if self._Wo is None else np.sum(self._Wo ** 2, axis=0)  # each state's force per unit, squared
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
         self._tot = np.zeros(m + 1)
@@ -281,7 +259,6 @@ class DriftTracker:
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
         self.P = np.zeros((m + 1, m + 1))
         self.rest_frames = 0  # frames measured as at rest (all time)
-        self._s_rest = 1.0  # the scale at the latest rest frame (FOLLOW)
         self.force_step: np.ndarray | None = None  # observe()'s joint force step (N) of the latest frame
         self._t: float | None = None
 
@@ -331,34 +308,13 @@ class DriftTracker:
         P.reshape(-1)[:: m + 2] += self._qdt  # the diagonal
         yw = np.multiply(y, self._w, out=self._yw)
         b = np.dot(self._Dw1, yw, out=self._b)
-        # at rest when the scale explains the frame, the other states (their current part already taken
-        # out) moving only within their predicted covariance: a lateral load looks like a gradient and
-        # must never be taken for one, but a gradient that moved during a long task (FOLLOW) must not
-        # keep every later rest out (the states' least squares with their prior: x_o = P_oo (I + N_o
-        # P_oo)^-1 b_o, the scale profiled out; x_o is 0 when they are known)
+        # at rest when the scale alone explains the frame (the gradient's current part is already
+        # taken out): a lateral load looks like a gradient and must never be taken for one
         b0 = float(b[0])
         best = b0 / self._N00  # the uniform change that explains the most of the frame
-        chi2 = float(yw.dot(yw)) - b0 * best
-        x_o = None
-        if m > 1:
-            bo = b[1:m] - self._N0o * best
-            Poo = P[1:m, 1:m]
-            if self._Wo2 is not None:  # the test's freedom capped (ACQUIRE_N): a held load is no state
-                top = float(np.max(np.diagonal(Poo) * self._Wo2))
-                if top > ACQUIRE_N * ACQUIRE_N:
-                    Poo = Poo * (ACQUIRE_N * ACQUIRE_N / top)
-            A = np.dot(self._No, Poo)
-            A += self._eye_o
-            z = _solve(A, bo[:, None])[:, 0]
-            x_o = np.dot(Poo, z)
-            chi2 -= float(bo.dot(x_o))
-            best -= float(self._N0o.dot(x_o)) / self._N00
-            prior = float(z.dot(x_o))  # x_o^T P_oo^-1 x_o: the move in units of its prior
-        rest = chi2 < self._rest and (x_o is None or prior < PRIOR_BOUND)
+        rest = float(yw.dot(yw)) - b0 * best < self._rest
         if rest and self._W is not None:
             f = np.dot(self._W, y) - self._Wr * best
-            if x_o is not None:
-                f -= np.dot(self._Wo, x_o)
             rest = math.sqrt(float(f.dot(f))) < self.rest_force
         step = self.rate * dt
         self.rate *= a
@@ -379,11 +335,6 @@ class DriftTracker:
             if math.isfinite(float(delta.sum())):
                 tot += delta
                 P -= np.multiply.outer(gain, Pc)
-        if rest:
-            self._s_rest = self.scale
-        elif m > 1:  # unmeasured, the other states follow the scale's change since the last rest (FOLLOW)
-            ds0, ds1 = self.scale - self._s_rest, self.scale * (1.0 + step) * (1.0 + float(tot[0]) - step) - self._s_rest
-            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += FOLLOW * FOLLOW * abs(ds1 * ds1 - ds0 * ds0)
         if rest:
             # at rest the other states (the contacts', the gradient's) are measured with their full
             # directions; the scale too without a joint fit (the linear estimator). The information
