@@ -388,7 +388,7 @@ class DriftTracker:
         # the frame was formed with the scale before this frame's step: the step and the updates
         self.scale *= (1.0 + step) * (1.0 + d[0] - step)
         self.rate += d[m]
-        if m > 1 and (rest or joint is not None):
+        if m > 1:
             g = self.gradient + tot[1:m]
             if rest:
                 self._follow_fit(dt, g)
@@ -442,11 +442,12 @@ class DriftTracker:
         Wo, P = self._Wo, self.P[1:self.m, 1:self.m]
         return math.sqrt(max(float(np.sum((Wo @ P) * Wo)), 0.0))
 
-    def since_rest_text(self, t: float | None) -> str:
+    @property
+    def since_rest_text(self) -> str:
         """When the states were last measured at rest, and the change at the tracked rate since."""
-        if self._t_rest is None:
-            return "no rest frame yet" if not self.rest_frames else "at the latest frame"
-        ago = "" if t is None else f"{max(t - self._t_rest, 0.0):.1f} s ago, "
+        if self._t_rest is None and not self.rest_frames:
+            return "no rest frame yet"
+        ago = "" if self._t is None or self._t_rest is None else f"{max(self._t - self._t_rest, 0.0):.1f} s ago, "
         return f"{ago}a change of {self._unmeasured:.2%} at the tracked rate since; zero 1-sigma {self.unmeasured_n:.2f} N"
 
     def status(self) -> tuple[int, str]:
@@ -460,7 +461,7 @@ class DriftTracker:
         else:
             level, msg = 0, ""
         if self.unmeasured_n > UNMEASURED_N:
-            lost = (f"the device's gradient and contacts unmeasured since the last rest frame ({self.since_rest_text(self._t)}): "
+            lost = (f"the device's gradient and contacts unmeasured since the last rest frame ({self.since_rest_text}): "
                     "they follow its scale by their slope at rest; sigma_n says how unsure, the next rest re-acquires them")
             level, msg = 1, f"{lost}; {msg}" if msg else lost
         return level, msg
