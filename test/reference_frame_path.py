@@ -33,8 +33,10 @@ def model_estimate(est, y: np.ndarray) -> np.ndarray:
 
 def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     """``DriftTracker.observe`` as it was (issue 20's tracker with the rate): the prediction by row and
-    column operations and the rest frame's gain through a matrix inverse, on ``tracker``'s state."""
-    from cstomo_sensor.force.drift import DEFAULT_PERIOD, RATE_MEMORY
+    column operations and the rest frame's gain through a matrix inverse, on ``tracker``'s state; with
+    issue 26's follow under load: the other states' slope against the scale by a weighted polynomial
+    fit of every rest frame kept (``np.polyfit``), and their variance's growth since the last rest."""
+    from cstomo_sensor.force.drift import DEFAULT_PERIOD, FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY
 
     self = tracker
     dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
@@ -58,10 +60,19 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     step = self.rate * dt
     self.rate *= a
     if not rest:
+        s0 = self.scale
         self.scale *= 1.0 + step
+        if m > 1:
+            a0 = self._unmeasured
+            self._unmeasured = a0 + abs(step)
+            others = np.arange(1, m)
+            P[others, others] += FOLLOW_SIGMA ** 2 * (self._unmeasured ** 2 - a0 ** 2)
+            self.gradient = self.gradient + self.follow * (self.scale - s0)
+            np.dot(self.gradient, self._D[1:], out=self.offset)
         self.P = P
         return False
     self.rest_frames += 1
+    self._unmeasured, self._t_rest = 0.0, self._t
     info = self._N
     gain = P @ np.linalg.inv(self._eye + info @ P)
     delta = gain @ (b - info[:, 0] * step)
@@ -72,5 +83,13 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
             self.gradient = self.gradient + delta[1:m]
             np.dot(self.gradient, self._D[1:], out=self.offset)
         P = gain
+    if m > 1:  # every rest frame's (scale, states), weighted by the rest time since it
+        clock = getattr(self, "_rest_clock", 0.0) + dt
+        hist = getattr(self, "_rest_hist", []) + [(clock, self.scale - 1.0, self.gradient.copy())]
+        self._rest_clock, self._rest_hist = clock, hist
+        c, s, g = (np.array([h[i] for h in hist]) for i in range(3))
+        w = np.exp(-(clock - c) / FOLLOW_MEMORY)
+        if len(hist) > 1 and np.sum(w * (s - np.sum(w * s) / np.sum(w)) ** 2) > np.sum(w) * FOLLOW_SPAN ** 2:
+            self.follow = np.array([np.polyfit(s, g[:, i], 1, w=np.sqrt(w))[0] for i in range(m - 1)])
     self.P = 0.5 * (P + P.T)
     return True

@@ -174,3 +174,57 @@ def test_a_drifting_device_over_time_is_followed(warm_model):
     assert np.max(np.abs(np.array(scale) - true)[times >= 1.0]) < 0.002, "the scale follows the true change"
     print(f"scale error max {np.max(np.abs(np.array(scale) - true)[times >= 1.0]):.2e}; zero {zero}")
     assert zero[False] > 5.0 and zero[True] < 0.5, zero
+
+
+def _follow_run(follow: bool):
+    """A tracker on random directions (a scale r and two other states G, 60 dB-like noise): 60 s at rest
+    while the device warms (the scale +3e-4/s, the other states moving with it by fixed slopes), then 30 s
+    of a load outside every direction, then 10 s at rest. Frames at 10/s, formed as the pipeline forms
+    them, with the tracker's state; each frame's scale measured as the model estimator's joint fit
+    measures it (JointScale: here the true ratio with a 1e-4 error). ``follow`` False: the slopes kept
+    at 0 (what the tracker did before issue 26's fix)."""
+    from cstomo_sensor.force.drift import DriftTracker
+
+    rng = np.random.default_rng(4)
+    n = 208
+    r, G, W, load = rng.normal(size=n), rng.normal(size=(2, n)), 100 * rng.normal(size=(3, n)), rng.normal(size=n)
+    slope = np.array([0.3, -0.5])  # each state's change per unit of the scale's (section 9: a gradient, contacts)
+    tr = DriftTracker(r, G, np.full(n, 1e-3), np.ones(n, bool), W)
+    out = []
+    for k in range(1000):
+        t = k / 10.0
+        s = 1.0 + 3e-4 * t
+        y = (s / tr.scale - 1.0) * r + (slope * (s - 1.0) - tr.gradient) @ G + rng.normal(0.0, 1e-3, n)
+        loaded = 60.0 <= t < 90.0
+        if not follow:
+            tr.follow[:] = 0.0
+        joint = (s / tr.scale - 1.0 + rng.normal(0.0, 1e-4), 1e-8, np.zeros(3), np.zeros(3), np.zeros(3))
+        rest = tr.observe(y + 0.05 * load * loaded, t, joint)
+        out.append((t, rest, np.abs(tr.gradient - slope * (s - 1.0)).max(), tr.unmeasured_n, tr.status()))
+    return out
+
+
+def test_under_load_the_states_a_rest_measures_follow_the_scale_and_their_sigma_says_so():
+    """Issue 26: "the tracking never locks: when it loses the device, it says so and re-acquires". The
+    other states follow the scale by their slope at rest (force/drift.py FOLLOW_MEMORY); without it they
+    stand still under load, the first rest after it no longer looks like rest, and none after it does."""
+    for follow in (True, False):
+        out = _follow_run(follow)
+        t = np.array([o[0] for o in out])
+        rest = np.array([o[1] for o in out])
+        err = np.array([o[2] for o in out])
+        unmeasured = np.array([o[3] for o in out])
+        level, msg = out[899][4]  # the end of the load: the diagnostics say the states are unmeasured
+        assert level == 1 and "unmeasured since the last rest frame (30.0 s ago" in msg, msg
+        change = 0.5 * 3e-4 * 30.0  # the larger state's change during the load
+        assert rest[(t >= 10) & (t < 60)].all() and not rest[(t >= 60) & (t < 90)].any()
+        if follow:
+            assert err[t < 90.0][-1] < 0.1 * change  # followed the scale under load
+            assert rest[t >= 90.0].mean() > 0.95  # the rest after it is rest
+            # the error bar of the unmeasured states grew during the load and shrank at the rest
+            assert unmeasured[t < 90.0][-1] > 5 * unmeasured[t < 60.0][-1]
+            assert unmeasured[-1] < 0.5 * unmeasured[t < 90.0][-1]
+            assert out[-1][4] == (0, "")
+        else:
+            assert err[t < 90.0][-1] > 0.8 * change  # stood still
+            assert not rest[t >= 90.0].any()  # locked: the rest is not taken for rest

@@ -138,4 +138,5 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
                                                    if (k // 100) % 2 else 0.0))
         stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
     assert stream.drift is ours and 0.3 < np.mean(rests) < 0.7  # both kinds of frame
+    assert np.abs(ours.follow).max() > 0  # the loaded frames moved the other states (issue 26's follow)
     assert ours.change == pytest.approx(0.02, abs=2e-3)

@@ -190,3 +190,56 @@ def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(de
     assert r["angle_deg"] <= 1.5 * base["angle_deg"] and r["magnitude_pct"] <= 1.6 * base["magnitude_pct"]
     assert _win(out, out[0] >= 0)["over3sigma_pct"] <= 1.0  # from the first frame on
     assert r["sigma_ratio"] <= 4.0  # informative (measured 2.3-3)
+
+
+# --- issue 26: "the warm-up at 1.5 %/K keeps its zero (the tracking never locks: when it loses the device,
+# it says so and re-acquires)". scenes/warmup_30min.yaml's timeline (15 K over 30 min, a 30 % gradient,
+# contacts -1 %/K, drive +0.3 %, creep 4 %/decade, its own 1-30 s tasks with unannounced rests) at the
+# top of section 9's range, 1.5 %/K, its first 2 minutes, on device_b (outside the model). Measured on
+# bba0747 (the commit before this test): the scale is followed (+4.0 % against +4.3 % true at 120 s), but the
+# contacts' and the gradient's states go stale during a 20 s task and the rest test, taking them as
+# known, refuses every later rest: drift_rest_frames stops at 1201 (57 s), the zero at rest reads 3.6 N
+# at 57 s and 11.5 N at 110 s (37 N at 6 minutes) with sigma_n 1.3-1.8 N, status OK; this test: rest frames
+# 1201 by 60 s and at the end, the zero from 60 s 6.2 N (sigma_n 1.4). Now the other states follow the scale
+# under load by their slope fitted at rest (force/drift.py FOLLOW_MEMORY): rest frames keep counting, the zero
+# from 60 s reads about 0.4 N.
+
+WARM_FAST = 0.015   # resistivity per K: section 9's top
+WARM_FAST_S = 120.0
+
+
+def test_a_warm_up_at_1_5_pct_per_k_keeps_its_zero_and_never_locks(device_b):
+    from pathlib import Path
+
+    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.model.simulate import Scene
+
+    sc, truth, pipe, tare = device_b
+    scene = Path(__file__).resolve().parents[1] / "scenes" / "warmup_30min.yaml"
+    spec = TimelineSpec.from_dict(Scene.load(scene).timeline, scene.parent)
+    spec = type(spec)(**{**spec.__dict__, "resistivity_per_k": WARM_FAST, "duration": WARM_FAST_S})
+    tl = Timeline(spec, snr_db=sc.snr_db, seed=robot.SEED, truth=truth).prepare()
+    times, frames, forces, state = tl.frames(robot.LOADED_RATE, rng=np.random.default_rng(7))
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=spec.creep))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "tare")
+    est, sigma, rest_frames = np.full((len(times), 3), np.nan), np.full(len(times), np.nan), np.zeros(len(times))
+    for k, (t, v) in enumerate(zip(times, frames)):
+        out = stream.push(v, stamp_ns=int(1e9 * (1 + t)))
+        if out is not None and out.result.valid:
+            est[k], sigma[k] = out.result.force, out.result.sigma_n
+        rest_frames[k] = stream.drift.rest_frames
+    true_change = (1 + state.rho_change[-1]) * state.drive[-1] - 1
+    assert true_change > 0.04  # the device changed by more than 4 % in 2 minutes
+    err = np.linalg.norm(est - forces, axis=1)
+    at_rest = (np.linalg.norm(forces, axis=1) == 0) & np.isfinite(err)
+    late = at_rest & (times >= 60.0)
+    print(f"1.5 %/K: rest frames {rest_frames[times < 60].max():.0f} by 60 s, {rest_frames[-1]:.0f} at the end; zero "
+          f"at rest from 60 s median {np.median(err[late]):.2f} N (sigma_n {np.median(sigma[late]):.2f}); tracked "
+          f"{stream.drift.change:+.4f} against {true_change:+.4f}")
+    # never locks: the rests after the first minute count as rest (the scene rests about half the time)
+    assert rest_frames[-1] - rest_frames[times < 60].max() > 0.5 * late.sum()
+    # keeps its zero: this device's own noise at rest gives a median near 0.4 N (0.41 N at 57 s above)
+    assert np.median(err[late]) <= 0.8
+    # and says so when it does not: no more than 1 % of the published frames beyond 3 sigma_n
+    ok = np.isfinite(err)
+    assert np.mean(err[ok] > 3 * sigma[ok]) <= 0.01

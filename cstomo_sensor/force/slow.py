@@ -178,7 +178,7 @@ class SlowStates:
         if drift is not None:
             level, d_msg = drift.status()
             kv = dict(drift_change=f"{drift.change:+.3%}", drift_kelvin=drift.kelvin_text,
-                      drift_rest_frames=drift.rest_frames)
+                      drift_rest_frames=drift.rest_frames, drift_since_rest=drift.since_rest_text)
             msgs = [d_msg] if d_msg else []
         else:
             kv = dict(drift_change="not tracked (drift_tracking false)" if not self.tracking
