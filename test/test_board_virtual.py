@@ -16,7 +16,7 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
     assert [f.seq for f in frames] == list(range(len(frames)))
     check_values(frames, src)
     assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects, st.resyncs) == (0, 0, 0, 0, 0)
-    assert st.period == pytest.approx(1 / 400.0, rel=0.2)
+    assert 0 < st.period <= 1.2 / 400.0, st.period  # an upper bound only: see test_board_pty's twin
 
 
 @pytest.mark.parametrize("fault", ["bit_flip", "drop"])
