@@ -91,6 +91,12 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
     # holds two frames (test_a_one_frame_per_second_board_is_not_reopened).
 
 
+def trailing(frames, board) -> int:
+    """Frames the board measured after the last one that arrived: the driver cannot see them lost (no
+    later frame's seq shows the gap), so a fault that hit one of them is not counted."""
+    return board.next_seq - 1 - frames[-1].seq
+
+
 @pytest.mark.parametrize("fault", ["bit_flip", "drop", "truncate", "garbage"])
 def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
     src, board, st, frames = run(tmp_path, FaultConfig(**{fault: 0.1}), duration=0.6)
@@ -110,10 +116,12 @@ def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
         assert n_faults - overrun <= st.resyncs <= n_faults + overrun
     elif fault == "drop":  # measured, not sent: a gap with nothing corrupt in between
         assert n_faults <= lost <= n_faults + overrun and st.corrupt <= overrun
-        assert n_faults - overrun <= st.seq_gaps <= n_faults
+        assert n_faults - overrun - trailing(frames, board) <= st.seq_gaps <= n_faults
     else:  # a harmed frame is one corrupt frame (not one per piece), and no gap besides
         assert n_faults <= lost <= n_faults + overrun
-        assert n_faults <= st.corrupt <= n_faults + overrun and st.seq_gaps <= overrun, (st, board)
+        # (the last frames harmed: a timing-dependent end, as a loaded host sends fewer frames in 0.6 s)
+        assert n_faults - trailing(frames, board) <= st.corrupt <= n_faults + overrun, (st, board)
+        assert st.seq_gaps <= overrun, (st, board)
     assert seqs[-1] >= board.next_seq - 5 and len(frames) > 0.7 * board.next_seq  # it went on after faults
 
 
