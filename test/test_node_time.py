@@ -3,6 +3,7 @@ judged late on the monotonic clock), and the node publishes again within a secon
 restarted board. Real rclpy, a simulated board on a virtual link (conftest.start)."""
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -145,11 +146,24 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
     finally:
         board.close()
         h.close()
+    # the frames a loaded host lost itself count as well: its frame queue overflowed, frames went late,
+    # or its reader left the link full (the board's overrun: a partial frame, corrupt). A run at load 5
+    # saw "4 of 299 frames lost or dropped in the last 3 s (overflow 4)" with drop 0: WARN, rightly.
+    overrun = board.stats().injected.get("overrun", 0)
+    host = {"overflow", "late"} | ({"corrupt", "gaps"} if overrun else set())
+
+    def kinds(msg):
+        m = re.search(r"frames lost or dropped in the last \d+ s \(([^)]*)\)", msg)
+        return {part.split()[0] for part in m.group(1).split(", ")} if m else set()
+
     late = [diag(m) for t, m in dg if t > t0 + 2.5]
-    assert all(lv == level for lv, _, _ in late), [(lv, msg) for lv, msg, _ in late]
     if level:
+        assert all(lv == level for lv, _, _ in late), [(lv, msg) for lv, msg, _ in late]
         assert all("frames lost or dropped in the last" in msg and "gaps" in msg for _, msg, _ in late), late
-        assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
+        assert all(int(v["seq_gaps"]) > 0 and int(v["corrupt"]) <= overrun for _, _, v in late), (late, overrun)
+    else:  # OK, or WARN for the host's own losses only: never for losses of the board's
+        assert all(lv == 0 or (lv == 1 and kinds(msg) and kinds(msg) <= host) for lv, msg, _ in late), \
+            ([(lv, msg) for lv, msg, _ in late], overrun)
 
 
 @pytest.mark.slow
