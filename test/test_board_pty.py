@@ -84,7 +84,17 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
     assert np.all(np.diff([f.board_time_us for f in frames]) > 0)
     assert all(f.contact_ok.all() and not f.saturated.any() for f in frames)
     assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects, st.resyncs) == (0, 0, 0, 0, 0)
-    assert st.period == pytest.approx(1 / RATE, rel=0.2)
+    assert 0 < st.period <= 1.2 / RATE, st.period
+    # only an upper bound at 400 frames/s: the period is measured as frames arrive, and a loaded host
+    # reads them in bursts (several in one read, a few microseconds apart): a run at load 5 measured
+    # 1.6 ms, one over the virtual link 2 us. The exact period is pinned at 1 frame/s, where no read
+    # holds two frames (test_a_one_frame_per_second_board_is_not_reopened).
+
+
+def trailing(frames, board) -> int:
+    """Frames the board measured after the last one that arrived: the driver cannot see them lost (no
+    later frame's seq shows the gap), so a fault that hit one of them is not counted."""
+    return board.next_seq - 1 - frames[-1].seq
 
 
 @pytest.mark.parametrize("fault", ["bit_flip", "drop", "truncate", "garbage"])
@@ -106,10 +116,12 @@ def test_injected_fault_is_counted_and_stream_resumes(tmp_path, fault):
         assert n_faults - overrun <= st.resyncs <= n_faults + overrun
     elif fault == "drop":  # measured, not sent: a gap with nothing corrupt in between
         assert n_faults <= lost <= n_faults + overrun and st.corrupt <= overrun
-        assert n_faults - overrun <= st.seq_gaps <= n_faults
+        assert n_faults - overrun - trailing(frames, board) <= st.seq_gaps <= n_faults
     else:  # a harmed frame is one corrupt frame (not one per piece), and no gap besides
         assert n_faults <= lost <= n_faults + overrun
-        assert n_faults <= st.corrupt <= n_faults + overrun and st.seq_gaps <= overrun, (st, board)
+        # (the last frames harmed: a timing-dependent end, as a loaded host sends fewer frames in 0.6 s)
+        assert n_faults - trailing(frames, board) <= st.corrupt <= n_faults + overrun, (st, board)
+        assert st.seq_gaps <= overrun, (st, board)
     assert seqs[-1] >= board.next_seq - 5 and len(frames) > 0.7 * board.next_seq  # it went on after faults
 
 
@@ -167,9 +179,17 @@ def test_queue_overflow_drops_the_oldest_and_counts(tmp_path):
         board.start().join()
         assert wait_for(lambda: driver.stats().frames == board.stats().sent)
         frames = drain(driver, quiet=0.1)
-        st, n = driver.stats(), board.stats().next_seq
-    assert n > 50 and [f.seq for f in frames] == list(range(n - 8, n))
-    assert st.dropped_overflow == n - 8 and st.seq_gaps == 0
+        st, b = driver.stats(), board.stats()
+    # every frame the board sent was received; all but the newest 8 were dropped and counted. A frame the
+    # pty had no room for (the board's overrun: a loaded host's reader stalled; a run at load 6 lost 1 of
+    # 120) never arrived: it is not the queue's
+    n, overrun = b.next_seq, b.injected.get("overrun", 0)
+    assert n > 50 and b.sent == n - overrun and st.dropped_overflow == b.sent - 8, (st, b)
+    seqs = [f.seq for f in frames]
+    if overrun:
+        assert len(seqs) == 8 and seqs == sorted(seqs) and seqs[0] >= n - 8 - overrun and seqs[-1] < n, seqs
+    else:
+        assert seqs == list(range(n - 8, n)) and st.seq_gaps == 0
 
 
 def test_close_is_idempotent(tmp_path):

@@ -4,7 +4,7 @@ handlers; and the same recording decoded alike over the virtual link and over a 
 import numpy as np
 import pytest
 from conftest import board_link
-from test_board_pty import CountingSource, check_values, drain, run, wait_for
+from test_board_pty import CountingSource, check_values, drain, run, trailing, wait_for
 
 from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
@@ -16,7 +16,7 @@ def test_frames_arrive_in_order_with_the_values_sent(tmp_path):
     assert [f.seq for f in frames] == list(range(len(frames)))
     check_values(frames, src)
     assert (st.corrupt, st.seq_gaps, st.dropped_overflow, st.reconnects, st.resyncs) == (0, 0, 0, 0, 0)
-    assert st.period == pytest.approx(1 / 400.0, rel=0.2)
+    assert 0 < st.period <= 1.2 / 400.0, st.period  # an upper bound only: see test_board_pty's twin
 
 
 @pytest.mark.parametrize("fault", ["bit_flip", "drop"])
@@ -26,7 +26,10 @@ def test_an_injected_fault_is_counted_once_per_frame(tmp_path, fault):
     seqs = [f.seq for f in frames]
     assert n > 0 and seqs == sorted(seqs) and board.next_seq - len(frames) in range(n, n + overrun + 1)
     assert st.corrupt + st.seq_gaps == seqs[-1] + 1 - len(frames)
-    assert (st.corrupt if fault == "bit_flip" else st.seq_gaps) >= n - overrun
+    # every fault counted once, but for those among the frames after the last that arrived (no later
+    # seq shows them; a loaded host sends fewer frames in 0.5 s, so which frame is last varies: a run at
+    # load 5 ended on a flipped one, 25 corrupt of 26 flipped)
+    assert (st.corrupt if fault == "bit_flip" else st.seq_gaps) >= n - overrun - trailing(frames, board)
     check_values(frames, src)
 
 

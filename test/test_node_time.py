@@ -3,6 +3,7 @@ judged late on the monotonic clock), and the node publishes again within a secon
 restarted board. Real rclpy, a simulated board on a virtual link (conftest.start)."""
 from __future__ import annotations
 
+import re
 import threading
 import time
 
@@ -86,8 +87,8 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
 def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_path, source, warm_model, how):
     """replug: the board's link disappears for 3.3 s and comes back (its clock and counter go on);
     restart: the board is killed and a new one (clock and counter from zero) appears on the same link
-    3.3 s later. The time from the board being back (its link open) to the first new wrench is under
-    1 s (before issue 14 the doubling reconnect backoff retried at 3.15 s, then 5.15 s: 1.85 s). The diagnostics' last
+    3.3 s later. The time from the board being back (its link open) to the first new wrench's frame is
+    under 1 s (before issue 14 the doubling reconnect backoff retried at 3.15 s, then 5.15 s: 1.85 s). The diagnostics' last
     error clears and the status returns to OK."""
     from geometry_msgs.msg import WrenchStamped
 
@@ -111,14 +112,21 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
             back = boards[-1].stats().generation_opened[0]
             boards[-1].start()
         assert wait_for(lambda: any(t > back for t, _ in wr), 5.0), "no wrench after the board came back"
-        recovery = next(t for t, _ in wr if t > back) - back
+        received = next(t for t, _ in wr if t > back) - back
         assert wait_for(lambda: len(dg) and diag(dg[-1][1])[0] == 0 and dg[-1][0] > back + 1.0, 10.0), \
             [diag(m)[1] for _, m in dg[-3:]]
     finally:
         for b in boards:
             b.close()
         h.close()
-    print(f"{how}: first wrench {recovery * 1e3:.0f} ms after the board was back")
+    # judged on the first new wrench's stamp (when the board measured its frame, on the monotonic clock):
+    # the reconnect's delay alone. Its arrival here adds the node's and the probe's scheduling, which
+    # a loaded host stretches (a CI run saw 1.75 s without a frame in this harness): printed, not judged.
+    ros_to_mono = time.monotonic() - time.time()  # the node's ROS clock is the system clock
+    stamps = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for _, m in wr]) + ros_to_mono
+    recovery = stamps[stamps > back].min() - back
+    print(f"{how}: first new frame measured {recovery * 1e3:.0f} ms after the board was back, its wrench "
+          f"received after {received * 1e3:.0f} ms")
     assert recovery < 1.0, recovery
     level, message, v = diag(dg[-1][1])
     assert v["last_error"] == "" and v["connected"] == "True" and v["stale_reason"] == "", v
@@ -145,11 +153,24 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
     finally:
         board.close()
         h.close()
+    # the frames a loaded host lost itself count as well: its frame queue overflowed, frames went late,
+    # or its reader left the link full (the board's overrun: a partial frame, corrupt). A run at load 5
+    # saw "4 of 299 frames lost or dropped in the last 3 s (overflow 4)" with drop 0: WARN, rightly.
+    overrun = board.stats().injected.get("overrun", 0)
+    host = {"overflow", "late"} | ({"corrupt", "gaps"} if overrun else set())
+
+    def kinds(msg):
+        m = re.search(r"frames lost or dropped in the last \d+ s \(([^)]*)\)", msg)
+        return {part.split()[0] for part in m.group(1).split(", ")} if m else set()
+
     late = [diag(m) for t, m in dg if t > t0 + 2.5]
-    assert all(lv == level for lv, _, _ in late), [(lv, msg) for lv, msg, _ in late]
     if level:
+        assert all(lv == level for lv, _, _ in late), [(lv, msg) for lv, msg, _ in late]
         assert all("frames lost or dropped in the last" in msg and "gaps" in msg for _, msg, _ in late), late
-        assert all(int(v["seq_gaps"]) > 0 and v["corrupt"] == "0" for _, _, v in late)
+        assert all(int(v["seq_gaps"]) > 0 and int(v["corrupt"]) <= overrun for _, _, v in late), (late, overrun)
+    else:  # OK, or WARN for the host's own losses only: never for losses of the board's
+        assert all(lv == 0 or (lv == 1 and kinds(msg) and kinds(msg) <= host) for lv, msg, _ in late), \
+            ([(lv, msg) for lv, msg, _ in late], overrun)
 
 
 @pytest.mark.slow

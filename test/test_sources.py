@@ -39,13 +39,26 @@ def _same(a, b, what: str) -> None:
         np.testing.assert_array_equal(x.values, y.values, err_msg=f"{what}: frame {k}")
 
 
+class TimedSource(CountingSource):
+    """CountingSource that also keeps when each frame was measured (``time.monotonic_ns()``, just
+    before the board reads its clock for the frame)."""
+
+    def __init__(self):
+        super().__init__()
+        self.at = []
+
+    def frame(self, t, rng):
+        self.at.append(time.monotonic_ns())
+        return super().frame(t, rng)
+
+
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     """60 frames of a simulated board read through the serial source on the virtual link: the
     recording the other sources play back. Its values are the board's (k + i / 1024: exact in float32),
     its stamps the board clock mapped onto the host's."""
     tmp = tmp_path_factory.mktemp("rec")
-    src = CountingSource()
+    src = TimedSource()
     with SimulatedBoard(src, rate_hz=RATE, link=board_link(tmp), seed=1).start() as board, \
             SerialSource(board.device, rate_hz=RATE) as serial:
         frames = _read(serial, 60)
@@ -57,7 +70,11 @@ def recording(tmp_path_factory):
         assert f.contact_ok is None and f.saturated is None  # nothing flagged (test_node: flagged frames)
     stamps = np.array([f.stamp_ns for f in frames])
     assert (np.diff(stamps) > 0).all()
-    assert abs(np.median(np.diff(stamps)) * 1e-9 - 1 / RATE) < 0.2 / RATE  # the board's clock, not arrival
+    # the board's clock, not arrival: the stamps are spaced as the board measured the frames. Judged on
+    # when it did (a loaded host makes it late, then catch up: a run at load 7 measured pairs 8 ms and
+    # 0.1 ms apart, median 2.7 ms), not on its nominal 5 ms
+    measured = np.array(src.at[k0:k0 + len(frames)])
+    assert np.median(np.abs(np.diff(stamps) - np.diff(measured))) * 1e-9 < 0.2 / RATE
     assert stamps[-1] <= time.time_ns()
     return frames
 
