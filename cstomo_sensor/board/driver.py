@@ -95,7 +95,8 @@ class DriverStats:
     resyncs : int
         Times the decoder dropped bytes (line noise, a cut-off frame) and no frame was lost.
     period : float
-        The board's frame period in seconds as measured (nan until two frames came).
+        The board's frame period in seconds as measured on its clock (on arrival in text mode; nan until
+        two frames came).
     reconnects : int
         Times the port was opened again after losing it (unplugged or stalled).
     last_error : str
@@ -229,7 +230,7 @@ class BoardDriver:
         self._fresh = True
         self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
         self._intervals: deque[float] = deque(maxlen=16)  # recent frame periods (s)
-        self._last_frame_at: tuple[float, int | None] | None = None  # (monotonic, seq) of the last frame
+        self._last_frame_at: tuple[float, int | None] | None = None  # (board or monotonic s, seq) of the last frame
         self._last_error = ""
         self.identity: Identity | None = None
         self.on_reconnect = on_reconnect
@@ -440,11 +441,15 @@ class BoardDriver:
                 self._corrupt += bad  # text mode: a dropped line is a lost frame
             elif not self._in_order(frame.seq, bad):
                 return
+            # the period on the board's clock where it has one: a loaded host (or a USB adapter) reads
+            # frames in bursts, a few microseconds apart on arrival
+            t_now = now if frame.board_time_us is None else frame.board_time_us * 1e-6
             if self._last_frame_at is not None:
                 t, seq = self._last_frame_at
                 steps = 1 if seq is None or frame.seq is None else max((frame.seq - seq) & 0xFFFFFFFF, 1)
-                self._intervals.append((now - t) / steps)
-            self._last_frame_at = (now, frame.seq)
+                if (seq is None) == (frame.seq is None) and t_now > t:
+                    self._intervals.append((t_now - t) / steps)
+            self._last_frame_at = (t_now, frame.seq)
             self._frames += 1
             self._last_error = ""
             if len(self._queue) == self._queue.maxlen:
