@@ -143,7 +143,7 @@ SETTINGS: tuple[Setting, ...] = (
             "error's norm) exceeds it is counted and said in /diagnostics (WARN); 0 = no check", 0.0, 100000.0, "N"),
     Setting("expected_wrench_sigma", 2.0, "The 1-sigma per axis of the load a controller expects on ~/expected_wrench "
             "(geometry_msgs/WrenchStamped, its force used for 0.5 s after its stamp): a measurement of the device's "
-            "change under load (force/drift.py JointScale)", 0.01, 1000.0, "N"),
+            "change under load (force/joint.py JointScale)", 0.01, 1000.0, "N"),
     Setting("qos_depth", 10, "History depth of the publishers and of the ~/raw_voltages_in subscription", 1, 10_000),
     Setting("qos_reliability", RELIABILITIES[0], "Reliability of the publishers and the subscription (REP 2003: "
             "system_default is reliable)", choices=RELIABILITIES),

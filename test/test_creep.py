@@ -294,7 +294,7 @@ def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default
     default): 20 N held 10 minutes on a rubber at 4 % per decade compensated at 4 % reads within 0.7 %
     of its reading 1 s after it was applied (aim 1 %; measured -0.08 % before the drift tracker measured
     the scale under load, +0.53 % since: the joint fit takes 0.5 % of this load's misfit for the device
-    within the first minute, force/drift.py JointScale), and 5 s after its removal the
+    within the first minute, force/joint.py JointScale), and 5 s after its removal the
     rest reads below 0.1 N (aim 0.5 N; measured 0.03 N), the same within 0.1 % and 0.02 N at 10 and 100
     frames/s and at 100 frames/s near the changes with 1 frame/s in the hold (before the frame period
     was the median of the last steps, the 1/s hold read +0.5 % at 60 s against -0.05 %). A

@@ -184,6 +184,7 @@ def _follow_run(follow: bool):
     measures it (JointScale: here the true ratio with a 1e-4 error). ``follow`` False: the slopes kept
     at 0 (what the tracker did before issue 26's fix)."""
     from cstomo_sensor.force.drift import DriftTracker
+    from cstomo_sensor.force.slow import drift_status
 
     rng = np.random.default_rng(4)
     n = 208
@@ -200,7 +201,7 @@ def _follow_run(follow: bool):
             tr.follow[:] = 0.0
         joint = (s / tr.scale - 1.0 + rng.normal(0.0, 1e-4), 1e-8, np.zeros(3), np.zeros(3), np.zeros(3))
         rest = tr.observe(y + 0.05 * load * loaded, t, joint)
-        out.append((t, rest, np.abs(tr.gradient - slope * (s - 1.0)).max(), tr.unmeasured_n, tr.status()))
+        out.append((t, rest, np.abs(tr.gradient - slope * (s - 1.0)).max(), tr.unmeasured_n, drift_status(tr)))
     return out
 
 

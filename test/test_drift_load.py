@@ -1,4 +1,4 @@
-"""A load is never taken for the device (issue 26, items 2 and 4; force/drift.py JointScale): held
+"""A load is never taken for the device (issue 26, items 2 and 4; force/joint.py JointScale): held
 socket loads straight down, the direction closest to a uniform change, read what they are through a
 fresh tare with the drift tracking on, and a controller's expected load (``expect_load``) helps the
 tracker find the device's change under load.

@@ -112,7 +112,7 @@ def test_the_silently_wrong_share_counts_errors_beyond_half_a_newton_at_rest_or_
     assert r["zero_p99_n"] == pytest.approx(np.percentile([0.4, 0.6], 99))
 
 
-# --- issue 26 items 2-4: following the device under load and across restarts (force/drift.py JointScale) ---
+# --- issue 26 items 2-4: following the device under load and across restarts (force/joint.py JointScale) ---
 # The bench's device_b (the least sensitive corner) on its own coarse truth mesh (4 mm: the test judges
 # the tracking, not a mesh), calibrated on 20 loads with the tests' coarse model and the default
 # estimator (model). Aims from issue 26; the bounds pinned below are what was measured, with a margin

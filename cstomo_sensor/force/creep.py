@@ -49,7 +49,8 @@ from ..model.material import CREEP_T0, TYPICAL_CREEP_PER_DECADE
 #: the simulated board's default rubber too (model/material.py declares both; CREEP_T0: creep counts
 #: from this many seconds after a change of load).
 DEFAULT_CREEP = TYPICAL_CREEP_PER_DECADE
-#: Seconds between frames without stamps (as the drift tracker's).
+#: Seconds between frames without stamps (`cstomo estimate` without `--rate`): the creep compensation
+#: and the drift tracker (force/drift.py) take it.
 DEFAULT_PERIOD = 0.01
 #: The largest coefficient taken (rubbers: 0.02..0.06); the compensation feeds back its own output,
 #: stable to about 0.3 per decade.

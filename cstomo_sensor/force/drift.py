@@ -1,57 +1,32 @@
 """The zero that holds: tracking the device's slow change after its tare (docs/physics.md#device-changes).
 
-After a tare the device keeps changing: the rubber warms (its resistivity rises by 0.2..1.5 % per K,
-the same sign everywhere, more on the side nearer the motor), its contacts' impedance falls with
-temperature and drifts, the board's current source drifts. The mean change and the drive scale every
-voltage of a frame (nearly) alike, ``V = s (V_ref + dV_load)``: a change of ``s`` by 1 % reads as 18 N
-at zero load when the change is normalised by the tare alone. A gradient of the change across the
-block reads as a lateral load (10 K with 30 % across: 12 N). :class:`DriftTracker` estimates ``s``,
-its rate of change, and the states of a few more directions over time (the stream gives them: the
-contacts' impedance changing alike and linearly along x, y, z, from the model; the resistivity's
-gradient along x, y, z, :func:`gradient_directions`); the pipeline removes them all:
+After a tare the device keeps changing (it warms, its contacts and drive drift): the mean change and the
+drive scale every voltage alike, ``V = s (V_ref + dV_load)`` (1 % reads as 18 N at zero load), a
+gradient across the block reads as a lateral load. :class:`DriftTracker` estimates ``s``, its rate,
+and the states of a few more directions (the contacts' impedance changing alike and linearly along x,
+y, z; the resistivity's gradient, :func:`~.joint.gradient_directions`); the pipeline removes them all:
 ``y = (V / s - V_ref) / y_scale - g . d``.
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
-of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's):
-
-- **shape at rest**: a frame that ``delta r`` alone explains (the whitened residual of the best
-  ``delta`` below :data:`REST_BOUND` per channel, the other states' current part taken out first),
-  and that reads no force once that ``delta`` is taken out (below :data:`REST_FORCE_SIGMAS` times the
-  force's noise), is a frame without load; it measures every state with its full direction (a noise
-  of about 1e-5 per frame at 60 dB). A lateral load looks like a gradient: it is never taken for rest.
-- **every frame, loaded or not** (issue 26), with the ``model`` estimator: the frame's force and the
-  scale fitted jointly (:class:`JointScale`: the load's own uncertainty marginalised, a controller's
-  expected load as a measurement of the force), the tracker's mean and covariance the scale's prior: a
-  tight prior (a recent rest) leaves the force as it was, a wide one (minutes of load, a restart from an
-  old tare: :meth:`DriftTracker.widen`) lets the frame's shape separate them. A loaded frame counts as
-  :data:`LOADED_WEIGHT` of a measurement, a rest frame as :data:`REST_WEIGHT`; the other states are
-  measured at rest only (a lateral load looks like a gradient). With ``linear`` (no joint fit) a
-  loaded frame measures nothing: the scale goes on at its tracked rate, and the rest frames measure the
-  scale with its full direction as before.
-- **time**: the states are random walks of :data:`RATE` per square-root second, the scale's rate one
-  of :data:`ACCEL`; a Kalman filter weighs each rest frame's measurement against them. Loads move in
-  tenths of seconds, the device in minutes: a load the shape takes for rest moves the scale little.
-
-What it cannot separate, said plainly:
-
-- a change that none of the directions describe: single electrodes' contacts (20 % drift: 0.13 N), a
-  gradient that is not linear, the model's contact response against a real device's (a uniform 10 %
-  resistivity change with the contacts unchanged, a scaling plus a contact change: 0.17 N remain).
-  That remainder stays in the change, reads as a small force and raises the consistency statistic;
-- a load held still whose change the estimator's model misfits along the uniform direction (1-2 N
-  straight down, below the calibration's smallest load: about 30 % of it goes into the scale within
-  10 s); with ``linear``, a load held still below the rest bounds (about 0.7 N at 60 dB, 5 N at 40 dB)
-  is taken for rest and goes slowly into the states;
-- a change of rate during a long load (the warming slows while the joint is loaded: followed at the
-  next rest), and a change much faster than the rates above (a step of the drive current is followed
-  over a second or so at 60 dB).
+of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's): the
+frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`; a rest frame measures every
+state), **every frame** with the ``model`` estimator (the force and the scale fitted jointly,
+:class:`~.joint.JointScale`, the tracker's mean and covariance the scale's prior; the other states
+follow the scale under load by their slope at rest, :data:`FOLLOW_MEMORY`), and **time** (random
+walks of :data:`RATE`, the scale's rate one of :data:`ACCEL`: loads move in tenths of seconds, the
+device in minutes). docs/node.md, *The zero over time* and *Following the device under load*, says
+how, what it measures and what it cannot separate: a change none of the directions describe (single
+contacts, a non-linear gradient: it stays in the change and raises the consistency statistic), a
+held load whose model misfit lies along the uniform change, a change of rate during a long load.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.linalg import lapack
+
+from .creep import DEFAULT_PERIOD
+from .joint import solve_small
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
 #: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a
@@ -75,20 +50,18 @@ RATE_MEMORY = 30.0
 #: load only the scale is measured (the joint fit), so there they follow it: by ``v ds``, ``ds`` the
 #: scale's change in the frame and ``v`` the slope of each state against the scale, fitted on the rest
 #: frames (least squares, their weight fading over :data:`FOLLOW_MEMORY` seconds of rest; 0 until the
-#: scale spanned :data:`FOLLOW_SPAN` there). Without it they stood still during a task: at 1.5 %/K a 20 s
-#: task carried them past the rest test, which then refused every later rest (issue 26: on the robot
-#: bench's device_b the zero read 11.5 N after 2 minutes and 37 N after 6, sigma_n 1.8-3.9 N, status OK).
+#: scale spanned :data:`FOLLOW_SPAN` there). Without it they stood still during a task and the tracking locked at
+#: 1.5 %/K (docs/node.md, *The zero over time*).
 FOLLOW_MEMORY = 300.0
 FOLLOW_SPAN = 1e-3
 #: ... and that slope is known only so well: while no rest measures them, each other state's variance
 #: grows by ``(FOLLOW_SIGMA a)^2``, ``a`` the scale's change at its tracked rate since the last rest frame
 #: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
 #: sigma says what a long task leaves unmeasured; the diagnostics warn when that reads more than
-#: :data:`UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
+#: :data:`~.slow.UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
 #: (:meth:`widen` covers it: a block off for hours has no gradient).
 FOLLOW_SIGMA = 0.1
-UNMEASURED_N = 2.0
-#: A loaded frame's own measurement of the scale (:class:`JointScale`, the load marginalised) counts
+#: A loaded frame's own measurement of the scale (:class:`~.joint.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
 #: mismatch with the device (not white noise), so their measurements do not average like noise.
 LOADED_WEIGHT = 0.005
@@ -97,20 +70,12 @@ LOADED_WEIGHT = 0.005
 #: go into the scale as fast as the rest frames' weight lets it).
 REST_WEIGHT = 0.1
 #: A restart from a saved tare (:meth:`DriftTracker.widen`): the scale's 1-sigma grows with the tare's
-#: age as ``RESTART_SIGMA * sqrt(age / 1 h)``, between :data:`RESTART_MIN` and :data:`RESTART_MAX`
-#: (section 9: a morning 5 K colder than the tare is about -4 %); its rate's as :data:`RESTART_RATE`
-#: (a joint warming at 0.8 %/K by 15 K in 30 min: 7e-5/s); each other state's (the contacts', the
-#: gradient's: measured at rest only) by what reads as :data:`RESTART_OTHER_N` newtons of force (a
-#: contact's 1 % reads as 0.02-0.05 N, a gradient's 1 % as 4 N: after hours off the block is near
-#: its equilibrium, without a gradient).
+#: age as ``RESTART_SIGMA * sqrt(age / 1 h)`` within [RESTART_MIN, RESTART_MAX] (a morning 5 K colder
+#: than the tare: about -4 %); its rate's as RESTART_RATE (0.8 %/K by 15 K in 30 min: 7e-5/s); each
+#: other state's by what reads as RESTART_OTHER_N newtons (after hours off, no gradient).
 RESTART_SIGMA, RESTART_MIN, RESTART_MAX = 0.015, 0.003, 0.05
 RESTART_RATE = 1e-4
 RESTART_OTHER_N = 0.15
-#: A controller's expected load (``FrameStream.expect_load``) holds for frames up to this many seconds
-#: after its stamp (a dynamics model's output at its own rate, tens of Hz or more).
-EXPECTED_HOLD = 0.5
-#: Seconds between frames without stamps (``cstomo estimate`` without ``--rate``).
-DEFAULT_PERIOD = 0.01
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
 #: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
@@ -122,121 +87,18 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
-#: The tracked change (``|s - 1|``) beyond which a re-tare is advised, and beyond which the tracker
-#: is outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
-RETARE_ADVISED = 0.05
-VALIDATED = 0.10
-#: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
-#: to express the tracked change in kelvin.
-RESISTIVITY_PER_K = 0.008
-
-
-def _solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """X with A X = B for a small square ``A`` (LAPACK's gesv without numpy.linalg's checks: 2 us
-    instead of 7); raises ``LinAlgError`` if ``A`` is singular, as ``np.linalg.inv`` did."""
-    _, _, X, info = lapack.dgesv(A, B)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"singular matrix (gesv info {info})")
-    return X
-
-
-def gradient_directions(model) -> np.ndarray:
-    """(3, n_meas): the normalised change of a resistivity rising linearly across the block along x,
-    y and z, by 1 (relative) per half of the block's extent from its middle, through the model's
-    sensitivity (``S`` is per relative conductivity change of its basis voxels: ``-S`` per relative
-    resistivity change; ``-S @ 1`` is the uniform scaling's ``r`` to 5e-4)."""
-    c = np.asarray(model.basis_centers, float)
-    lo, hi = c.min(axis=0), c.max(axis=0)
-    xi = (c - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
-    return -(model.S @ xi).T
-
-
-class JointScale:
-    """One frame's own measurement of the device's uniform scale with its load marginalised (issue 26,
-    item 2): the model estimator's last fit (``ModelEstimator.last_fit``: the surrogate's residual and
-    Jacobian at the force it found, in its whitened basis) extended by the scale's direction.
-
-    A scale error ``d`` of the frame's change ``y`` adds ``d (r + y)`` (``r = V_ref / y_scale``); with
-    ``J`` the load's Jacobian, ``rho`` the fit's residual and a controller's expected load ``e`` of
-    information ``L`` (None: none), the joint least squares over the force step ``dx`` and ``d``::
-
-        |rho - J dx - d_w d|^2 + (dx - e)^T L (dx - e)
-
-    profiled over ``dx`` gives ``d``'s information ``H = |d_w|^2 - g^T A^-1 g`` and its estimate
-    ``b / H`` (``A = J^T J + L``, ``g = J^T d_w``): the part of the frame's change along ``r`` that no
-    load explains. The part of ``d_w`` outside the estimator's basis (no load makes it) is taken from
-    dot products over the full change. :meth:`measure` returns it with the force's step for a given
-    ``d``: ``dF = u - v d`` (N).
-    """
-
-    def __init__(self, estimator, r: np.ndarray) -> None:
-        self.est = estimator
-        rw = np.asarray(r, float)[estimator.keep] * estimator.w
-        self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
-        self.dof = max(len(rw) - 4, 1)
-        self._M = np.empty((len(self.Brw), 2))
-
-    def measure(self, expected: tuple | None = None) -> tuple | None:
-        """(d, its variance, u, v, the frame's force) of the estimator's latest frame (class docstring); ``expected``:
-        (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives nothing."""
-        est = self.est
-        if est.last_fit is None:
-            return None
-        yw, step, x_hat = est.last_fit
-        out, k = est._out, est.scale
-        Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
-        rho = np.dot(np.asarray(step, float), Jt)  # the residual at the final force: By - s(x) to first order
-        rho -= out[0]
-        By = est._d0 - est._d0_target
-        Bd = self.Brw + By
-        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
-        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
-        dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
-        A = np.dot(Jt, Jt.T)
-        M = self._M
-        M[:, 0] = rho
-        M[:, 1] = Bd
-        rhs = np.dot(Jt, M)  # (3, 2): J^T rho, g = J^T d_w
-        if expected is not None:
-            f, sig = expected
-            lam = (k / sig) ** 2
-            A[np.diag_indices(3)] += lam
-            rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
-        try:
-            sol = _solve(A, rhs)
-        except np.linalg.LinAlgError:
-            return None
-        g = rhs[:, 1]
-        H = dd - float(g.dot(sol[:, 1]))
-        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
-        if not H > 0:
-            return None
-        chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
-        inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
-        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k)
 
 
 class DriftTracker:
     """The device's slow change since its tare (module docstring): the uniform scale ``s`` of its
     voltages, its ``rate`` (per second), and the states of the other directions (``gradient``, (k,):
     the stream gives the contacts' four and the resistivity gradient's three, relative change per
-    half extent).
-
-    Parameters
-    ----------
-    r : (n_meas,) ndarray
-        The normalised change of a uniform scaling by 1 + 1 (``V_ref / y_scale``).
-    gradients : (k, n_meas) ndarray or None
-        The other directions followed at rest (the model's contact directions, :func:`gradient_directions`;
-        None: the scale alone is tracked).
-    noise : (n_meas,) ndarray
-        Per-channel noise std of a change (y units).
-    keep : (n_meas,) bool ndarray
-        Channels in use.
-    force_map : (3, n_meas) ndarray or None
-        The estimator's linear map from a change to a force (N), for the rest frames' force bound
-        (None: the residual bound alone).
-    """
+    half extent). ``r`` (n_meas,): the normalised change of a uniform scaling by 1 + 1 (``V_ref /
+    y_scale``); ``gradients`` (k, n_meas) or None: the other directions (the model's contact
+    directions, :func:`~.joint.gradient_directions`; None: the scale alone); ``noise`` (n_meas,): the
+    per-channel noise std of a change (y units); ``keep`` (n_meas,) bool: the channels in use;
+    ``force_map`` (3, n_meas) or None: the estimator's linear map from a change to a force (N), for
+    the rest frames' force bound (None: the residual bound alone)."""
 
     def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray,
                  force_map: np.ndarray | None = None) -> None:
@@ -281,21 +143,16 @@ class DriftTracker:
         self.follow = np.zeros(m - 1)  # each other state's slope against the scale (FOLLOW_MEMORY)
         self._fit = np.zeros((3, m))  # its weighted sums over the rest frames: (1, s, s^2) x (1, x_o)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
-        self._t_rest: float | None = None  # the latest rest frame's time
+        self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
 
-    def with_mask(self, keep: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
-        """The same tracker (its state kept) over the channels ``keep``."""
-        r, gradients, noise, _, force_map = self._args
-        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
-
-    def with_noise(self, noise: np.ndarray, new_map: np.ndarray | None = None) -> DriftTracker:
-        """The same tracker (its state kept) for a change of per-channel noise ``noise`` (y units)."""
-        r, gradients, _, keep, force_map = self._args
-        return self._carried(DriftTracker(r, gradients, noise, keep, force_map if new_map is None else new_map))
-
-    def _carried(self, new: DriftTracker) -> DriftTracker:
-        """``new`` with this tracker's state."""
+    def rebuilt(self, *, keep: np.ndarray | None = None, noise: np.ndarray | None = None,
+                force_map: np.ndarray | None = None) -> DriftTracker:
+        """The same tracker, its state kept, over the channels ``keep`` or for a change's per-channel
+        noise ``noise`` (y units), with the estimator's ``force_map`` (None: each as it was)."""
+        r, gradients, noise0, keep0, map0 = self._args
+        new = DriftTracker(r, gradients, noise0 if noise is None else noise, keep0 if keep is None else keep,
+                           map0 if force_map is None else force_map)
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         new.follow, new._fit = self.follow.copy(), self._fit.copy()
@@ -315,7 +172,7 @@ class DriftTracker:
     def observe(self, y: np.ndarray, t: float | None = None, joint: tuple | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
         :data:`DEFAULT_PERIOD` after the previous frame), formed with the current state; returns True
-        if the frame was taken as at rest. ``joint``: the frame's :meth:`JointScale.measure` (None: the
+        if the frame was taken as at rest. ``joint``: the frame's :meth:`~.joint.JointScale.measure` (None: the
         linear estimator, no joint fit: a loaded frame measures nothing); then :attr:`force_step` is
         the frame's force step (N) for the scale as updated (None without it)."""
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
@@ -349,7 +206,7 @@ class DriftTracker:
         use_joint = joint is not None
         if use_joint:
             # every frame, at rest or loaded: the scale measured with the frame's load marginalised
-            # (JointScale), so that a load is never taken for the device; a loaded frame counts as
+            # (JointScale, force/joint.py), so that a load is never taken for the device; a loaded frame counts as
             # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise)
             z, var, u, v, _ = joint
             var = var / (REST_WEIGHT if rest else LOADED_WEIGHT)
@@ -375,7 +232,7 @@ class DriftTracker:
             N = self._N if not use_joint else self._N_others
             A = np.dot(N, P)
             A += self._eye
-            gain = _solve(A.T, P.T).T
+            gain = solve_small(A.T, P.T).T
             innov = b - np.dot(self._N, tot)  # what the step and the joint update leave
             if use_joint:
                 innov[0] = 0.0
@@ -429,12 +286,6 @@ class DriftTracker:
         self.P = self.P + np.diag(add)
 
     @property
-    def kelvin_text(self) -> str:
-        """The tracked change as a temperature change of the rubber at :data:`RESISTIVITY_PER_K`."""
-        kelvin = math.log(self.scale) / math.log1p(RESISTIVITY_PER_K) if self.scale > 0 else math.nan
-        return f"{kelvin:+.1f} K at {RESISTIVITY_PER_K:.1%}/K, or a drive drift"
-
-    @property
     def unmeasured_n(self) -> float:
         """The 1-sigma (N) at zero load of the states only a rest measures (the contacts', the gradient's)."""
         if self._W is None or self.m < 2:
@@ -442,26 +293,8 @@ class DriftTracker:
         Wo, P = self._Wo, self.P[1:self.m, 1:self.m]
         return math.sqrt(max(float(np.sum((Wo @ P) * Wo)), 0.0))
 
-    @property
-    def since_rest_text(self) -> str:
-        """When the states were last measured at rest, and the change at the tracked rate since."""
-        if self._t_rest is None and not self.rest_frames:
-            return "no rest frame yet"
-        ago = "" if self._t is None or self._t_rest is None else f"{max(self._t - self._t_rest, 0.0):.1f} s ago, "
-        return f"{ago}a change of {self._unmeasured:.2%} at the tracked rate since; zero 1-sigma {self.unmeasured_n:.2f} N"
-
-    def status(self) -> tuple[int, str]:
-        """(0 OK, 1 WARN; a message) of the tracked change for the diagnostics."""
-        c = self.change
-        text = f"{c:+.2%} since the tare (about {self.kelvin_text})"
-        if abs(c) > VALIDATED:
-            level, msg = 1, f"device changed {text}: beyond the {VALIDATED:.0%} the zero tracking is validated for; re-tare"
-        elif abs(c) > RETARE_ADVISED:
-            level, msg = 0, f"device changed {text}: a re-tare is advised when the joint is free"
-        else:
-            level, msg = 0, ""
-        if self.unmeasured_n > UNMEASURED_N:
-            lost = (f"the device's gradient and contacts unmeasured since the last rest frame ({self.since_rest_text}): "
-                    "they follow its scale by their slope at rest; sigma_n says how unsure, the next rest re-acquires them")
-            level, msg = 1, f"{lost}; {msg}" if msg else lost
-        return level, msg
+    def since_rest(self) -> tuple[float | None, float]:
+        """(seconds since the latest rest frame, None: unknown; the scale's change at its tracked rate
+        since then): what the states only a rest measures have followed unmeasured."""
+        ago = None if self._t is None or self._t_rest is None else max(self._t - self._t_rest, 0.0)
+        return ago, self._unmeasured

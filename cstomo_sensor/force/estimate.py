@@ -252,7 +252,7 @@ class ModelEstimator:
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
-        self.last_fit = (yw, step, x)  # with the last iteration's out: the joint fit's (force/drift.py JointScale)
+        self.last_fit = (yw, step, x)  # with the last iteration's out: the joint fit's (force/joint.py JointScale)
         k = self.scale
         return np.array((x[0] * k, x[1] * k, x[2] * k))
 

@@ -18,9 +18,24 @@ import numpy as np
 from ..angles import force_angles3
 from ..errors import ConfigError
 from .creep import CreepCompensator
-from .drift import EXPECTED_HOLD, DriftTracker, JointScale, gradient_directions
+from .drift import DriftTracker
+from .joint import JointScale, gradient_directions
 from .scene_field import change_noise
 from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
+
+#: A controller's expected load (:meth:`SlowStates.expect_load`) holds for frames up to this many
+#: seconds after its stamp (a dynamics model's output at its own rate, tens of Hz or more).
+EXPECTED_HOLD = 0.5
+#: The drift tracker's change (``|s - 1|``) beyond which a re-tare is advised, and beyond which it is
+#: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
+RETARE_ADVISED = 0.05
+VALIDATED = 0.10
+#: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
+#: to express the tracked change in kelvin.
+RESISTIVITY_PER_K = 0.008
+#: The diagnostics warn when the states only a rest measures (the contacts', the gradient's) leave more
+#: than this many newtons (1-sigma) at zero load (:data:`~.drift.FOLLOW_SIGMA`).
+UNMEASURED_N = 2.0
 
 
 def force_map(pipe) -> np.ndarray | None:
@@ -45,7 +60,7 @@ class SlowStates:
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
         self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
         self.sigma_source = ""  # where the calibration residual of the sigma comes from
-        self._joint: JointScale | None = None  # the joint fit of force and scale (force/drift.py), for _joint_for
+        self._joint: JointScale | None = None  # the joint fit of force and scale (force/joint.py), for _joint_for
         self._joint_for: DriftTracker | None = None
         self._expected: tuple | None = None  # a controller's expected load (force, sigma, t): expect_load
 
@@ -81,14 +96,14 @@ class SlowStates:
     def masked(self, pipe) -> None:
         """``pipe``'s mask changed: the tracker (its state kept) over its channels."""
         if self.drift is not None:
-            self.drift = self.drift.with_mask(~pipe.bad_channels, force_map(pipe))
+            self.drift = self.drift.rebuilt(keep=~pipe.bad_channels, force_map=force_map(pipe))
             self._offsets()
 
     def renoised(self, pipe) -> None:
         """``pipe``'s noise changed: the tracker (its state kept) with the change's noise."""
         if self.drift is not None:
-            self.drift = self.drift.with_noise(change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                               force_map(pipe))
+            self.drift = self.drift.rebuilt(noise=change_noise(pipe.estimator.noise, pipe.reference_frames),
+                                            force_map=force_map(pipe))
             self._offsets()
 
     def observe(self, pipe, result, t: float | None, frozen: np.ndarray | None) -> None:
@@ -104,7 +119,7 @@ class SlowStates:
         if pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
             y = pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
             if drift is not None:
-                # every frame measures the scale jointly with its force (force/drift.py JointScale; a
+                # every frame measures the scale jointly with its force (force/joint.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
                 drift.observe(y, t, self._joint_scale(pipe, t))
                 self.scale = drift.scale
@@ -119,9 +134,9 @@ class SlowStates:
                                                drift.change if drift is not None else 0.0)
 
     def _joint_scale(self, pipe, t: float | None):
-        """The latest frame's joint measurement of the scale (force/drift.py JointScale), None for an
+        """The latest frame's joint measurement of the scale (force/joint.py JointScale), None for an
         estimator without a joint fit (``linear``); with the controller's expected load (:meth:`expect_load`)
-        when it is at most :data:`~.drift.EXPECTED_HOLD` s older than the frame (or the frame has no time)."""
+        when it is at most :data:`EXPECTED_HOLD` s older than the frame (or the frame has no time)."""
         est = pipe.estimator
         if getattr(est, "last_fit", None) is None:
             return None
@@ -134,7 +149,7 @@ class SlowStates:
     def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
         """A controller's expected load now: ``force`` (3,) N in the wrench frame, its 1-sigma ``sigma``
         (N, per axis), at ``stamp_ns`` (the frames' clock; 0: the next frames). Used as a measurement of
-        the force in the joint fit of the device's scale for frames up to :data:`~.drift.EXPECTED_HOLD` s
+        the force in the joint fit of the device's scale for frames up to :data:`EXPECTED_HOLD` s
         after it."""
         f = np.asarray(force, float).reshape(-1)
         if f.shape != (3,) or not np.isfinite(f).all():
@@ -176,12 +191,44 @@ class SlowStates:
         """The diagnostics' level (0 OK), problems and figures."""
         drift, level, msgs = self.drift, 0, []
         if drift is not None:
-            level, d_msg = drift.status()
-            kv = dict(drift_change=f"{drift.change:+.3%}", drift_kelvin=drift.kelvin_text,
-                      drift_rest_frames=drift.rest_frames, drift_since_rest=drift.since_rest_text)
+            level, d_msg = drift_status(drift)
+            kv = dict(drift_change=f"{drift.change:+.3%}", drift_kelvin=kelvin_text(drift),
+                      drift_rest_frames=drift.rest_frames, drift_since_rest=since_rest_text(drift))
             msgs = [d_msg] if d_msg else []
         else:
             kv = dict(drift_change="not tracked (drift_tracking false)" if not self.tracking
                       else "not tracked yet: no reference (tracking starts with the tare)")
         kv.update(creep=self.creep_text(calibration))
         return (level if msgs else 0), msgs, kv
+
+
+def kelvin_text(drift: DriftTracker) -> str:
+    """The tracked change as a temperature change of the rubber at :data:`RESISTIVITY_PER_K`."""
+    kelvin = math.log(drift.scale) / math.log1p(RESISTIVITY_PER_K) if drift.scale > 0 else math.nan
+    return f"{kelvin:+.1f} K at {RESISTIVITY_PER_K:.1%}/K, or a drive drift"
+
+
+def since_rest_text(drift: DriftTracker) -> str:
+    """When the states were last measured at rest, and the change at the tracked rate since."""
+    ago, change = drift.since_rest()
+    if ago is None and not drift.rest_frames:
+        return "no rest frame yet"
+    ago = "" if ago is None else f"{ago:.1f} s ago, "
+    return f"{ago}a change of {change:.2%} at the tracked rate since; zero 1-sigma {drift.unmeasured_n:.2f} N"
+
+
+def drift_status(drift: DriftTracker) -> tuple[int, str]:
+    """(0 OK, 1 WARN; a message) of the tracked change for the diagnostics."""
+    c = drift.change
+    text = f"{c:+.2%} since the tare (about {kelvin_text(drift)})"
+    if abs(c) > VALIDATED:
+        level, msg = 1, f"device changed {text}: beyond the {VALIDATED:.0%} the zero tracking is validated for; re-tare"
+    elif abs(c) > RETARE_ADVISED:
+        level, msg = 0, f"device changed {text}: a re-tare is advised when the joint is free"
+    else:
+        level, msg = 0, ""
+    if drift.unmeasured_n > UNMEASURED_N:
+        lost = (f"the device's gradient and contacts unmeasured since the last rest frame ({since_rest_text(drift)}): "
+                "they follow its scale by their slope at rest; sigma_n says how unsure, the next rest re-acquires them")
+        level, msg = 1, f"{lost}; {msg}" if msg else lost
+    return level, msg

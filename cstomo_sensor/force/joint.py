@@ -1,0 +1,93 @@
+"""One frame's own measurement of the device's uniform scale, its load marginalised (issue 26): the joint
+fit of the force and the scale that lets every frame, loaded or not, inform the drift tracker
+(:mod:`.drift`), and the directions the tracker follows besides the scale. docs/node.md, *Following the
+device under load*."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import lapack
+
+
+def solve_small(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X with A X = B for a small square ``A`` (LAPACK's gesv without numpy.linalg's checks: 2 us
+    instead of 7); raises ``LinAlgError`` if ``A`` is singular, as ``np.linalg.inv`` did."""
+    _, _, X, info = lapack.dgesv(A, B)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular matrix (gesv info {info})")
+    return X
+
+
+def gradient_directions(model) -> np.ndarray:
+    """(3, n_meas): the normalised change of a resistivity rising linearly across the block along x,
+    y and z, by 1 (relative) per half of the block's extent from its middle, through the model's
+    sensitivity (``S`` is per relative conductivity change of its basis voxels: ``-S`` per relative
+    resistivity change; ``-S @ 1`` is the uniform scaling's ``r`` to 5e-4)."""
+    c = np.asarray(model.basis_centers, float)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    xi = (c - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
+    return -(model.S @ xi).T
+
+
+class JointScale:
+    """One frame's own measurement of the device's uniform scale with its load marginalised (issue 26,
+    item 2): the model estimator's last fit (``ModelEstimator.last_fit``: the surrogate's residual and
+    Jacobian at the force it found, in its whitened basis) extended by the scale's direction.
+
+    A scale error ``d`` of the frame's change ``y`` adds ``d (r + y)`` (``r = V_ref / y_scale``); with
+    ``J`` the load's Jacobian, ``rho`` the fit's residual and a controller's expected load ``e`` of
+    information ``L`` (None: none), the joint least squares over the force step ``dx`` and ``d``::
+
+        |rho - J dx - d_w d|^2 + (dx - e)^T L (dx - e)
+
+    profiled over ``dx`` gives ``d``'s information ``H = |d_w|^2 - g^T A^-1 g`` and its estimate
+    ``b / H`` (``A = J^T J + L``, ``g = J^T d_w``): the part of the frame's change along ``r`` that no
+    load explains. The part of ``d_w`` outside the estimator's basis (no load makes it) is taken from
+    dot products over the full change. :meth:`measure` returns it with the force's step for a given
+    ``d``: ``dF = u - v d`` (N).
+    """
+
+    def __init__(self, estimator, r: np.ndarray) -> None:
+        self.est = estimator
+        rw = np.asarray(r, float)[estimator.keep] * estimator.w
+        self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
+        self.dof = max(len(rw) - 4, 1)
+        self._M = np.empty((len(self.Brw), 2))
+
+    def measure(self, expected: tuple | None = None) -> tuple | None:
+        """(d, its variance, u, v, the frame's force) of the estimator's latest frame (class docstring); ``expected``:
+        (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives nothing."""
+        est = self.est
+        if est.last_fit is None:
+            return None
+        yw, step, x_hat = est.last_fit
+        out, k = est._out, est.scale
+        Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
+        rho = np.dot(np.asarray(step, float), Jt)  # the residual at the final force: By - s(x) to first order
+        rho -= out[0]
+        By = est._d0 - est._d0_target
+        Bd = self.Brw + By
+        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
+        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
+        dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
+        A = np.dot(Jt, Jt.T)
+        M = self._M
+        M[:, 0] = rho
+        M[:, 1] = Bd
+        rhs = np.dot(Jt, M)  # (3, 2): J^T rho, g = J^T d_w
+        if expected is not None:
+            f, sig = expected
+            lam = (k / sig) ** 2
+            A[np.diag_indices(3)] += lam
+            rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
+        try:
+            sol = solve_small(A, rhs)
+        except np.linalg.LinAlgError:
+            return None
+        g = rhs[:, 1]
+        H = dd - float(g.dot(sol[:, 1]))
+        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
+        if not H > 0:
+            return None
+        chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
+        inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
+        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k)
