@@ -138,7 +138,10 @@ def test_consistency_extremes(pipe):
     with_allowance = Consistency(c.y, c.noise, pipe.consistency.allowance)
     assert 11 < with_allowance.threshold < 12.5  # with the mismatch allowance, the change's noise at 60 dB
     assert c(np.zeros(pipe.n_meas)) == 0.0
-    for i, j in [(5, 77), (1, 2), (100, 150)]:  # sums of two socket loads: within the span, to the truncation
+    # sums of two socket loads: within the span, to the truncation (rows 1 + 5 d + k: direction d at the
+    # k-th magnitude of 1, 5, 12, 22, 40 N: 5 N along directions 1 and 19, 5 and 12 N along 0, 40 N along
+    # 24 and 5 N along 37)
+    for i, j in [(7, 97), (2, 3), (125, 187)]:
         y = pipe.estimator.y[i] + pipe.estimator.y[j]
         z = y * c.w
         assert c(y) * c.dof < 1e-3 * (z @ z) and c(y) < 0.2, (i, j, c(y))

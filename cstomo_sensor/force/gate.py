@@ -9,7 +9,7 @@ and field. The gate works on the change relative to the device's *own* reference
 rejected when any of these holds:
 
 1. ``||g|| > DEVICE_MARGIN * k * max_force + NOISE_NORM_FACTOR * ||n40||``: ``k`` is the largest
-   ``||y|| / |F|`` of the estimator's calibration set (simulated socket loads 5..40 N; nearly
+   ``||y|| / |F|`` of the estimator's calibration set (simulated socket loads 1..40 N; nearly
    linear in |F|), ``||n40||`` the norm of the per-channel noise of a 40 dB board (docs/physics.md#noise,
    the poorest real board), doubled to cover a single-frame reference.
 2. any channel's ``|g_i| > DEVICE_MARGIN * e_i * max_force + CHANNEL_NOISE_SIGMAS * n40_i``: ``e_i``
