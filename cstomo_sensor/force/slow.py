@@ -173,7 +173,7 @@ class SlowStates:
             fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
             creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
             self._sigma = ForceSigma(force_map(pipe), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
-                                     None if drift is None else drift._D, k_rel, creep_rel)
+                                     None if drift is None else drift._D, k_rel, creep_rel, est)
             self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
         return self._sigma
 
