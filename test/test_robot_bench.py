@@ -159,6 +159,20 @@ def test_a_loaded_warm_up_is_followed_without_a_rest(device_b):
     assert _win(warm, warm[0] >= 0)["over3sigma_pct"] <= 1.0  # every minute, not only the last
 
 
+@pytest.mark.slow
+def test_a_tracked_loaded_stream_says_how_sure_it_is_within_2x(device_b):
+    """Issue 26, informative: back-to-back loads without a rest for two minutes, tracked: the median sigma_n
+    within 2x the median error, every frame honest (on main, whose model sigma took the noise and the
+    tracker's states through the estimator's linear part, 2x as sensitive as its fit: the robot bench's
+    device_b 2.5-3.2x; this coarse one 2.65x; now 1.72x)."""
+    spec = robot.loaded_warmup(False)
+    out = _run(device_b, type(spec)(**{**spec.__dict__, "duration": 120.0}), True, robot.LOADED_RATE)
+    w = _win(out, out[0] >= 0)
+    print(f"loaded, no warming, tracked: > 3 sigma {w['over3sigma_pct']:.2f} %, sigma/error {w['sigma_ratio']:.2f}")
+    assert w["over3sigma_pct"] <= 1.0
+    assert w["sigma_ratio"] <= 2.0
+
+
 def _restart(device, change: float, loaded: bool, after: float):
     """A restart from a 2 h old tare after a ``change`` of the device, tracked, and the same frames of an
     unchanged device untracked: (the run, its window from ``after`` s, the baseline's window)."""

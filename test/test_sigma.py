@@ -78,3 +78,38 @@ def test_sigma_is_honest_and_informative_on_the_no_drift_baseline(monkeypatch):
     assert ok.mean() > 0.99
     fig = robot.sigma_figures(np.linalg.norm(est[ok] - forces[ok], axis=1), sigma[ok])
     assert fig["over3sigma_pct"] <= 1.0 and 0.5 <= fig["sigma_ratio"] <= 2.0, fig
+
+
+@pytest.fixture(scope="module")
+def model_pipe():
+    from conftest import PIPE
+
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
+
+    return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
+
+
+def test_the_model_estimators_noise_term_is_its_own_scatter(model_pipe, cuboid_truth):
+    """Issue 26, informative: the ``model`` estimator's sigma takes the noise through its own fit near the
+    load, not through its linear part (the ridge map it starts from, 2x as sensitive: on main the noise
+    term read 0.76 N on the robot bench's device_b, whose forces scatter by 0.37 N). A load held on the
+    honest device (its own finer mesh), 60 dB, tracking off: the sigma's part beyond the calibration
+    residual (nominal, isotropic: k |F|) is the forces' own scatter around their mean, within 25 %."""
+    from cstomo_sensor.model.simulate import Load, add_noise
+
+    pipe = model_pipe
+    rng = np.random.default_rng(11)
+    ref, loaded = cuboid_truth.frames([Load("socket", force=(6.0, -4.0, -12.0))])
+    tare = add_noise(np.repeat(ref[None], 50, 0), ref, 60.0, rng)
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=False, creep_per_decade=0.0))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "test")
+    frames = add_noise(np.repeat(loaded, 400, 0), ref, 60.0, rng)
+    outs = [stream.push(v, stamp_ns=(k + 1) * 10_000_000) for k, v in enumerate(frames)]
+    F = np.array([o.result.force for o in outs])
+    sn = np.array([o.result.sigma_n for o in outs])
+    scatter = np.sqrt(np.sum(np.var(F, axis=0)))
+    k, _ = relative_error(None, "model")
+    noise_part = np.sqrt(np.median(sn) ** 2 - (k * np.linalg.norm(F.mean(axis=0))) ** 2)
+    print(f"scatter {scatter:.3f} N, sigma_n {np.median(sn):.3f} N, its noise part {noise_part:.3f} N")
+    assert noise_part == pytest.approx(scatter, rel=0.25)

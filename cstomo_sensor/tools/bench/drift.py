@@ -13,7 +13,10 @@ at :data:`RATE` frames/s. Per scenario, estimator and tracking on/off:
   per-frame force magnitude over those frames (the frames' own noise included);
 - ``angle_deg`` / ``magnitude_pct``: median errors over the loaded frames;
 - ``tracked_change``: the tracker's scale - 1 at the end; ``implausible``: frames refused;
-- ``us_per_frame``: median time of one frame through the stream (``FrameStream.push``) in this run.
+- ``us_per_frame``: median time of one frame through the stream (``FrameStream.push``) in this run;
+- ``over3sigma_pct``: the published frames whose error norm exceeds 3 ``sigma_n`` (force/sigma.py; the
+  aim <= 1 % where the drift is tracked or absent), ``sigma_ratio`` the median ``sigma_n`` over the
+  median error (informative: within 2x).
 
 Then the device over time (model/timeline.py: the truth solved at knots of its state, interpolated,
 60 dB): a temperature gradient (10 K at 0.8 %/K over RAMP_S, +-30 % across the block along x), every electrode's
@@ -104,11 +107,13 @@ def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | 
         costs.extend(cost)
     zero = np.array(zero)
     ok = np.isfinite(zero).all(axis=1)
+    true = np.array([forces[i] if i is not None else np.zeros(3) for _, i, _ in plan])
     return {"zero_bias_n": float(np.linalg.norm(zero[ok].mean(axis=0))) if ok.any() else np.nan,
             "zero_p99_n": float(np.percentile(np.linalg.norm(zero[ok], axis=1), 99)) if ok.any() else np.nan,
             "angle_deg": float(np.median(ang)) if ang else np.nan, "magnitude_pct": float(np.median(mag)) if mag else np.nan,
             "tracked_change": stream.drift.change if stream.drift is not None else 0.0,
-            "implausible": stream.implausible, "us_per_frame": 1e6 * float(np.median(cost))}
+            "implausible": stream.implausible, "us_per_frame": 1e6 * float(np.median(cost)),
+            **_sigma(np.array(trace.forces, float), true, np.array(trace.sigma_n))}
 
 
 def drift_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
@@ -160,7 +165,7 @@ def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 
 
 def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int = 7, creep: float | None = None):
     """Push a timeline's frames through a stream tared on its t = 0 state: (times, frames' forces
-    (n, 3), true forces (n, 3), state, tracked scale per frame, us per frame)."""
+    (n, 3), true forces (n, 3), state, tracked scale per frame, us per frame, :func:`_sigma`'s figures)."""
     rng = np.random.default_rng(seed)
     times, frames, forces, state = tl.frames(rate, rng=rng)
     tare = tl.tare(20, rng)
@@ -170,7 +175,19 @@ def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int 
     trace = Trace(lambda: stream.slow.scale)
     run(ArraySource(frames, (1e9 * (1 + np.asarray(times))).astype(np.int64)), stream, [trace])
     est, scale = np.array(trace.forces, float).reshape(-1, 3), np.array(trace.probed)
-    return times, est, forces, state, scale, 1e6 * float(np.median(trace.seconds))
+    return (times, est, forces, state, scale, 1e6 * float(np.median(trace.seconds)),
+            _sigma(est, forces, np.array(trace.sigma_n)))
+
+
+def _sigma(est, forces, sigma) -> dict:
+    """The error bars' honesty over the published frames (robot bench's ``sigma_figures``): ``over3sigma_pct``
+    the share whose error norm exceeds 3 ``sigma_n`` (the aim: <= 1 %), ``sigma_ratio`` the median sigma_n over
+    the median error (informative: within 2x)."""
+    from .robot import sigma_figures
+
+    ok = np.isfinite(est).all(axis=1) & np.isfinite(sigma)
+    fig = sigma_figures(np.linalg.norm(est[ok] - forces[ok], axis=1), sigma[ok])
+    return {"over3sigma_pct": fig["over3sigma_pct"], "sigma_ratio": fig["sigma_ratio"]}
 
 
 def _errors(est, forces, rest_after: float, times) -> dict:
@@ -195,22 +212,22 @@ def _timelines(out, cache_dir, say) -> list[dict]:
         settled = spec.duration - 4.0  # the zero over the last 4 s, after the change
         tl = Timeline(spec, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
         for tracking in (False, True):
-            times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, rate)
+            times, est, forces, state, scale, us, sig = _timeline_stream(pipe, tl, tracking, rate)
             rows.append({"scenario": name, "estimator": pipe.estimator_name, "tracking": tracking,
                          **_errors(est, forces, settled, times), "tracked_change": float(scale[-1] - 1),
-                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us})
+                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us, **sig})
             say(f"drift bench: {name}, tracking {tracking}: zero {rows[-1]['zero_bias_n']:.3f} N")
     tl = Timeline(held_load_creep(20.0, creep=0.04, on=1.0, duration=601.0), DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED,
                   cache_dir=cache_dir).prepare()
     for creep in (0.0, 0.02, 0.04, 0.06):
-        times, est, forces, state, scale, us = _timeline_stream(pipe, tl, True, 10.0, creep=creep)
+        times, est, forces, state, scale, us, sig = _timeline_stream(pipe, tl, True, 10.0, creep=creep)
         mag = np.linalg.norm(est, axis=1)
         early, late = np.nanmedian(mag[(times >= 1.9) & (times <= 2.1)]), np.nanmedian(mag[times >= 590.0])
         rows.append({"scenario": f"creep 4 % of 20 N held 10 min, compensated at {creep:.0%}",
                      "estimator": pipe.estimator_name, "tracking": True,
                      "zero_bias_n": np.nan, "zero_p99_n": np.nan, "angle_deg": np.nan,
                      "magnitude_pct": float(100 * (late / early - 1)), "tracked_change": float(scale[-1] - 1),
-                     "implausible": 0, "us_per_frame": us})
+                     "implausible": 0, "us_per_frame": us, **sig})
         say(f"drift bench: creep, compensated at {creep:.0%}: the reading after 10 min is {rows[-1]['magnitude_pct']:+.1f} % "
             "of the one after 1 s (creep_drift_pct)")
     spec = warmup_30min(seed=SEED)
@@ -221,10 +238,10 @@ def _timelines(out, cache_dir, say) -> list[dict]:
                                 ("warm-up 30 min without creep", dry, (False, True))):
         tl = Timeline(sp, DEFAULT_SENSOR, snr_db=SNR_DB, seed=SEED, cache_dir=cache_dir).prepare()
         for tracking in trackings:
-            times, est, forces, state, scale, us = _timeline_stream(pipe, tl, tracking, WARMUP_RATE)
+            times, est, forces, state, scale, us, sig = _timeline_stream(pipe, tl, tracking, WARMUP_RATE)
             rows.append({"scenario": name, "estimator": pipe.estimator_name, "tracking": tracking,
                          **_errors(est, forces, 0.0, times), "tracked_change": float(scale[-1] - 1),
-                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us})
+                         "implausible": int(np.isnan(est).any(axis=1).sum()), "us_per_frame": us, **sig})
             say(f"drift bench: {name}, tracking {tracking}: zero p99 {rows[-1]['zero_p99_n']:.3f} N, angle "
                 f"{rows[-1]['angle_deg']:.2f} deg, magnitude {rows[-1]['magnitude_pct']:.2f} %")
             if name.startswith("warm-up 30"):
