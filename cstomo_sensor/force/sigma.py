@@ -128,47 +128,58 @@ class ForceSigma:
         if self.est is not None:
             est = self.est
             kept = np.asarray(est.keep, bool)
-            self._Bw = est.basis * est.w  # (k, n_keep): a change (kept channels) into the fit's basis
+            self._all_kept = bool(kept.all())
+            self._Bw = np.ascontiguousarray(est.basis * est.w)  # (k, n_keep): a change into the fit's basis
             self._kept = kept
             # the change's noise in the fit's units (1 + 1/N: the frame's and the reference's)
             self._noise_w2 = float(np.mean((np.asarray(noise, float)[kept] * est.w) ** 2))
-            m = 0 if D is None else len(D)
-            self._rhs = np.zeros((3, m + 4))  # [J^T B w D^T | J^T B w y | I]
-            self._rhs[:, m + 1:] = np.eye(3)
-            self._BwD = None if D is None else np.ascontiguousarray(self._Bw @ (D[:, kept] * keep[kept]).T)
+            self._BwX = None  # the states' directions in the basis: r + y (y set per frame), the others, r
+            m = 0
+            if D is not None:
+                m = len(D)
+                BwD = self._Bw @ (D[:, kept] * keep[kept]).T  # (k, m)
+                self._Bwr = np.ascontiguousarray(BwD[:, 0])
+                self._BwX = np.ascontiguousarray(np.hstack([BwD, BwD[:, :1]]))
+                self._WDl = np.zeros((3, m + 1))  # the states' force map, then the rate's (none)
+            self._n0 = n0 = m + 1 if D is not None else 0  # where (J^T J)^-1 starts in the solution
+            self._rhs = np.zeros((3, n0 + 3))
+            self._rhs[:, n0:] = np.eye(3)
 
     def _local(self):
-        """(noise variances (3,), the states' force map (3, m + 1) with the load's own scale change, the
-        uniform change's force (3,), C = (J^T J)^-1 k) of the model estimator's latest fit, or None
-        (no fit yet, a singular fit: the linear part's map then)."""
+        """(noise variances (3,), the states' force map (3, m + 1) with the load's own scale change or
+        None, the undescribed change's variance per axis over (s - 1)^2) of the model estimator's latest
+        fit; None (no fit yet, a singular fit: the linear part's map then). The solution ``X`` of the
+        fit's normal equations is kept (:meth:`creep_force`)."""
         est = self.est
         fit = est.last_fit
         if fit is None:
             return None
         if fit is self._loc_for:
             return self._loc
-        k = est.scale
+        k, n0, rhs = est.scale, self._n0, self._rhs
         Jt = est._out[1:]  # (3, k): the Jacobian's transpose at the fit's last iterate (force/joint.py)
-        rhs = self._rhs
-        m = rhs.shape[1] - 4
-        if self._BwD is not None:
-            rhs[:, :m] = np.dot(Jt, self._BwD)
-        rhs[:, m] = np.dot(Jt, est._d0 - est._d0_target)  # J^T B w y: the load's own change
-        try:
-            X = solve_small(np.dot(Jt, Jt.T), rhs)
+        BwX = self._BwX
+        if BwX is not None:
+            col = BwX[:, 0]
+            np.subtract(est._d0, est._d0_target, out=col)  # B w y: a scale error scales the load's change too
+            col += self._Bwr
+            rhs[:, :n0] = Jt.dot(BwX)
+        try:  # est._G[:, 1:] is the last iteration's J^T J
+            X = solve_small(est._G[:, 1:], rhs)
         except np.linalg.LinAlgError:
             self._loc, self._loc_for = None, fit
             return None
-        C = X[:, m + 1:]
-        noise_var = (k * k * self._noise_w2 * np.diag(C)).tolist()
-        WD = None
-        if self._BwD is not None:
-            WD = np.zeros((3, m + 1))
-            WD[:, :m] = k * X[:, :m]
-            r_force = WD[:, 0].copy()
-            WD[:, 0] += k * X[:, m]  # a scale error scales the load's change too
-            WD = (WD, np.ascontiguousarray(WD.T), UNDESCRIBED ** 2 * float(r_force.dot(r_force)) / 3.0)
-        self._loc, self._loc_for = (noise_var, WD, k * C), fit
+        self._X = X
+        x = X.tolist()
+        c = k * k * self._noise_w2
+        noise_var = [c * x[0][n0], c * x[1][n0 + 1], c * x[2][n0 + 2]]
+        WD, change2 = None, 0.0
+        if BwX is not None:
+            m = n0 - 1
+            WD = self._WDl
+            np.multiply(X[:, :m], k, out=WD[:, :m])
+            change2 = UNDESCRIBED ** 2 * k * k * (x[0][m] ** 2 + x[1][m] ** 2 + x[2][m] ** 2) / 3.0
+        self._loc, self._loc_for = (noise_var, WD, change2), fit
         return self._loc
 
     def creep_force(self, offset: np.ndarray) -> np.ndarray:
@@ -177,8 +188,8 @@ class ForceSigma:
         loc = self._local() if self.est is not None else None
         if loc is None:
             return self.W.dot(offset)
-        Jt = self.est._out[1:]
-        return loc[2].dot(Jt.dot(self._Bw.dot(np.asarray(offset, float)[self._kept])))
+        o = offset if self._all_kept else np.asarray(offset, float)[self._kept]
+        return self.est.scale * self._X[:, self._n0:].dot(self.est._out[1:].dot(self._Bw.dot(o)))
 
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None,
                  change: float = 0.0) -> tuple[tuple[float, float, float], float]:
@@ -193,10 +204,10 @@ class ForceSigma:
         v = [x + cal for x in noise_var]
         if P is not None and self.WD is not None:
             if loc is not None:  # the local map's scale column has the load's own change already
-                WD, WDT, change2 = loc[1]
+                WD = loc[1]
                 G = WD.dot(P)
-                M = G.dot(WDT).tolist()
-                c2 = change2 * change * change
+                M = G.dot(WD.T).tolist()
+                c2 = loc[2] * change * change
                 for i in range(3):
                     v[i] += M[i][i] + c2
             else:
