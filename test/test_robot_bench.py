@@ -203,7 +203,7 @@ def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(de
           f"sigma/error {r['sigma_ratio']:.2f}, tracked {r['tracked_change']:+.4f}")
     assert r["angle_deg"] <= 1.5 * base["angle_deg"] and r["magnitude_pct"] <= 1.6 * base["magnitude_pct"]
     assert _win(out, out[0] >= 0)["over3sigma_pct"] <= 1.0  # from the first frame on
-    assert r["sigma_ratio"] <= 4.0  # informative (measured 2.3-3)
+    assert r["sigma_ratio"] <= 2.5  # informative (2.3-3 through the model's linear part; its own map: 1.7-1.9)
 
 
 # --- issue 26: "the warm-up at 1.5 %/K keeps its zero (the tracking never locks: when it loses the device,
