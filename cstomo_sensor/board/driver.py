@@ -387,8 +387,12 @@ class BoardDriver:
             self._last_frame_at = None  # no period across a reconnect
             if self._opens > 1 and self.on_reconnect is not None:
                 self.on_reconnect()
+        # without a reader thread up to the caller's deadline (the node's 0.1 s: one wake-up per timeout
+        # when idle, not two), at most 2 read_timeouts (a close() from elsewhere is seen)
+        wait = self._read_timeout if deadline == math.inf else min(max(deadline - time.monotonic(), 0.0),
+                                                                    2 * self._read_timeout)
         try:
-            data = self._read()
+            data = self._read(wait)
         except (serial.SerialException, OSError) as err:
             self._error(f"read failed: {err}")
             self._close_port()
@@ -404,14 +408,14 @@ class BoardDriver:
         self._last_byte = now
         self._handle(self._decoder.feed(data, marks=True))
 
-    def _read(self) -> bytes:
-        """What the port holds, waiting up to ``read_timeout`` for the first byte: on a device or a
+    def _read(self, wait: float) -> bytes:
+        """What the port holds, waiting up to ``wait`` s for the first byte: on a device or a
         virtual link one wait and one read of the file descriptor (pyserial's own read of what is
         waiting costs an ioctl and two waits and reads per frame), else pyserial's read."""
         fd = self._fd
         if fd is None:
             return self._port.read(max(1, self._port.in_waiting))
-        if not select.select((fd,), (), (), self._read_timeout)[0]:
+        if not select.select((fd,), (), (), wait)[0]:
             return b""
         data = os.read(fd, 65536)
         if not data:  # ready, yet nothing: the device went away (pyserial says the same)
