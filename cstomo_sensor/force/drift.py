@@ -100,6 +100,7 @@ REST_FORCE_MIN = 0.5
 #: frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5 on the others).
 QUIET_FAST, QUIET_SLOW = 0.2, 30.0
 QUIET_N, QUIET_SIGMAS = 0.12, 2.5
+QUIET_BIG, QUIET_POST = 1.0, 2.0
 
 
 class DriftTracker:
@@ -135,7 +136,7 @@ class DriftTracker:
             self._W, self._Wr = W, W @ D[0]
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
-            self._sigma_f = sigma
+            self._sigma_f, self._big = sigma, QUIET_BIG * self.rest_force
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
@@ -159,7 +160,7 @@ class DriftTracker:
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
-        self._fast, self._slow, self._quiet = np.zeros(3), np.zeros(3), True  # _step's means and verdict
+        self._fast, self._slow, self._quiet, self._post = np.zeros(3), np.zeros(3), True, 0.0  # _step's state
 
     def rebuilt(self, *, keep: np.ndarray | None = None, noise: np.ndarray | None = None,
                 force_map: np.ndarray | None = None) -> DriftTracker:
@@ -172,7 +173,7 @@ class DriftTracker:
         new._set_gradient(self.gradient)
         new.follow, new._fit = self.follow.copy(), self._fit.copy()
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
-        new._fast, new._slow, new._quiet = self._fast.copy(), self._slow.copy(), self._quiet
+        new._fast, new._slow, new._quiet, new._post = self._fast.copy(), self._slow.copy(), self._quiet, self._post
         return new
 
     @property
@@ -218,7 +219,7 @@ class DriftTracker:
             f = np.dot(self._W, y) - self._Wr * best
             rest = rest and math.sqrt(float(f.dot(f))) < self.rest_force
             # ... and when the frames before it were quiet (QUIET_N: no step of a load in the means)
-            quiet, self._quiet = self._quiet, self._step(f, rest)
+            quiet, self._quiet = self._quiet, self._step(f, rest, dt)
             rest = rest and quiet
         step = self.rate * dt
         self.rate *= a
@@ -280,16 +281,24 @@ class DriftTracker:
         self.P = 0.5 * (P + P.T)
         return rest
 
-    def _step(self, f: np.ndarray, rest: bool) -> bool:
-        """The non-uniform force ``f`` (3,) N of a frame into its fast mean and, if the frame passes the
-        frame's own rest tests (``rest``), into the slow one (:data:`QUIET_FAST`: a task's loads do not
-        move it); True while they differ by less than the bound (no load's step in them)."""
+    def _step(self, f: np.ndarray, rest: bool, dt: float) -> bool:
+        """The non-uniform force ``f`` (3,) N of a frame into its fast and slow means (:data:`QUIET_FAST`);
+        True while they differ by less than the bound (no small load's step in them). ``rest``: the frame
+        passes its own tests (only those move the slow mean)."""
         af, aslow, bound2 = self._quiet_k
         fast, slow = self._fast, self._slow
         fast += af * (f - fast)
-        if rest:
-            slow += aslow * (fast - slow)
         d = fast - slow
+        big = self._big
+        if float(d.dot(d)) > big * big:  # a load the frame tests see: the slow mean follows it and its end
+            self._post = QUIET_POST
+        if self._post > 0.0:
+            self._post -= dt
+            slow[:] = fast
+            return True
+        if rest:
+            slow += aslow * d
+            d = fast - slow
         return float(d.dot(d)) < bound2
 
     def _follow_fit(self, dt: float, g: np.ndarray) -> None:
