@@ -9,9 +9,9 @@ y, z; the resistivity's gradient, :func:`~.joint.gradient_directions`); the pipe
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
 of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's): the
-frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`; a rest frame measures every
-state), **every frame** with the ``model`` estimator (the force and the scale fitted jointly,
-:class:`~.joint.JointScale`, the tracker's mean and covariance the scale's prior; the other states
+frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`, after quiet frames
+:data:`QUIET_N`; a rest frame measures every state), **every frame** with the ``model`` estimator
+(the force and the scale fitted jointly, :class:`~.joint.JointScale`, the tracker's mean and covariance the scale's prior; the other states
 follow the scale under load by their slope at rest, :data:`FOLLOW_MEMORY`), and **time** (random
 walks of :data:`RATE`, the scale's rate one of :data:`ACCEL`: loads move in tenths of seconds, the
 device in minutes). docs/node.md, *The zero over time* and *Following the device under load*, says
@@ -87,17 +87,19 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
-#: ... and only when the frames before it were quiet: the non-uniform force's fast mean (over
-#: QUIET_FAST seconds) within QUIET_N newtons of its slow mean (over QUIET_SLOW seconds of the frames that
-#: pass the tests above), or QUIET_SIGMAS
-#: times the fast mean's noise where that is more (40 dB). A small load held still passes the frame's
-#: own tests (1 N straight down: 97 % of its frames at 60 dB; the best uniform change explains 75 % of
-#: its force) and its part along the contacts' and the gradient's directions went into them, the scale
-#: following (a held 1 N read 0.75 N after 10 s); its step is seen in the means (0.25 N against their
-#: noise of 0.05 N). A drift of the states the tests do not see is slow, so the slow mean takes it and
-#: the tracker never locks out of its rests; a load held longer than about QUIET_SLOW is taken for the
-#: device as before. The verdict is the previous frame's, not this one's: chosen by its own noise, the
-#: frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5 on the others).
+#: ... and only when the frames before it were quiet: the non-uniform force's fast mean (over QUIET_FAST
+#: seconds) within QUIET_N newtons of its slow mean (over QUIET_SLOW seconds of the frames that pass the
+#: tests above), or QUIET_SIGMAS times the fast mean's noise where that is more (40 dB). A small load held
+#: still passes the frame's own tests (1 N straight down: 97 % of its frames at 60 dB; the best uniform
+#: change explains 75 % of its force) and its part along the contacts' and the gradient's directions
+#: went into them, the scale following (a held 1 N read 0.75 N after 10 s); its step is seen in the means
+#: (0.25 N against their noise of 0.05 N). A load the tests see (the means apart by more than QUIET_BIG
+#: times the rest force) moves the slow mean with it, during it and QUIET_POST seconds after it: the rests
+#: after a task re-acquire the states the task left stale, as before (else the 1.5 %/K warm-up locks).
+#: A small load held longer than about QUIET_SLOW, or put on within QUIET_POST after a larger one, is
+#: taken for the device as before. The verdict is the previous frame's, not this one's: chosen by its
+#: own noise, the frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5
+#: on the others).
 QUIET_FAST, QUIET_SLOW = 0.2, 30.0
 QUIET_N, QUIET_SIGMAS = 0.12, 2.5
 QUIET_BIG, QUIET_POST = 1.0, 2.0
