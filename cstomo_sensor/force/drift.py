@@ -91,7 +91,8 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
-#: ... and only when the frames before it were quiet: the non-uniform force's fast mean (over QUIET_FAST
+#: ... and, with the joint fit (the ``model`` estimator; the linear one measures the scale at rest only),
+#: only when the frames before it were quiet: the non-uniform force's fast mean (over QUIET_FAST
 #: seconds) within QUIET_N newtons of its slow mean (over QUIET_SLOW seconds of the frames that pass the
 #: tests above), or QUIET_SIGMAS times the fast mean's noise where that is more (40 dB). A small load held
 #: still passes the frame's own tests (1 N straight down: 97 % of its frames at 60 dB; the best uniform
@@ -224,9 +225,10 @@ class DriftTracker:
         if self._W is not None:
             f = np.dot(self._W, y) - self._Wr * best
             rest = rest and math.sqrt(float(f.dot(f))) < self.rest_force
-            # ... and when the frames before it were quiet (QUIET_N: no step of a load in the means)
+            # ... and, with the joint fit, when the frames before it were quiet (QUIET_N: no step of a
+            # load in the means); the linear estimator measures the scale at rest only: not quieted
             quiet, self._quiet = self._quiet, self._step(f, rest, dt)
-            rest = rest and quiet
+            rest = rest and (quiet or joint is None)
         step = self.rate * dt
         self.rate *= a
         self.force_step = None
