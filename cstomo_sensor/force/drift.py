@@ -50,14 +50,12 @@ RATE_MEMORY = 30.0
 #: load only the scale is measured (the joint fit), so there they follow it: by ``v ds``, ``ds`` the
 #: scale's change in the frame and ``v`` the slope of each state against the scale, fitted on the rest
 #: frames (least squares, their weight fading over :data:`FOLLOW_MEMORY` seconds of rest; 0 until the
-#: scale spanned :data:`FOLLOW_SPAN` there), times FOLLOW_GAIN. Without it they stood still during a
-#: task and the tracking locked at 1.5 %/K (docs/node.md, *The zero over time*). Half the fitted slope:
-#: measured, the 30-minute warm-up at 0.8 %/K (cstomo bench --drift) reads 1.03 deg with half, 1.08 deg
-#: with all of it (1.025 deg without any follow, which locks at 1.5 %/K); a quarter loses the 1.5 %/K
-#: warm-up's zero (0.52 N against 0.38 N, test_robot_bench).
+#: scale spanned :data:`FOLLOW_SPAN` there). Without it they stood still during a task and the tracking locked at
+#: 1.5 %/K (docs/node.md, *The zero over time*). All of the slope: half of it reads the 30-minute warm-up at
+#: 0.8 %/K better (cstomo bench --drift: 1.03 deg against 1.08), but the states are then half stale after a
+#: long task and the rests after it are refused (test_drift: the tracker locks).
 FOLLOW_MEMORY = 300.0
 FOLLOW_SPAN = 1e-3
-FOLLOW_GAIN = 0.5
 #: ... and that slope is known only so well: while no rest measures them, each other state's variance
 #: grows by ``(FOLLOW_SIGMA a)^2``, ``a`` the scale's change at its tracked rate since the last rest frame
 #: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
@@ -282,7 +280,7 @@ class DriftTracker:
             if rest:
                 self._follow_fit(dt, g)
             else:  # unmeasured: the other states follow the scale's change (FOLLOW_MEMORY)
-                g += FOLLOW_GAIN * self.follow * (self.scale - scale0)
+                g += self.follow * (self.scale - scale0)
             self._set_gradient(g)
         if joint is not None:
             self.force_step = joint[2] - joint[3] * d[0]  # the force given the scale now known
