@@ -99,8 +99,8 @@ REST_FORCE_MIN = 0.5
 #: (0.25 N against their noise of 0.05 N). A load the tests see (the means apart by more than QUIET_BIG
 #: times the rest force) moves the slow mean with it, during it and QUIET_POST seconds after it: the rests
 #: after a task re-acquire the states the task left stale, as before (else the 1.5 %/K warm-up locks).
-#: A small load held longer than about QUIET_SLOW, or put on within QUIET_POST after a larger one, is
-#: taken for the device as before. The verdict is the previous frame's, not this one's: chosen by its
+#: A small load held longer (1 N: from about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put on within
+#: QUIET_POST after a larger one, is taken for the device as before. The verdict is the previous frame's, not this one's: chosen by its
 #: own noise, the frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5
 #: on the others).
 QUIET_FAST, QUIET_SLOW = 0.2, 30.0
