@@ -71,26 +71,29 @@ def _held(pipe, down_, held, tracking):
 @pytest.mark.parametrize("held", [1.0, 2.0])
 def test_a_small_load_held_straight_down_is_not_taken_for_the_device(model_pipe, down, held):
     """A held 1-2 N load straight down (the load most like a uniform change) with the tracking on reads
-    what it reads without tracking, to what the design separates: measured 0.78 x (1 N) and 0.85 x
-    (2 N) after 10 s (0.68 x and 0.72 x before the calibration's 1 N loads), where the tracking before
-    issue 26 read 0.16 N for 1 N after 2 s (it took the load for the device). The remaining loss: the
-    frames of a small load that pass the rest tests are those whose noise hides the load, and their joint
-    measurements of the scale are biased by that choice (1 N, frames passing a joint-force rest test:
-    -2.7e-4 against -6e-6 over all frames; 2 N, frames passing today's: -1.0e-4), then weighed as rest
-    frames; and the other states take the load from them (docs/node.md, *Following the device under load*)."""
+    what it reads without tracking, to what the design separates: measured 0.95-0.99 x (1 N) and
+    0.97-1.0 x (2 N) over 2-11 s, where the tracking before issue 26 read 0.16 N for 1 N after 2 s (it took
+    the load for the device) and before the quiet test (force/drift.py QUIET_N) 0.78 x and 0.85 x after
+    10 s: 97 % of a 1 N load's frames pass the frame's own rest tests, and the contacts' and the gradient's
+    states took the load's part along their directions from them, the scale following; at 2 N the frames
+    that passed were those whose noise hid the load, their scale measurements biased (-1.3e-4 against
+    +5e-5 on the others) and weighed as rest frames. What remains: the joint fit's scale under the
+    load (the model's misfit of the load along the uniform change, -3e-5 noise-free at 1 N)."""
     on, stream = _held(model_pipe, down, held, True)
     off, _ = _held(model_pipe, down, held, False)
     print(f"{held} N held, 1 s means from 2 s: tracking on {on.round(3)}, off {off.round(3)}; tracked change "
           f"{stream.drift.change:+.5f}")
-    assert np.all(on >= 0.6 * off) and np.all(on <= 1.1 * off)
-    assert abs(stream.drift.change) < 0.0005  # 1 N straight down looks like a 0.08 % uniform change
+    assert np.all(on >= 0.9 * off) and np.all(on <= 1.1 * off)
+    assert abs(stream.drift.change) < 0.0001  # 1 N straight down looks like a 0.08 % uniform change
 
 
-@pytest.mark.xfail(strict=True, reason="issue 26's aim (within 10 % of the load) not met with the tracking: 1 N reads "
-                   "0.75 N after 10 s (0.94-0.97 N without tracking since the calibration's 1 N loads; see the test above)")
-def test_a_small_load_held_straight_down_reads_within_10_pct(model_pipe, down):
-    on, _ = _held(model_pipe, down, 1.0, True)
-    assert np.all(np.abs(on - 1.0) < 0.1)
+@pytest.mark.parametrize("held", [1.0, 2.0])
+def test_a_small_load_held_straight_down_reads_within_10_pct(model_pipe, down, held):
+    """Issue 26's aim with the tracking on: 1-2 N held straight down read within 10 % for 10 s (1 s means
+    from 1 to 10 s after the load; measured 0.90-0.97 N and 1.90-1.95 N; before the quiet test 1 N read
+    0.75 N after 10 s, 2 N 1.66 N)."""
+    on, _ = _held(model_pipe, down, held, True)
+    assert np.all(np.abs(on - held) < 0.1 * held), on
 
 
 @pytest.mark.parametrize("held", [1.0, 2.0])
