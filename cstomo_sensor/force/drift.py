@@ -9,10 +9,10 @@ y, z; the resistivity's gradient, :func:`~.joint.gradient_directions`); the pipe
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
 of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's): the
-frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`, after quiet frames
-:data:`QUIET_N`; a rest frame measures every state), **every frame** with the ``model`` estimator
+frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`, after quiet frames,
+:mod:`.rest`; a rest frame measures every state), **every frame** with the ``model`` estimator
 (the force and the scale fitted jointly, :class:`~.joint.JointScale`, the tracker's mean and covariance the scale's prior; the other states
-follow the scale under load by their slope at rest, :data:`FOLLOW_MEMORY`), and **time** (random
+follow the scale under load by their slope at rest, :class:`~.rest.FollowSlope`), and **time** (random
 walks of :data:`RATE`, the scale's rate one of :data:`ACCEL`: loads move in tenths of seconds, the
 device in minutes). docs/node.md, *The zero over time* and *Following the device under load*, says
 how, what it measures and what it cannot separate: a change none of the directions describe (single
@@ -27,6 +27,7 @@ import numpy as np
 
 from .creep import DEFAULT_PERIOD
 from .joint import solve_small
+from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, FollowSlope, QuietTest  # noqa: F401 (the constants: drift's words)
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
 #: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a
@@ -46,16 +47,6 @@ ACCEL = 2e-5
 #: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
 #: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
 RATE_MEMORY = 30.0
-#: The other states (the contacts', the gradient's) move with the temperature, so with the scale; under
-#: load only the scale is measured (the joint fit), so there they follow it: by ``v ds``, ``ds`` the
-#: scale's change in the frame and ``v`` the slope of each state against the scale, fitted on the rest
-#: frames (least squares, their weight fading over :data:`FOLLOW_MEMORY` seconds of rest; 0 until the
-#: scale spanned :data:`FOLLOW_SPAN` there). Without it they stood still during a task and the tracking locked at
-#: 1.5 %/K (docs/node.md, *The zero over time*). All of the slope: half of it reads the 30-minute warm-up at
-#: 0.8 %/K better (cstomo bench --drift: 1.03 deg against 1.08), but the states are then half stale after a
-#: long task and the rests after it are refused (test_drift: the tracker locks).
-FOLLOW_MEMORY = 300.0
-FOLLOW_SPAN = 1e-3
 #: ... and that slope is known only so well: while no rest measures them, each other state's variance
 #: grows by ``(FOLLOW_SIGMA a)^2``, ``a`` the scale's change at its tracked rate since the last rest frame
 #: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
@@ -89,23 +80,6 @@ REST_BOUND = 1.5
 #: load passes it, and its sideways part went into the gradient (angle errors of 50 deg).
 REST_FORCE_SIGMAS = 2.5
 REST_FORCE_MIN = 0.5
-#: ... and, with the joint fit (the ``model`` estimator; the linear one measures the scale at rest only),
-#: only when the frames before it were quiet: the non-uniform force's fast mean (over QUIET_FAST
-#: seconds) within QUIET_N newtons of its slow mean (over QUIET_SLOW seconds of the frames that pass the
-#: tests above), or QUIET_SIGMAS times the fast mean's noise where that is more (40 dB). A small load held
-#: still passes the frame's own tests (1 N straight down: 97 % of its frames at 60 dB; the best uniform
-#: change explains 75 % of its force) and its part along the contacts' and the gradient's directions
-#: went into them, the scale following (a held 1 N read 0.75 N after 10 s); its step is seen in the means
-#: (0.25 N against their noise of 0.05 N). A load the tests see (the means apart by more than QUIET_BIG
-#: times the rest force) moves the slow mean with it, during it and QUIET_POST seconds after it: the rests
-#: after a task re-acquire the states the task left stale, as before (else the 1.5 %/K warm-up locks).
-#: A small load held longer (1 N: from about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put on within
-#: QUIET_POST after a larger one, is taken for the device as before. The verdict is the previous frame's, not this one's: chosen by its
-#: own noise, the frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5
-#: on the others).
-QUIET_FAST, QUIET_SLOW = 0.2, 30.0
-QUIET_N, QUIET_SIGMAS = 0.12, 2.5
-QUIET_BIG, QUIET_POST = 1.0, 2.0
 
 
 class DriftTracker:
@@ -141,7 +115,7 @@ class DriftTracker:
             self._W, self._Wr = W, W @ D[0]
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
-            self._sigma_f, self._big = sigma, QUIET_BIG * self.rest_force
+            self._quiet = QuietTest(sigma, self.rest_force)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
@@ -160,12 +134,11 @@ class DriftTracker:
         self.P = np.zeros((m + 1, m + 1))
         self.rest_frames = 0  # frames measured as at rest (all time)
         self.force_step: np.ndarray | None = None  # observe()'s joint force step (N) of the latest frame
-        self.follow = np.zeros(m - 1)  # each other state's slope against the scale (FOLLOW_MEMORY)
-        self._fit = np.zeros((3, m))  # its weighted sums over the rest frames: (1, s, s^2) x (1, x_o)
+        self._follow = FollowSlope(m)
+        self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
-        self._fast, self._slow, self._quiet, self._post = np.zeros(3), np.zeros(3), True, 0.0  # _step's state
 
     def rebuilt(self, *, keep: np.ndarray | None = None, noise: np.ndarray | None = None,
                 force_map: np.ndarray | None = None) -> DriftTracker:
@@ -176,9 +149,12 @@ class DriftTracker:
                            map0 if force_map is None else force_map)
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
-        new.follow, new._fit = self.follow.copy(), self._fit.copy()
+        new._follow = self._follow.copy()
+        new.follow = new._follow.slope
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
-        new._fast, new._slow, new._quiet, new._post = self._fast.copy(), self._slow.copy(), self._quiet, self._post
+        if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
+            q, o = new._quiet, self._quiet
+            q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
         return new
 
     @property
@@ -203,10 +179,6 @@ class DriftTracker:
         m = self.m
         if dt != self._dt:  # frames come at one rate: the prediction's factors once
             self._dt, self._a, self._qdt = dt, math.exp(-dt / RATE_MEMORY), self._q * dt
-            if self._W is not None:  # _step's factors: the means' and the fast one's noise (N)
-                af = 1.0 - math.exp(-dt / QUIET_FAST)
-                bound = max(QUIET_N, QUIET_SIGMAS * self._sigma_f * math.sqrt(af / (2.0 - af)))
-                self._quiet_k = (af, 1.0 - math.exp(-dt / QUIET_SLOW), bound * bound)
             self._F[0, m], self._F[m, m] = dt, self._a
         a = self._a
         # predicted: the scale moves on at its rate, which fades: F P F^T + Q dt with
@@ -223,9 +195,9 @@ class DriftTracker:
         if self._W is not None:
             f = np.dot(self._W, y) - self._Wr * best
             rest = rest and math.sqrt(float(f.dot(f))) < self.rest_force
-            # ... and, with the joint fit, when the frames before it were quiet (QUIET_N: no step of a
-            # load in the means); the linear estimator measures the scale at rest only: not quieted
-            quiet, self._quiet = self._quiet, self._step(f, rest, dt)
+            # ... and, with the joint fit, after quiet frames (force/rest.py); the linear estimator
+            # measures the scale at rest only: not quieted
+            quiet = self._quiet.step(f, rest, dt)
             rest = rest and (quiet or joint is None)
         step = self.rate * dt
         self.rate *= a
@@ -278,7 +250,7 @@ class DriftTracker:
         if m > 1:
             g = self.gradient + tot[1:m]
             if rest:
-                self._follow_fit(dt, g)
+                self._follow.add(dt, self.scale - 1.0, g)
             else:  # unmeasured: the other states follow the scale's change (FOLLOW_MEMORY)
                 g += self.follow * (self.scale - scale0)
             self._set_gradient(g)
@@ -286,40 +258,6 @@ class DriftTracker:
             self.force_step = joint[2] - joint[3] * d[0]  # the force given the scale now known
         self.P = 0.5 * (P + P.T)
         return rest
-
-    def _step(self, f: np.ndarray, rest: bool, dt: float) -> bool:
-        """The non-uniform force ``f`` (3,) N of a frame into its fast and slow means (:data:`QUIET_FAST`);
-        True while they differ by less than the bound (no small load's step in them). ``rest``: the frame
-        passes its own tests (only those move the slow mean)."""
-        af, aslow, bound2 = self._quiet_k
-        fast, slow = self._fast, self._slow
-        fast += af * (f - fast)
-        d = fast - slow
-        big = self._big
-        if float(d.dot(d)) > big * big:  # a load the frame tests see: the slow mean follows it and its end
-            self._post = QUIET_POST
-        if self._post > 0.0:
-            self._post -= dt
-            slow[:] = fast
-            return True
-        if rest:
-            slow += aslow * d
-            d = fast - slow
-        return float(d.dot(d)) < bound2
-
-    def _follow_fit(self, dt: float, g: np.ndarray) -> None:
-        """A rest frame's states ``g`` against its scale into :attr:`follow`'s least squares."""
-        F = self._fit
-        F *= math.exp(-dt / FOLLOW_MEMORY)
-        s = self.scale - 1.0
-        F[0, 0] += 1.0
-        F[1, 0] += s
-        F[2, 0] += s * s
-        F[0, 1:] += g
-        F[1, 1:] += s * g
-        n, ss = F[0, 0], F[2, 0] - F[1, 0] ** 2 / F[0, 0]  # the scale's weighted spread, times n
-        if ss > n * FOLLOW_SPAN ** 2:
-            self.follow = (F[1, 1:] - F[1, 0] * F[0, 1:] / n) / ss
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown

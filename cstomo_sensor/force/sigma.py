@@ -123,7 +123,7 @@ class ForceSigma:
         self.creep_rel = float(creep_rel)
         # the model estimator's own map of a change near the frame's load (its Gauss-Newton fit's:
         # ``k (J^T J)^-1 J^T B w``), in place of its linear part's ``W``
-        self.est = estimator if hasattr(estimator, "last_fit") else None  # the model estimator
+        self.est = estimator if getattr(estimator, "name", None) == "model" else None  # the model estimator
         self._loc, self._loc_for = None, None
         if self.est is not None:
             est = self.est
