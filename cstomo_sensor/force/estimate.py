@@ -25,6 +25,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -201,6 +202,21 @@ def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     return None if x is None else np.array(x)
 
 
+class ModelFit(NamedTuple):
+    """A frame's fit (:attr:`ModelEstimator.last_fit`), valid until the next frame (its arrays are the
+    estimator's work arrays): ``yw`` the change in noise units, ``by`` its coordinates in the fit's basis,
+    ``step`` the last Gauss-Newton step and ``x`` the force (units of :attr:`ModelEstimator.scale`) it ended
+    at, ``out`` (4, k) the residual's negative and the Jacobian's transpose at the iterate before that step,
+    ``normal`` (3, 4) ``[-J^T r | J^T J]`` there. The joint fit of force and scale (force/joint.py) and the
+    force's sigma (force/sigma.py) are made from it."""
+    yw: np.ndarray
+    by: np.ndarray
+    step: tuple
+    x: tuple
+    out: np.ndarray
+    normal: np.ndarray
+
+
 class ModelEstimator:
     """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics."""
 
@@ -233,12 +249,13 @@ class ModelEstimator:
         # so that one product gives the residual (with its sign changed) and the Jacobian
         self._coef = self.surrogate.coefficients.copy()
         self._d0, self._d0_target = self.surrogate.coefficients[len(forces)], self._coef[len(forces)]
-        self.last_fit: tuple | None = None
+        self.last_fit: ModelFit | None = None
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
         x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
-        np.subtract(self._d0, self.basis.dot(yw), out=self._d0_target)
+        by = self.basis.dot(yw)
+        np.subtract(self._d0, by, out=self._d0_target)
         spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
         jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
@@ -254,7 +271,7 @@ class ModelEstimator:
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
-        self.last_fit = (yw, step, x)  # with the last iteration's out: the joint fit's (force/joint.py JointScale)
+        self.last_fit = ModelFit(yw, by, step, x, out, G)
         k = self.scale
         return np.array((x[0] * k, x[1] * k, x[2] * k))
 

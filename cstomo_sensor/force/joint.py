@@ -59,12 +59,11 @@ class JointScale:
         est = self.est
         if est.last_fit is None:
             return None
-        yw, step, x_hat = est.last_fit
-        out, k = est._out, est.scale
+        yw, By, step, x_hat, out, _ = est.last_fit
+        k = est.scale
         Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
         rho = np.dot(np.asarray(step, float), Jt)  # the residual at the final force: By - s(x) to first order
         rho -= out[0]
-        By = est._d0 - est._d0_target
         Bd = self.Brw + By
         ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)

@@ -157,15 +157,15 @@ class ForceSigma:
         if fit is self._loc_for:
             return self._loc
         k, n0, rhs = est.scale, self._n0, self._rhs
-        Jt = est._out[1:]  # (3, k): the Jacobian's transpose at the fit's last iterate (force/joint.py)
+        Jt = fit.out[1:]  # (3, k): the Jacobian's transpose at the fit's last iterate (force/joint.py)
         BwX = self._BwX
         if BwX is not None:
             col = BwX[:, 0]
-            np.subtract(est._d0, est._d0_target, out=col)  # B w y: a scale error scales the load's change too
+            col[:] = fit.by  # B w y: a scale error scales the load's change too
             col += self._Bwr
             rhs[:, :n0] = Jt.dot(BwX)
-        try:  # est._G[:, 1:] is the last iteration's J^T J
-            X = solve_small(est._G[:, 1:], rhs)
+        try:  # the last iteration's J^T J
+            X = solve_small(fit.normal[:, 1:], rhs)
         except np.linalg.LinAlgError:
             self._loc, self._loc_for = None, fit
             return None
@@ -189,7 +189,7 @@ class ForceSigma:
         if loc is None:
             return self.W.dot(offset)
         o = offset if self._all_kept else np.asarray(offset, float)[self._kept]
-        return self.est.scale * self._X[:, self._n0:].dot(self.est._out[1:].dot(self._Bw.dot(o)))
+        return self.est.scale * self._X[:, self._n0:].dot(self.est.last_fit.out[1:].dot(self._Bw.dot(o)))
 
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None,
                  change: float = 0.0) -> tuple[tuple[float, float, float], float]:
