@@ -94,3 +94,31 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
             self.follow = np.array([np.polyfit(s, g[:, i], 1, w=np.sqrt(w))[0] for i in range(m - 1)])
     self.P = 0.5 * (P + P.T)
     return True
+
+
+def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | None, offset: np.ndarray | None, change: float):
+    """``ForceSigma``'s ((sigma fx, fy, fz), sigma_n) with the ``model`` estimator's own map, plainly:
+    the map ``k (J^T J)^-1 J^T B w`` of the estimator's latest fit through ``np.linalg.solve``, the
+    covariance of the module docstring as one 3 x 3 matrix (``D``: the tracker's directions) (issue 26: the per-frame form solved the
+    normal equations by LAPACK with the states' directions as right-hand sides)."""
+    from cstomo_sensor.force.sigma import UNDESCRIBED
+
+    est = sig.est
+    k, fit = est.scale, est.last_fit
+    Jt = fit.out[1:]
+    A = Jt @ Jt.T
+    local = k * np.linalg.solve(A, Jt @ sig._Bw)  # (3, n_keep): a change's force near the frame's load
+    cov = k * k * sig._noise_w2 * np.linalg.inv(A) + sig.k2 * float(force @ force) * np.eye(3)
+    if P is not None:
+        kept = np.asarray(est.keep, bool)
+        D = D[:, kept]  # the states' directions on the kept channels
+        Dy = D.copy()
+        Dy[0] += fit.yw / est.w  # a scale error scales the load's change too
+        WD = np.hstack([local @ Dy.T, np.zeros((3, 1))])  # the rate: no direction of its own
+        cov += WD @ P @ WD.T
+        wr = local @ D[0]
+        cov += (UNDESCRIBED * change) ** 2 * float(wr @ wr) / 3.0 * np.eye(3)
+    if offset is not None:
+        c = sig.creep_rel * local @ offset[np.asarray(est.keep, bool)]
+        cov += np.outer(c, c)
+    return np.sqrt(np.diag(cov)), float(np.sqrt(np.trace(cov)))

@@ -196,6 +196,19 @@ def _cramer3(a, b, c, d, e, f, g, h, i, u, v, w) -> tuple[float, float, float] |
             (u * dh_eg + v * (b * g - a * h) + w * (a * e - b * d)) / det)
 
 
+def inverse3(a, b, c, d, e, f, g, h, i) -> list[float] | None:
+    """The inverse of [[a, b, c], [d, e, f], [g, h, i]] as 9 floats by rows (its adjugate over its
+    determinant, on Python floats); None if it is singular."""
+    ei_fh, fg_di, dh_eg = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * ei_fh + b * fg_di + c * dh_eg
+    if not abs(det) > 0:
+        return None
+    r = 1.0 / det
+    return [ei_fh * r, (c * h - b * i) * r, (b * f - c * e) * r,
+            fg_di * r, (a * i - c * g) * r, (c * d - a * f) * r,
+            dh_eg * r, (b * g - a * h) * r, (a * e - b * d) * r]
+
+
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """x with A x = b for a 3 x 3 ``A`` (:func:`_cramer3`); None if ``A`` is singular."""
     x = _cramer3(*np.ravel(A).tolist(), *np.ravel(b).tolist())
