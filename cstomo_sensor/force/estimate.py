@@ -243,6 +243,7 @@ class ModelEstimator:
         self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
         self.iterations = iterations
         self.scale = 10.0  # N: forces enter the surrogate in units of 10 N
+        self._W_unit = self.linear.W / self.scale  # the linear estimate's map in those units
         yk = y[:, self.keep]
         self.w = 1.0 / self.noise[self.keep]
         # the fit runs in noise units (y * w), in the subspace that the calibration's weighted
@@ -265,7 +266,7 @@ class ModelEstimator:
         self.last_fit: ModelFit | None = None
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
+        x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
         by = self.basis.dot(yw)
         np.subtract(self._d0, by, out=self._d0_target)
