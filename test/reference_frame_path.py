@@ -122,3 +122,49 @@ def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | No
         c = sig.creep_rel * local @ offset[np.asarray(est.keep, bool)]
         cov += np.outer(c, c)
     return np.sqrt(np.diag(cov)), float(np.sqrt(np.trace(cov)))
+
+
+class PlainCreep:
+    """``CreepCompensator.observe`` as it was (issue 26): each low-pass stepped toward the change held,
+    ``s += (1 - exp(-dt / tau)) (last - s)``, by broadcast row operations; the same queue and clock."""
+
+    def __init__(self, coefficient: float, n_meas: int) -> None:
+        from cstomo_sensor.force.creep import creep_modes
+
+        self.tau, w = creep_modes()
+        self.cw = coefficient * w
+        self.s = np.zeros((len(self.tau), n_meas))
+        self.offset = np.zeros(n_meas)
+        self.t, self.clock, self.recent, self.queue = None, 0.0, [], []
+        self.last, self.t_last, self.f_last = np.zeros(n_meas), 0.1, None
+
+    def observe(self, y: np.ndarray, t: float, frozen: np.ndarray | None = None) -> None:
+        from cstomo_sensor.force.creep import CREEP_T0, MAX_STEPS, PERIOD_STEPS, STEP_ROUND
+
+        step = None if self.t is None else t - self.t
+        self.t = t
+        if step is not None and step > 0:
+            self.recent = (self.recent + [step])[-PERIOD_STEPS:]
+        period = sorted(self.recent)[(len(self.recent) - 1) // 2] if self.recent else 0.01
+        self.clock += 0.01 if step is None else min(max(step, 0.0), MAX_STEPS * period)
+        self.queue.append((self.clock + CREEP_T0, y.copy(), None if frozen is None else frozen.copy()))
+        due = self.clock + period
+
+        def factor(dt):
+            return -np.expm1(-(round(dt / STEP_ROUND) * STEP_ROUND) / self.tau)[:, None]
+
+        while self.queue and self.queue[0][0] <= due + 1e-3 * period:
+            te, yq, fq = self.queue.pop(0)
+            if te - self.t_last > 0:
+                d = (self.last - self.s) * factor(te - self.t_last)
+                if self.f_last is not None:
+                    d[:, self.f_last] = 0.0
+                self.s += d
+            self.last, self.t_last, self.f_last = yq, te, fq
+        self.offset = self.cw @ self.s
+        part = due - self.t_last
+        if part > max(1e-3 * period, STEP_ROUND / 2):
+            d = self.last - self.s
+            if self.f_last is not None:
+                d[:, self.f_last] = 0.0
+            self.offset = self.offset + (self.cw * factor(part)[:, 0]) @ d

@@ -202,3 +202,30 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
         v = (1 + 0.02 * k / 400) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale if (k // 50) % 2 else 0.0))
         stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
     assert len(checked) == 400 and stream.drift.rest_frames > 0 and stream.slow._sigma.est is pipe.estimator
+
+
+@pytest.mark.parametrize("rate", [100.0, 30.0])
+def test_creep_compensator_equals_its_previous_formulation(rate):
+    """The creep's low-passes stepped by one product (``[diag(1 - a) | a]`` times the state and the change
+    held) give the offsets the row operations did, frame for frame, to rounding: loads on and off, stamps
+    that jitter, a gap, and channels frozen for a while; at 30 frames/s a period that does not divide the
+    0.1 s delay (the part of a step)."""
+    from reference_frame_path import PlainCreep
+
+    from cstomo_sensor.force.creep import CreepCompensator
+
+    rng = np.random.default_rng(8)
+    n = 208
+    ours, plain = CreepCompensator(0.04, n), PlainCreep(0.04, n)
+    load = rng.normal(size=n)
+    t = 1.0
+    frozen = np.zeros(n, bool)
+    frozen[[5, 6, 77]] = True
+    for k in range(1500):
+        t += (1.0 + 1e-3 * rng.normal()) / rate + (0.5 if k == 700 else 0.0)
+        y = load * ((k // 150) % 2) * (1 + 0.01 * rng.normal()) + 1e-3 * rng.normal(size=n)
+        f = frozen if 400 <= k < 500 else None
+        ours.observe(y, t, f)
+        plain.observe(y, t, f)
+        np.testing.assert_allclose(ours.offset, plain.offset, rtol=0, atol=1e-12 * np.abs(plain.offset).max() + 1e-300)
+    assert np.abs(plain.offset).max() > 1e-3  # the loads crept
