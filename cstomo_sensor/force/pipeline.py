@@ -32,7 +32,7 @@ NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
 NOISE_MEASURED = "measured by the tare"
 
 
-@dataclass
+@dataclass(slots=True)
 class FrameResult:
     """One frame's outputs. ``force`` in newtons in the wrench frame; angles in radians.
 
@@ -285,7 +285,7 @@ class Pipeline:
             return FrameResult.implausible(why)
         c = self.consistency(y)
         field = scene = None
-        residual = float("nan")
+        residual = math.nan
         if with_field and self.scene_field is not None:
             scene = self.scene_field.field(force)
         if with_field:

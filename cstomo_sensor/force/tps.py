@@ -53,15 +53,14 @@ class ThinPlateSpline:
         self._Bt[0, n] = 1.0
         self._Bt[1:, n + 1:] = np.eye(d)
         self._basis_part, self._x_row = self._Bt[:, :n], self._Bt[0, n + 1:]
-        # x - p_i as one product [I | x] [-p^T; 1] (exact: the other terms are zeros); from the table of
-        # their squares and 1 (below), one product gives [r^2, 1, r^2 / 2] beside them:
-        # W = [r^2, 1, r^2 / 2, x - p_i (d rows)]; then log r^2 in place, and one more product
-        # [log r^2, log r^2 + 1 (d rows)] = E [log r^2; 1]: their product with W's last d + 1 rows is the
-        # basis rows, r^2 log r = (r^2 / 2) log r^2 and (2 log r + 1)(x - p_i); no broadcasting (numpy's
-        # costs 1.5 us a call)
-        self._X = np.hstack([np.eye(d), np.zeros((d, 1))])
-        self._x_col = self._X[:, d]
-        self._P1 = np.vstack([-p.T, np.ones(n)])
+        # x - p_i as one product of the rows' own [x; I] block (transposed: [x | I]) and [1; -p^T] (exact:
+        # the other terms are zeros); from the table of their squares and 1 (below), one product gives
+        # [r^2, 1, r^2 / 2] beside them: W = [r^2, 1, r^2 / 2, x - p_i (d rows)]; then log r^2 in place,
+        # and one more product [log r^2, log r^2 + 1 (d rows)] = E [log r^2; 1]: their product with W's
+        # last d + 1 rows is the basis rows, r^2 log r = (r^2 / 2) log r^2 and (2 log r + 1)(x - p_i); no
+        # broadcasting (numpy's costs 1.5 us a call)
+        self._xI = self._Bt[:, n + 1:].T
+        self._P1 = np.vstack([np.ones(n), -p.T])
         self._sq = np.ones((d + 1, n))
         self._sq_d = self._sq[:d]
         # r^2 + 1e-300 (at a node, r^2 < 1e-284, it keeps the log finite: phi is 1e-300 log(1e-300)
@@ -89,9 +88,8 @@ class ThinPlateSpline:
         ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work
         array, overwritten by the next call."""
         self._x_row[:] = x
-        self._x_col[:] = x
         diff, r2 = self._diff, self._r2
-        self._X.dot(self._P1, out=diff)  # (d, n): x - p_i
+        self._xI.dot(self._P1, out=diff)  # (d, n): x - p_i
         np.multiply(diff, diff, out=self._sq_d)
         self._sums.dot(self._sq, out=self._sums_out)
         np.log(r2, out=r2)
