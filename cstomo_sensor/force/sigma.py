@@ -133,25 +133,26 @@ class ForceSigma:
             self._kept = kept
             # the change's noise in the fit's units (1 + 1/N: the frame's and the reference's)
             self._noise_w2 = float(np.mean((np.asarray(noise, float)[kept] * est.w) ** 2))
-            # k (J^T J)^-1 per frame (Python floats into this array), and its product with J^T B w of the
-            # states' directions, one row each: [r + y (y set per frame), the others, the rate (none: 0), r]
+            # k (J^T J)^-1 per frame (Python floats into this array), the map k (J^T J)^-1 J^T of the fit's
+            # basis, and its product with B w of the states' directions, one row each: [r + y (y set per
+            # frame), the others, the rate (none: 0), r]
             self._kAinv = np.empty((3, 3))
             self._kAinv9 = self._kAinv.reshape(9)
+            self._map = np.empty((3, len(est.basis)))
             self._BwXt = None
             if D is not None:
                 m = len(D)
                 BwD = self._Bw @ (D[:, kept] * keep[kept]).T  # (k, m)
                 self._Bwr = np.ascontiguousarray(BwD[:, 0])
                 self._BwXt = np.vstack([BwD.T, np.zeros(len(BwD)), BwD[:, 0]])  # (m + 2, k)
-                self._JB = np.empty((3, m + 2))
                 self._T = np.empty((3, m + 2))
                 self._WDl, self._Tr = self._T[:, :m + 1], self._T[:, m + 1]  # the states' force map; r's
 
     def _local(self):
         """(noise variances (3,), the states' force map (3, m + 1) with the load's own scale change or
         None, the undescribed change's variance per axis over (s - 1)^2) of the model estimator's latest
-        fit; None (no fit yet, a singular fit: the linear part's map then). ``k (J^T J)^-1`` is kept
-        (:meth:`creep_force`)."""
+        fit; None (no fit yet, a singular fit: the linear part's map then). Its map ``k (J^T J)^-1 J^T``
+        is kept (:meth:`creep_force`)."""
         est = self.est
         fit = est.last_fit
         if fit is None:
@@ -168,12 +169,12 @@ class ForceSigma:
         c = k * k * self._noise_w2
         noise_var = [c * inv[0], c * inv[4], c * inv[8]]
         self._kAinv9[:] = [k * x for x in inv]
+        np.dot(self._kAinv, fit.out[1:], out=self._map)
         WD, change2 = None, 0.0
         BwXt = self._BwXt
         if BwXt is not None:
             np.add(fit.by, self._Bwr, out=BwXt[0])  # B w (r + y): a scale error scales the load's change too
-            np.dot(fit.out[1:], BwXt.T, out=self._JB)
-            np.dot(self._kAinv, self._JB, out=self._T)
+            np.dot(self._map, BwXt.T, out=self._T)
             WD = self._WDl
             t0, t1, t2 = self._Tr.tolist()
             change2 = UNDESCRIBED ** 2 * (t0 * t0 + t1 * t1 + t2 * t2) / 3.0
@@ -187,7 +188,7 @@ class ForceSigma:
         if loc is None:
             return self.W.dot(offset)
         o = offset if self._all_kept else np.asarray(offset, float)[self._kept]
-        return self._kAinv.dot(self.est.last_fit.out[1:].dot(self._Bw.dot(o)))
+        return self._map.dot(self._Bw.dot(o))
 
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None,
                  change: float = 0.0) -> tuple[tuple[float, float, float], float]:
