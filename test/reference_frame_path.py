@@ -94,3 +94,77 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
             self.follow = np.array([np.polyfit(s, g[:, i], 1, w=np.sqrt(w))[0] for i in range(m - 1)])
     self.P = 0.5 * (P + P.T)
     return True
+
+
+def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | None, offset: np.ndarray | None, change: float):
+    """``ForceSigma``'s ((sigma fx, fy, fz), sigma_n) with the ``model`` estimator's own map, plainly:
+    the map ``k (J^T J)^-1 J^T B w`` of the estimator's latest fit through ``np.linalg.solve``, the
+    covariance of the module docstring as one 3 x 3 matrix (``D``: the tracker's directions) (issue 26: the per-frame form solved the
+    normal equations by LAPACK with the states' directions as right-hand sides)."""
+    from cstomo_sensor.force.sigma import UNDESCRIBED
+
+    est = sig.est
+    k, fit = est.scale, est.last_fit
+    Jt = fit.out[1:]
+    A = Jt @ Jt.T
+    local = k * np.linalg.solve(A, Jt @ sig._Bw)  # (3, n_keep): a change's force near the frame's load
+    cov = k * k * sig._noise_w2 * np.linalg.inv(A) + sig.k2 * float(force @ force) * np.eye(3)
+    if P is not None:
+        kept = np.asarray(est.keep, bool)
+        D = D[:, kept]  # the states' directions on the kept channels
+        Dy = D.copy()
+        Dy[0] += fit.yw / est.w  # a scale error scales the load's change too
+        WD = np.hstack([local @ Dy.T, np.zeros((3, 1))])  # the rate: no direction of its own
+        cov += WD @ P @ WD.T
+        wr = local @ D[0]
+        cov += (UNDESCRIBED * change) ** 2 * float(wr @ wr) / 3.0 * np.eye(3)
+    if offset is not None:
+        c = sig.creep_rel * local @ offset[np.asarray(est.keep, bool)]
+        cov += np.outer(c, c)
+    return np.sqrt(np.diag(cov)), float(np.sqrt(np.trace(cov)))
+
+
+class PlainCreep:
+    """``CreepCompensator.observe`` as it was (issue 26): each low-pass stepped toward the change held,
+    ``s += (1 - exp(-dt / tau)) (last - s)``, by broadcast row operations; the same queue and clock."""
+
+    def __init__(self, coefficient: float, n_meas: int) -> None:
+        from cstomo_sensor.force.creep import creep_modes
+
+        self.tau, w = creep_modes()
+        self.cw = coefficient * w
+        self.s = np.zeros((len(self.tau), n_meas))
+        self.offset = np.zeros(n_meas)
+        self.t, self.clock, self.recent, self.queue = None, 0.0, [], []
+        self.last, self.t_last, self.f_last = np.zeros(n_meas), 0.1, None
+
+    def observe(self, y: np.ndarray, t: float, frozen: np.ndarray | None = None) -> None:
+        from cstomo_sensor.force.creep import CREEP_T0, MAX_STEPS, PERIOD_STEPS, STEP_ROUND
+
+        step = None if self.t is None else t - self.t
+        self.t = t
+        if step is not None and step > 0:
+            self.recent = (self.recent + [step])[-PERIOD_STEPS:]
+        period = sorted(self.recent)[(len(self.recent) - 1) // 2] if self.recent else 0.01
+        self.clock += 0.01 if step is None else min(max(step, 0.0), MAX_STEPS * period)
+        self.queue.append((self.clock + CREEP_T0, y.copy(), None if frozen is None else frozen.copy()))
+        due = self.clock + period
+
+        def factor(dt):
+            return -np.expm1(-(round(dt / STEP_ROUND) * STEP_ROUND) / self.tau)[:, None]
+
+        while self.queue and self.queue[0][0] <= due + 1e-3 * period:
+            te, yq, fq = self.queue.pop(0)
+            if te - self.t_last > 0:
+                d = (self.last - self.s) * factor(te - self.t_last)
+                if self.f_last is not None:
+                    d[:, self.f_last] = 0.0
+                self.s += d
+            self.last, self.t_last, self.f_last = yq, te, fq
+        self.offset = self.cw @ self.s
+        part = due - self.t_last
+        if part > max(1e-3 * period, STEP_ROUND / 2):
+            d = self.last - self.s
+            if self.f_last is not None:
+                d[:, self.f_last] = 0.0
+            self.offset = self.offset + (self.cw * factor(part)[:, 0]) @ d

@@ -140,3 +140,92 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
     assert stream.drift is ours and 0.3 < np.mean(rests) < 0.7  # both kinds of frame
     assert np.abs(ours.follow).max() > 0  # the loaded frames moved the other states (issue 26's follow)
     assert ours.change == pytest.approx(0.02, abs=2e-3)
+
+
+@pytest.fixture
+def model_pipe(warm_model):
+    """The test's pipeline with the ``model`` estimator (its own: a mask stays with it)."""
+    from conftest import PIPE
+
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
+
+    return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
+    """The force's sigma through the ``model`` estimator's own map (``k (J^T J)^-1`` on Python floats,
+    one product for every state's direction) equals the plain covariance (np.linalg.solve, the full 3 x 3
+    matrix), frame for frame, to rounding: a stream with drift tracking and creep through a 2 % warming
+    with rests and loads, after a restart (the states' covariance wide)."""
+    from reference_frame_path import model_sigma
+
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
+
+    pipe = model_pipe
+    rng = np.random.default_rng(7)
+    ref = pipe.model_reference
+    noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.04))
+    tare = ref + noise * rng.normal(size=(20, len(ref)))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare", age_s=3600.0)
+    flags = None
+    if masked:
+        flags = np.zeros(pipe.n_meas, bool)
+        flags[[7, 8, 100]] = True
+    checked = []
+
+    class Checked:
+        """The stream's sigma of one frame, checked against the plain form."""
+
+        def __init__(self, sig):
+            self.sig, self.offset = sig, None
+
+        def creep_force(self, offset):
+            self.offset = offset.copy()  # the offset the frame was corrected by
+            return self.sig.creep_force(offset)
+
+        def __call__(self, force, P, creep_f=None, change=0.0):
+            out = self.sig(force, P, creep_f, change)
+            plain = model_sigma(self.sig, stream.drift._D, force, P, self.offset, change)
+            np.testing.assert_allclose(out[0], plain[0], rtol=1e-9)
+            assert out[1] == pytest.approx(plain[1], rel=1e-9)
+            checked.append(out[1])
+            return out
+
+    sigma_model = stream.slow._sigma_model
+    stream.slow._sigma_model = lambda p: Checked(sigma_model(p))
+    Y = np.asarray(pipe.estimator.y)
+    for k in range(400):
+        v = (1 + 0.02 * k / 400) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale if (k // 50) % 2 else 0.0))
+        stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
+    assert len(checked) == 400 and stream.drift.rest_frames > 0 and stream.slow._sigma.est is pipe.estimator
+
+
+@pytest.mark.parametrize("rate", [100.0, 30.0])
+def test_creep_compensator_equals_its_previous_formulation(rate):
+    """The creep's low-passes stepped by one product (``[diag(1 - a) | a]`` times the state and the change
+    held) give the offsets the row operations did, frame for frame, to rounding: loads on and off, stamps
+    that jitter, a gap, and channels frozen for a while; at 30 frames/s a period that does not divide the
+    0.1 s delay (the part of a step)."""
+    from reference_frame_path import PlainCreep
+
+    from cstomo_sensor.force.creep import CreepCompensator
+
+    rng = np.random.default_rng(8)
+    n = 208
+    ours, plain = CreepCompensator(0.04, n), PlainCreep(0.04, n)
+    load = rng.normal(size=n)
+    t = 1.0
+    frozen = np.zeros(n, bool)
+    frozen[[5, 6, 77]] = True
+    for k in range(1500):
+        t += (1.0 + 1e-3 * rng.normal()) / rate + (0.5 if k == 700 else 0.0)
+        y = load * ((k // 150) % 2) * (1 + 0.01 * rng.normal()) + 1e-3 * rng.normal(size=n)
+        f = frozen if 400 <= k < 500 else None
+        ours.observe(y, t, f)
+        plain.observe(y, t, f)
+        np.testing.assert_allclose(ours.offset, plain.offset, rtol=0, atol=1e-12 * np.abs(plain.offset).max() + 1e-300)
+    assert np.abs(plain.offset).max() > 1e-3  # the loads crept

@@ -197,9 +197,14 @@ class CreepCompensator:
             raise ValueError(f"creep coefficient {coefficient!r}: expected {why}")
         self.coefficient = float(coefficient)
         taus, w = creep_modes()
-        self._tau, self._cw = taus, self.coefficient * w
-        self._s = np.zeros((len(taus), n_meas))  # the delayed change low-passed by each time constant
-        self._d = np.empty_like(self._s)
+        self._tau, self._cw, self._k = taus, self.coefficient * w, len(taus)
+        k = self._k
+        self._cw1 = np.append(self._cw, 0.0)  # the offset of the state below
+        # the state: the delayed change low-passed by each time constant (rows 0..k-1) and the change that
+        # entered last (row k, held until the next one enters), so that one product steps every low-pass
+        # (:meth:`_step`); two of them, in turn (the product's output and input)
+        self._state, self._next = np.zeros((k + 1, n_meas)), np.zeros((k + 1, n_meas))
+        self._d = np.empty((k, n_meas))
         self.offset = np.zeros(n_meas)
         self._t: float | None = None
         self._clock = 0.0  # the frames' time as the history counts it (steps clipped)
@@ -208,19 +213,22 @@ class CreepCompensator:
         # the changes of the last 0.1 s: (time they enter the low-passes, the change, its frozen channels)
         self._queue: deque[tuple[float, np.ndarray, np.ndarray | None]] = deque()
         self._free: list[np.ndarray] = []  # the queue's spent buffers, reused
-        # the change that entered last (held until the next one enters), when, its frozen channels
-        self._last, self._t_last, self._f_last = np.zeros(n_meas), CREEP_T0, None
-        self._factors: dict[float, np.ndarray] = {}  # 1 - exp(-step / tau) (k, 1) by step: frames come at one rate
+        # when the change that entered last did, and its frozen channels
+        self._t_last, self._f_last = CREEP_T0, None
+        self._steps: dict[float, np.ndarray] = {}  # _step's matrices by step: frames come at one rate
 
-    def _factor(self, dt: float) -> np.ndarray:
-        """1 - exp(-dt / tau) (k, 1), dt rounded to :data:`STEP_ROUND` s (stamps jitter: the table hits)."""
+    def _step(self, dt: float) -> np.ndarray:
+        """``[diag(1 - a) | a]`` (k, k + 1), ``a = 1 - exp(-dt / tau)``: its product with the state is the
+        low-passes ``dt`` later, ``s + a (last - s)``; dt rounded to :data:`STEP_ROUND` s (stamps
+        jitter: the table hits)."""
         dt = round(dt / STEP_ROUND) * STEP_ROUND
-        a = self._factors.get(dt)
-        if a is None:
-            if len(self._factors) > 64:  # stamps that jitter: no unbounded table
-                self._factors.clear()
-            a = self._factors[dt] = -np.expm1(-dt / self._tau)[:, None]
-        return a
+        M = self._steps.get(dt)
+        if M is None:
+            if len(self._steps) > 64:  # stamps that jitter: no unbounded table
+                self._steps.clear()
+            a = -np.expm1(-dt / self._tau)
+            M = self._steps[dt] = np.hstack([np.diag(1.0 - a), a[:, None]])
+        return M
 
     def observe(self, y: np.ndarray, t: float | None = None, frozen: np.ndarray | None = None) -> None:
         """Take the compensated change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
@@ -243,22 +251,26 @@ class CreepCompensator:
         np.copyto(buf, y)
         self._queue.append((self._clock + CREEP_T0, buf, None if frozen is None else frozen.copy()))
         due = self._clock + self._period  # the next frame's time: its creep needs the changes until due - 0.1 s
-        q, s, d = self._queue, self._s, self._d
+        q, k = self._queue, self._k
         while q and q[0][0] <= due + 1e-3 * self._period:
             te, yq, fq = q.popleft()
             step = te - self._t_last
+            state, new = self._state, self._next
             if step > 0:  # the last change held from its time to this one's
-                d = np.subtract(self._last, s, out=d)
-                d *= self._factor(step)
+                np.dot(self._step(step), state, out=new[:k])
                 if self._f_last is not None:
-                    d[:, self._f_last] = 0.0
-                s += d
-            self._free.append(self._last)
-            self._last, self._t_last, self._f_last = yq, te, fq
-        self._cw.dot(s, out=self.offset)
+                    new[:k, self._f_last] = state[:k, self._f_last]
+            else:
+                new[:k] = state[:k]
+            new[k] = yq
+            self._state, self._next = new, state
+            self._free.append(yq)
+            self._t_last, self._f_last = te, fq
+        self._cw1.dot(self._state, out=self.offset)
         part = due - self._t_last
         if part > max(1e-3 * self._period, STEP_ROUND / 2):  # the last change held on until due (a period that does not divide 0.1 s)
-            d = np.subtract(self._last, s, out=d)
+            s = self._state
+            d = np.subtract(s[k], s[:k], out=self._d)
             if self._f_last is not None:
                 d[:, self._f_last] = 0.0
-            self.offset += (self._cw * self._factor(part)[:, 0]).dot(d)
+            self.offset += (self._cw * self._step(part)[:, k]).dot(d)

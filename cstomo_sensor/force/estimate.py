@@ -196,6 +196,19 @@ def _cramer3(a, b, c, d, e, f, g, h, i, u, v, w) -> tuple[float, float, float] |
             (u * dh_eg + v * (b * g - a * h) + w * (a * e - b * d)) / det)
 
 
+def inverse3(a, b, c, d, e, f, g, h, i) -> list[float] | None:
+    """The inverse of [[a, b, c], [d, e, f], [g, h, i]] as 9 floats by rows (its adjugate over its
+    determinant, on Python floats); None if it is singular."""
+    ei_fh, fg_di, dh_eg = e * i - f * h, f * g - d * i, d * h - e * g
+    det = a * ei_fh + b * fg_di + c * dh_eg
+    if not abs(det) > 0:
+        return None
+    r = 1.0 / det
+    return [ei_fh * r, (c * h - b * i) * r, (b * f - c * e) * r,
+            fg_di * r, (a * i - c * g) * r, (c * d - a * f) * r,
+            dh_eg * r, (b * g - a * h) * r, (a * e - b * d) * r]
+
+
 def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """x with A x = b for a 3 x 3 ``A`` (:func:`_cramer3`); None if ``A`` is singular."""
     x = _cramer3(*np.ravel(A).tolist(), *np.ravel(b).tolist())
@@ -230,6 +243,7 @@ class ModelEstimator:
         self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
         self.iterations = iterations
         self.scale = 10.0  # N: forces enter the surrogate in units of 10 N
+        self._W_unit = self.linear.W / self.scale  # the linear estimate's map in those units
         yk = y[:, self.keep]
         self.w = 1.0 / self.noise[self.keep]
         # the fit runs in noise units (y * w), in the subspace that the calibration's weighted
@@ -252,7 +266,7 @@ class ModelEstimator:
         self.last_fit: ModelFit | None = None
 
     def estimate(self, y: np.ndarray) -> np.ndarray:
-        x = (self.linear.estimate(y) / self.scale).tolist()  # Python floats through the iteration
+        x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
         by = self.basis.dot(yw)
         np.subtract(self._d0, by, out=self._d0_target)

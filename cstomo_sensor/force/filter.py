@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..errors import ConfigError
 
 
@@ -50,15 +52,15 @@ class LowPass:
 
     def __call__(self, x, t: float) -> tuple[float, float, float]:
         """The filtered value after the sample ``x`` (3,) at time ``t`` (s)."""
-        x0, x1, x2 = float(x[0]), float(x[1]), float(x[2])
+        x0, x1, x2 = np.asarray(x, dtype=float).tolist()
         last, self._t = self._t, t
         dt = -1.0 if last is None else t - last
-        if not self.tau or not 0.0 <= dt <= self.max_gap or not math.isfinite(x0 + x1 + x2 + sum(self._y)):
+        y0, y1, y2 = self._y
+        if not self.tau or not 0.0 <= dt <= self.max_gap or not math.isfinite(x0 + x1 + x2 + y0 + y1 + y2):
             if self.tau and not 0.0 <= dt <= self.max_gap:
                 self.resets += 1
             self._y = (x0, x1, x2)
             return self._y
         a = -math.expm1(-dt / self.tau)
-        y0, y1, y2 = self._y
         self._y = (y0 + a * (x0 - y0), y1 + a * (x1 - y1), y2 + a * (x2 - y2))
         return self._y

@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from .joint import solve_small
+from .estimate import inverse3
 
 #: The nominal model's held-out accuracy (docs/benchmark.md, the nominal sensor at 60 dB): angle deg,
 #: magnitude % (median) per estimator; the sigma of an uncalibrated stream takes this as its
@@ -133,52 +133,51 @@ class ForceSigma:
             self._kept = kept
             # the change's noise in the fit's units (1 + 1/N: the frame's and the reference's)
             self._noise_w2 = float(np.mean((np.asarray(noise, float)[kept] * est.w) ** 2))
-            self._BwX = None  # the states' directions in the basis: r + y (y set per frame), the others, r
-            m = 0
+            # k (J^T J)^-1 per frame (Python floats into this array), the map k (J^T J)^-1 J^T of the fit's
+            # basis, and its product with B w of the states' directions, one row each: [r + y (y set per
+            # frame), the others, the rate (none: 0), r]
+            self._kAinv = np.empty((3, 3))
+            self._kAinv9 = self._kAinv.reshape(9)
+            self._map = np.empty((3, len(est.basis)))
+            self._BwXt = None
             if D is not None:
                 m = len(D)
                 BwD = self._Bw @ (D[:, kept] * keep[kept]).T  # (k, m)
                 self._Bwr = np.ascontiguousarray(BwD[:, 0])
-                self._BwX = np.ascontiguousarray(np.hstack([BwD, BwD[:, :1]]))
-                self._WDl = np.zeros((3, m + 1))  # the states' force map, then the rate's (none)
-            self._n0 = n0 = m + 1 if D is not None else 0  # where (J^T J)^-1 starts in the solution
-            self._rhs = np.zeros((3, n0 + 3))
-            self._rhs[:, n0:] = np.eye(3)
+                self._BwXt = np.vstack([BwD.T, np.zeros(len(BwD)), BwD[:, 0]])  # (m + 2, k)
+                self._T = np.empty((3, m + 2))
+                self._WDl, self._Tr = self._T[:, :m + 1], self._T[:, m + 1]  # the states' force map; r's
 
     def _local(self):
         """(noise variances (3,), the states' force map (3, m + 1) with the load's own scale change or
         None, the undescribed change's variance per axis over (s - 1)^2) of the model estimator's latest
-        fit; None (no fit yet, a singular fit: the linear part's map then). The solution ``X`` of the
-        fit's normal equations is kept (:meth:`creep_force`)."""
+        fit; None (no fit yet, a singular fit: the linear part's map then). Its map ``k (J^T J)^-1 J^T``
+        is kept (:meth:`creep_force`)."""
         est = self.est
         fit = est.last_fit
         if fit is None:
             return None
         if fit is self._loc_for:
             return self._loc
-        k, n0, rhs = est.scale, self._n0, self._rhs
-        Jt = fit.out[1:]  # (3, k): the Jacobian's transpose at the fit's last iterate (force/joint.py)
-        BwX = self._BwX
-        if BwX is not None:
-            col = BwX[:, 0]
-            col[:] = fit.by  # B w y: a scale error scales the load's change too
-            col += self._Bwr
-            rhs[:, :n0] = Jt.dot(BwX)
-        try:  # the last iteration's J^T J
-            X = solve_small(fit.normal[:, 1:], rhs)
-        except np.linalg.LinAlgError:
+        # the last iteration's J^T J (its Jacobian's transpose: the rows 1..3 of fit.out, force/joint.py)
+        (_, a, b, c), (_, d, e, f), (_, g, h, i) = fit.normal.tolist()
+        inv = inverse3(a, b, c, d, e, f, g, h, i)
+        if inv is None:
             self._loc, self._loc_for = None, fit
             return None
-        self._X = X
-        x = X.tolist()
+        k = est.scale
         c = k * k * self._noise_w2
-        noise_var = [c * x[0][n0], c * x[1][n0 + 1], c * x[2][n0 + 2]]
+        noise_var = [c * inv[0], c * inv[4], c * inv[8]]
+        self._kAinv9[:] = [k * x for x in inv]
+        np.dot(self._kAinv, fit.out[1:], out=self._map)
         WD, change2 = None, 0.0
-        if BwX is not None:
-            m = n0 - 1
+        BwXt = self._BwXt
+        if BwXt is not None:
+            np.add(fit.by, self._Bwr, out=BwXt[0])  # B w (r + y): a scale error scales the load's change too
+            np.dot(self._map, BwXt.T, out=self._T)
             WD = self._WDl
-            np.multiply(X[:, :m], k, out=WD[:, :m])
-            change2 = UNDESCRIBED ** 2 * k * k * (x[0][m] ** 2 + x[1][m] ** 2 + x[2][m] ** 2) / 3.0
+            t0, t1, t2 = self._Tr.tolist()
+            change2 = UNDESCRIBED ** 2 * (t0 * t0 + t1 * t1 + t2 * t2) / 3.0
         self._loc, self._loc_for = (noise_var, WD, change2), fit
         return self._loc
 
@@ -189,7 +188,7 @@ class ForceSigma:
         if loc is None:
             return self.W.dot(offset)
         o = offset if self._all_kept else np.asarray(offset, float)[self._kept]
-        return self.est.scale * self._X[:, self._n0:].dot(self.est.last_fit.out[1:].dot(self._Bw.dot(o)))
+        return self._map.dot(self._Bw.dot(o))
 
     def __call__(self, force: np.ndarray, P: np.ndarray | None, creep_force: np.ndarray | None = None,
                  change: float = 0.0) -> tuple[tuple[float, float, float], float]:
@@ -197,32 +196,30 @@ class ForceSigma:
         ((m+1, m+1): its measured states, then the scale's rate; None: no tracking), the force of the
         creep offset the frame was corrected by (:meth:`creep_force`; None: none) and the tracked
         uniform change ``s - 1`` (:data:`UNDESCRIBED`)."""
-        f = force.tolist()
-        cal = self.k2 * (f[0] * f[0] + f[1] * f[1] + f[2] * f[2])
+        f0, f1, f2 = force.tolist()
+        cal = self.k2 * (f0 * f0 + f1 * f1 + f2 * f2)
         loc = self._local() if self.est is not None else None
-        noise_var = self.noise_var if loc is None else loc[0]
-        v = [x + cal for x in noise_var]
+        n0, n1, n2 = self.noise_var if loc is None else loc[0]
+        v0, v1, v2 = n0 + cal, n1 + cal, n2 + cal
         if P is not None and self.WD is not None:
             if loc is not None:  # the local map's scale column has the load's own change already
                 WD = loc[1]
-                G = WD.dot(P)
-                M = G.dot(WD.T).tolist()
+                (m0, _, _), (_, m1, _), (_, _, m2) = WD.dot(P).dot(WD.T).tolist()
                 c2 = loc[2] * change * change
-                for i in range(3):
-                    v[i] += M[i][i] + c2
+                v0, v1, v2 = v0 + m0 + c2, v1 + m1 + c2, v2 + m2 + c2
             else:
                 # (WD + f e0^T) P (WD + f e0^T)^T: a scale error scales the load's change too; its diagonal
                 G = self.WD.dot(P)
-                M = G.dot(self._WDT).tolist()
-                u = G[:, 0].tolist()
+                (m0, _, _), (_, m1, _), (_, _, m2) = G.dot(self._WDT).tolist()
+                u0, u1, u2 = G[:, 0].tolist()
                 p00 = float(P[0, 0])
                 c2 = self._change2 * change * change
-                for i in range(3):
-                    v[i] += M[i][i] + 2.0 * f[i] * u[i] + p00 * f[i] * f[i] + c2
+                v0 += m0 + 2.0 * f0 * u0 + p00 * f0 * f0 + c2
+                v1 += m1 + 2.0 * f1 * u1 + p00 * f1 * f1 + c2
+                v2 += m2 + 2.0 * f2 * u2 + p00 * f2 * f2 + c2
         if creep_force is not None and self.creep_rel:
-            c = creep_force.tolist()
+            c0, c1, c2 = creep_force.tolist()
             r2 = self.creep_rel * self.creep_rel
-            for i in range(3):
-                v[i] += r2 * c[i] * c[i]
-        v0, v1, v2 = (max(x, 0.0) for x in v)
+            v0, v1, v2 = v0 + r2 * c0 * c0, v1 + r2 * c1 * c1, v2 + r2 * c2 * c2
+        v0, v1, v2 = max(v0, 0.0), max(v1, 0.0), max(v2, 0.0)
         return (math.sqrt(v0), math.sqrt(v1), math.sqrt(v2)), math.sqrt(v0 + v1 + v2)

@@ -47,22 +47,30 @@ class ThinPlateSpline:
             raise ConfigError("thin-plate spline: singular system (repeated or coplanar points)") from err
         self.points = p
         self.M = np.ascontiguousarray(coef.T)  # (m, n + 1 + d): [c | d_0 | d]
-        # value_and_jacobian's work arrays: basis values (row 0) and gradients (rows 1..d), (1 + d, n + 1 + d),
-        # and views of their per-point parts (no slicing per call)
-        self._pt = np.ascontiguousarray(p.T)  # (d, n)
+        # basis_rows' work arrays: the rows (1 + d, n + 1 + d) of basis values (row 0) and gradients (rows
+        # 1..d), whose constant and linear parts are set once, x written into row 0's last d columns
         self._Bt = np.zeros((1 + d, n + 1 + d))
         self._Bt[0, n] = 1.0
         self._Bt[1:, n + 1:] = np.eye(d)
-        self._phi_row, self._grad_rows, self._x_row = self._Bt[0, :n], self._Bt[1:, :n], self._Bt[0, n + 1:]
-        self._x_col = self._x_row[:, None]
+        self._basis_part, self._x_row = self._Bt[:, :n], self._Bt[0, n + 1:]
+        # x - p_i as one product of the rows' own [x; I] block (transposed: [x | I]) and [1; -p^T] (exact:
+        # the other terms are zeros); from the table of their squares and 1 (below), one product gives
+        # [r^2, 1, r^2 / 2] beside them: W = [r^2, 1, r^2 / 2, x - p_i (d rows)]; then log r^2 in place,
+        # and one more product [log r^2, log r^2 + 1 (d rows)] = E [log r^2; 1]: their product with W's
+        # last d + 1 rows is the basis rows, r^2 log r = (r^2 / 2) log r^2 and (2 log r + 1)(x - p_i); no
+        # broadcasting (numpy's costs 1.5 us a call)
+        self._xI = self._Bt[:, n + 1:].T
+        self._P1 = np.vstack([np.ones(n), -p.T])
+        self._sq = np.ones((d + 1, n))
+        self._sq_d = self._sq[:d]
+        # r^2 + 1e-300 (at a node, r^2 < 1e-284, it keeps the log finite: phi is 1e-300 log(1e-300)
+        # there instead of 0, and x - p_i = 0)
+        self._sums = np.array([[1.0] * d + [1e-300], [0.0] * d + [1.0], [0.5] * d + [0.5e-300]])
+        self._W = W = np.empty((d + 3, n))
+        self._diff, self._factors, self._r2, self._sums_out, self._lhs = W[3:], W[2:], W[0], W[:3], W[:2]
+        self._E = np.vstack([[1.0, 0.0], np.ones((d, 2))])
+        self._L = np.empty((d + 1, n))
         self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
-        self._diff = np.empty((d, n))
-        self._sq = np.full((d + 1, n), 1e-300)  # the squared differences, and 1e-300
-        self._sq_d = self._sq[:-1]
-        self._sum_half = np.array([[1.0] * (d + 1), [0.5] * (d + 1)])  # their sum and half of it
-        self._r2 = np.empty((2, n))
-        self._r2_sum, self._r2_half = self._r2  # its rows' views, made once
-        self._g = np.empty(n)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Values (k, m) at points ``x`` (k, d) (or (m,) at one point (d,))."""
@@ -79,18 +87,14 @@ class ThinPlateSpline:
         (n + 1 + d, m)) is the value (row 0) and the Jacobian's transpose (rows 1..d) at one point
         ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work
         array, overwritten by the next call."""
-        diff, g = self._diff, self._g
         self._x_row[:] = x
-        np.subtract(self._x_col, self._pt, out=diff)  # (d, n)
-        # r^2 + 1e-300 and its half as one product (einsum: 2x slower): the same r^2 but at a node
-        # (r^2 < 1e-284), where it keeps the log finite: phi is 1e-300 log(1e-300) there instead of 0,
-        # and diff = 0
+        diff, r2 = self._diff, self._r2
+        self._xI.dot(self._P1, out=diff)  # (d, n): x - p_i
         np.multiply(diff, diff, out=self._sq_d)
-        self._sum_half.dot(self._sq, out=self._r2)
-        np.log(self._r2_sum, out=g)  # 2 log r
-        np.multiply(self._r2_half, g, out=self._phi_row)  # r^2 log r = (r^2 / 2) (2 log r)
-        g += 1.0
-        np.multiply(diff, g, out=self._grad_rows)
+        self._sums.dot(self._sq, out=self._sums_out)
+        np.log(r2, out=r2)
+        self._E.dot(self._lhs, out=self._L)
+        np.multiply(self._L, self._factors, out=self._basis_part)
         return self._Bt
 
     @property
