@@ -26,8 +26,8 @@ import math
 import numpy as np
 
 from .creep import DEFAULT_PERIOD
-from .joint import solve_small
 from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, FollowSlope, QuietTest  # noqa: F401 (the constants: drift's words)
+from .small import solve_small
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
 #: the device does beyond a steady rate (the drive current's drift, a contact's). Small, so that a

@@ -37,6 +37,7 @@ from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.material import conductivity_of_theta
 from ..model.mesh import MeshSpec, TetMesh, build_mesh
+from .small import cramer3
 from .tps import ThinPlateSpline
 
 log = logging.getLogger(__name__)
@@ -184,37 +185,6 @@ class LinearEstimator:
         return LinearEstimator(self.forces, self.y, noise, self.ridge, self.keep)
 
 
-def _cramer3(a, b, c, d, e, f, g, h, i, u, v, w) -> tuple[float, float, float] | None:
-    """x with [[a, b, c], [d, e, f], [g, h, i]] x = [u, v, w] by Cramer's rule on Python floats (a
-    few us, where ``np.linalg.solve`` takes ~8 us of overhead); None if the matrix is singular."""
-    ei_fh, fg_di, dh_eg = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * ei_fh + b * fg_di + c * dh_eg
-    if not abs(det) > 0:
-        return None
-    return ((u * ei_fh + v * (c * h - b * i) + w * (b * f - c * e)) / det,
-            (u * fg_di + v * (a * i - c * g) + w * (c * d - a * f)) / det,
-            (u * dh_eg + v * (b * g - a * h) + w * (a * e - b * d)) / det)
-
-
-def inverse3(a, b, c, d, e, f, g, h, i) -> list[float] | None:
-    """The inverse of [[a, b, c], [d, e, f], [g, h, i]] as 9 floats by rows (its adjugate over its
-    determinant, on Python floats); None if it is singular."""
-    ei_fh, fg_di, dh_eg = e * i - f * h, f * g - d * i, d * h - e * g
-    det = a * ei_fh + b * fg_di + c * dh_eg
-    if not abs(det) > 0:
-        return None
-    r = 1.0 / det
-    return [ei_fh * r, (c * h - b * i) * r, (b * f - c * e) * r,
-            fg_di * r, (a * i - c * g) * r, (c * d - a * f) * r,
-            dh_eg * r, (b * g - a * h) * r, (a * e - b * d) * r]
-
-
-def _solve3(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
-    """x with A x = b for a 3 x 3 ``A`` (:func:`_cramer3`); None if ``A`` is singular."""
-    x = _cramer3(*np.ravel(A).tolist(), *np.ravel(b).tolist())
-    return None if x is None else np.array(x)
-
-
 class ModelFit(NamedTuple):
     """A frame's fit (:attr:`ModelEstimator.last_fit`), valid until the next frame (its arrays are the
     estimator's work arrays): ``yw`` the change in noise units, ``by`` its coordinates in the fit's basis,
@@ -278,7 +248,7 @@ class ModelEstimator:
             spline.basis_rows(x).dot(coef, out=out)
             jt.dot(out_t, out=G)
             (u, a, b, c), (v, d, e, f), (w, g, h, i) = G.tolist()
-            step = _cramer3(a, b, c, d, e, f, g, h, i, -u, -v, -w)
+            step = cramer3(a, b, c, d, e, f, g, h, i, -u, -v, -w)
             if step is None:  # a flat surrogate (far outside the calibration): least squares
                 step = np.linalg.lstsq(out[1:].T, -out[0], rcond=None)[0].tolist()
             s0, s1, s2 = step

@@ -5,16 +5,8 @@ device under load*."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import lapack
 
-
-def solve_small(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """X with A X = B for a small square ``A`` (LAPACK's gesv without numpy.linalg's checks: 2 us
-    instead of 7); raises ``LinAlgError`` if ``A`` is singular, as ``np.linalg.inv`` did."""
-    _, _, X, info = lapack.dgesv(A, B)
-    if info != 0:
-        raise np.linalg.LinAlgError(f"singular matrix (gesv info {info})")
-    return X
+from .small import solve_small
 
 
 def gradient_directions(model) -> np.ndarray:

@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from .estimate import inverse3
+from .small import inverse3
 
 #: The nominal model's held-out accuracy (docs/benchmark.md, the nominal sensor at 60 dB): angle deg,
 #: magnitude % (median) per estimator; the sigma of an uncalibrated stream takes this as its
