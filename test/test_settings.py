@@ -85,9 +85,9 @@ def test_the_config_dataclasses_refuse_a_value_outside_the_declared_range_naming
 
 
 def test_the_node_declares_every_setting_with_its_default_range_and_description(ros):
-    from rclpy.exceptions import InvalidParameterValueException
     from rclpy.parameter import Parameter
 
+    from cstomo_sensor.errors import ConfigError
     from cstomo_sensor.ros.node import CstomoSensorNode, usage
 
     node = CstomoSensorNode("settings_probe", context=ros, parameter_overrides=[Parameter("autostart", value=False)])
@@ -108,7 +108,7 @@ def test_the_node_declares_every_setting_with_its_default_range_and_description(
     finally:
         node.destroy_node()
     # rclpy enforces the declared range: just above hi is refused
-    with pytest.raises(InvalidParameterValueException, match="max_sigma_n"):
+    with pytest.raises(ConfigError, match="^parameter 'max_sigma_n'=.*: expected 0"):
         CstomoSensorNode("settings_hi", context=ros, parameter_overrides=[
             Parameter("autostart", value=False), Parameter("max_sigma_n", value=SETTING["max_sigma_n"].hi * 1.01)])
     lines = usage().splitlines()

@@ -40,10 +40,10 @@ from ..outputs import RAW_TOPIC
 from ..sources import SerialSource
 from . import log as ros_log
 from . import status
-from .params import PARAMETERS, NodeConfig
+from .params import PARAMETERS, NodeConfig  # noqa: F401 - PARAMETERS: the node module names its parameters
 from .sinks import Publishers
 from .sources import TopicSource
-from .startup import INSTALLED_CONFIG, as_double, check_inputs, failure_cause, link_warnings, refuse_unknown, usage  # noqa: F401
+from .startup import INSTALLED_CONFIG, as_double, check_inputs, declare_all, failure_cause, link_warnings, refuse_unknown, usage  # noqa: F401
 from .startup import main as _main
 
 #: Frames the driver keeps for the frame thread; when it falls behind the oldest is dropped (counted
@@ -62,8 +62,7 @@ class CstomoSensorNode(LifecycleNode):
         super().__init__(node_name, **kwargs)
         overrides = self._parameter_overrides  # rclpy's: given by files, launch, -p and the caller
         overrides.update({n: as_double(p) for n, p in overrides.items()})  # rate_hz:=200 is 200.0
-        for name, (default, desc) in PARAMETERS.items():
-            self.declare_parameter(name, default, desc)
+        declare_all(self, overrides)
         refuse_unknown(self, overrides)
         self.add_pre_set_parameters_callback(lambda params: [as_double(p) for p in params])
         self.add_post_set_parameters_callback(self._parameters_set)

@@ -18,6 +18,7 @@ from rclpy.parameter import Parameter
 
 from ..errors import ConfigError, CstomoError
 from ..outputs import help_lines
+from ..settings import SETTING
 from .params import PARAMETERS
 
 NODE_DOC = "cstomo_sensor_node: the sensor's managed (lifecycle) ROS 2 node, publishing the joint's force."
@@ -48,6 +49,19 @@ def as_double(p: Parameter) -> Parameter:
     if isinstance(default, float) and p.type_ == Parameter.Type.INTEGER:
         return Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
     return p
+
+
+def declare_all(node, overrides: dict) -> None:
+    """Declare every parameter; an override rclpy refuses (out of the declared range, of another
+    type) is refused in the words of every other refusal, :class:`ConfigError` ``parameter
+    'rate_hz'=-5.0: expected 0..10000 frames/s`` (rclpy's own names the value, then the parameter)."""
+    for name, (default, desc) in PARAMETERS.items():
+        try:
+            node.declare_parameter(name, default, desc)
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+            value = overrides[name].value if name in overrides else None
+            SETTING[name].check(value)  # raises the one-line refusal
+            raise ConfigError(f"parameter '{name}'={value!r}: {err}") from None
 
 
 def refuse_unknown(node, overrides: dict) -> None:
@@ -166,7 +180,7 @@ def main(node_class, argv: list[str] | None = None) -> int:
         return 2
     try:
         node = node_class()
-    except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused
+    except ConfigError as err:  # overrides refused
         print(f"cstomo_sensor_node: {err}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2
