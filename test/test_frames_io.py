@@ -159,6 +159,7 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
         r = _cstomo(*args)
         assert r.returncode == 2, r.stdout + r.stderr
         assert "Traceback" not in r.stderr and f"{script}:1:" in r.stderr and "header" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # refused before board-sim's 'computing' line
 
 
 def test_atomic_write_leaves_no_half_written_file(tmp_path):

@@ -109,6 +109,12 @@ def _main(args: argparse.Namespace) -> int:
             saturate_channel=args.saturate_channel, full_scale=args.full_scale, dead_electrode=args.dead_electrode,
         )
         layers = load_sensor(args.sensor).layers
+        if args.load_script:
+            read_load_script(args.load_script)  # a bad script is refused before the line below
+        # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
+        print(f"cstomo board-sim: computing the frames of {args.scene or args.load_script} on the simulator's own "
+              "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
+              file=sys.stderr, flush=True)
         if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
             source = Timeline.from_scene(args.scene, snr_db=args.snr).prepare()
         elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline
