@@ -115,6 +115,9 @@ def test_the_node_declares_every_setting_with_its_default_range_and_description(
     for s in SETTINGS:  # --help: name, default, description on one line
         value = list(s.default) if isinstance(s.default, tuple) else s.default
         assert any(ln.split()[:1] == [s.name] and f"{value!r}" in ln and s.description in ln for ln in lines), s.name
+    # the defaults in one column, whatever the longest name (expected_wrench_sigma had pushed its own over)
+    params = lines[lines.index("parameters (default):") + 1:]
+    assert len({len(ln) - len(ln[2:].split(" ", 1)[1].lstrip()) for ln in params}) == 1, params
 
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:

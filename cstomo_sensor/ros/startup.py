@@ -93,8 +93,9 @@ def usage() -> str:
               "expected_wrench_sigma), a measurement of the device's change under load",
               f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages (input: topic)",
               "(docs/node.md)", "", "parameters (default):"]
+    width = max(map(len, PARAMETERS))
     for name, (default, desc) in PARAMETERS.items():
-        lines.append(f"  {name:<20} {default!r:<16} {desc.description}")
+        lines.append(f"  {name:<{width}} {default!r:<16} {desc.description}")
     return "\n".join(lines)
 
 
