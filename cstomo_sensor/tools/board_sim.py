@@ -73,6 +73,10 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+#: The start of the line board-sim says before computing its loads' frames (``cstomo demo`` says it in its own words).
+COMPUTING = "cstomo board-sim: computing the frames of"
+
+
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     p = parser()
@@ -112,7 +116,7 @@ def _main(args: argparse.Namespace) -> int:
         if args.load_script:
             read_load_script(args.load_script)  # a bad script is refused before the line below
         # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
-        print(f"cstomo board-sim: computing the frames of {args.scene or args.load_script} on the simulator's own "
+        print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
               "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
               file=sys.stderr, flush=True)
         if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
