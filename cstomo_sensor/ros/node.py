@@ -133,6 +133,9 @@ class CstomoSensorNode(LifecycleNode):
         try:
             return self._configure()
         except Exception as err:  # noqa: BLE001 - see above; the cause is logged, nothing is hidden
+            if not self.context.ok():  # SIGINT/SIGTERM while configuring: the node is ending, not failing
+                self._release()
+                return TransitionCallbackReturn.FAILURE
             self.get_logger().error(f"refusing to start: {failure_cause(err)}")
             self.get_logger().debug("".join(traceback.format_exception(err)))
             self._release()
@@ -144,7 +147,12 @@ class CstomoSensorNode(LifecycleNode):
         geometry = load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
         self.tare_path = check_inputs(cfg, geometry, self.get_namespace())
         t0 = time.monotonic()
-        pipe = Pipeline.build(cfg.pipeline, progress=lambda msg: log.info(f"model: {msg}"))
+        def progress(msg: str) -> None:
+            if not self.context.ok():  # SIGINT/SIGTERM during a long first build: stop at once, not after it
+                raise RuntimeError("shut down while the model was being built")
+            log.info(f"model: {msg}")
+
+        pipe = Pipeline.build(cfg.pipeline, progress=progress)
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
         log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration
