@@ -179,6 +179,10 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
         assert r.returncode == 2, r.stdout + r.stderr
         assert "Traceback" not in r.stderr and f"{script}:1:" in r.stderr and "header" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # refused before board-sim's 'computing' line
+    good = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n", "good.csv")
+    r = _cstomo("board-sim", "--load-script", str(good), "--rate", "-5")  # before: refused after computing
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "cstomo board-sim: --rate -5: expected a positive number of frames per second"], r.stderr
 
 
 def test_atomic_write_leaves_no_half_written_file(tmp_path):

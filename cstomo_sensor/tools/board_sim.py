@@ -101,6 +101,9 @@ def _interrupt(*_: object) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if not 0 < args.rate < float("inf"):  # before the loads' frames are computed, not after
+        print(f"cstomo board-sim: --rate {args.rate:g}: expected a positive number of frames per second", file=sys.stderr)
+        return 2
     if not 0 <= args.creep < 1:  # NaN too
         print(f"cstomo board-sim: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
               "(rubbers: 0.02..0.06; 0: no creep)", file=sys.stderr)
