@@ -33,7 +33,6 @@ setup(
     maintainer_email="cstomo@example.com",
     description="EIT force-direction sensor for a robot joint, as a ROS 2 node",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "cstomo = cstomo_sensor.tools.cli:main",

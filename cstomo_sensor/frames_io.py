@@ -94,13 +94,27 @@ def atomic_write(path: str | os.PathLike) -> Iterator[io.BufferedWriter]:
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
-        with open(tmp, "wb") as f:
+        try:
+            f = open(tmp, "wb")
+        except OSError as err:  # named as the user gave it, not by the temporary file's name
+            raise OSError(f"{path}: cannot be written ({err.strerror or err})") from err
+        with f:
             yield f
             f.flush()
             os.fsync(f.fileno())  # on disk before it replaces the old file (a power cut keeps one of the two)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def check_out_file(path: str | os.PathLike) -> None:
+    """Refuse (:class:`ConfigError`) an output file path that cannot be written, before any work: a
+    directory, or a file in a directory that does not exist."""
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"--out {path}: a directory; expected a file path")
+    if not p.parent.is_dir():
+        raise ConfigError(f"--out {path}: no directory {p.parent}; expected a file in an existing directory")
 
 
 def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | None = None) -> None:

@@ -304,15 +304,17 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(board_sim, "VoltageSource", StandIn)
     link = tmp_path / "board"
+    script = tmp_path / "x.csv"  # read by board-sim itself before its loads are computed (the stand-in's job)
+    script.write_text("time,fx,fy,fz\n0,0,0,0\n")
     with BoardDriver(str(link), reconnect_backoff=(0.01, 0.02)) as driver:
-        argv = ["--sensor", "cuboid_joint", "--load-script", "x.csv", "--rate", "300", "--duration", "0.6",
+        argv = ["--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "300", "--duration", "0.6",
                 "--link", str(link), "--snr", "40", "--saturate-channel", "3", "--creep", "0"]
         assert board_sim.main(argv) == 0
         frames = drain(driver, quiet=0.2)
     captured = capsys.readouterr()
     assert captured.out.splitlines()[0] == f"device: {link}"
     assert captured.err.splitlines()[-1].startswith("sent ") and "frames whole and unharmed" in captured.err
-    assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": "x.csv", "snr_db": 40.0, "seed": 0}
+    assert seen == {"sensor": "cuboid_joint", "scene": None, "load_script": str(script), "snr_db": 40.0, "seed": 0}
     assert len(frames) > 10 and all(f.saturated[3] for f in frames)
     assert not link.exists()
 

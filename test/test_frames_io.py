@@ -152,6 +152,25 @@ def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
     assert not (tmp_path / "cache").exists()  # the input was read before any model was built
 
 
+@pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
+def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, cmd):
+    """Before: the model was built and the command then failed with '[Errno 2] No such file or
+    directory: '.../missing/.out.csv.tmp1234'', naming a temporary file the user never gave."""
+    good = _write(tmp_path, f"{ROW}\n", "ref.csv")
+    out = tmp_path / "missing" / "out.csv"
+    r = _cstomo(cmd, "--reference", str(good), "--frames", str(good), "--out", str(out), "--cache-dir",
+                str(tmp_path / "cache"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stdout + r.stderr
+    assert r.stderr.strip().splitlines() == [f"cstomo {cmd}: error: --out {out}: no directory {out.parent}; "
+                                             "expected a file in an existing directory"], r.stderr
+    assert not (tmp_path / "cache").exists()  # refused before any model was built
+    from cstomo_sensor.frames_io import atomic_write
+
+    with pytest.raises(OSError, match=f"^{out}: cannot be written \\(No such file or directory\\)$"):
+        with atomic_write(out) as f:
+            f.write(b"x")
+
+
 def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
     script = _write(tmp_path, "0,0,0,0\n1.5,0,0,-20\n", "load.csv")
     for args in (["board-sim", "--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "10"],
@@ -159,6 +178,11 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
         r = _cstomo(*args)
         assert r.returncode == 2, r.stdout + r.stderr
         assert "Traceback" not in r.stderr and f"{script}:1:" in r.stderr and "header" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # refused before board-sim's 'computing' line
+    good = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n", "good.csv")
+    r = _cstomo("board-sim", "--load-script", str(good), "--rate", "-5")  # before: refused after computing
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "cstomo board-sim: --rate -5: expected a positive number of frames per second"], r.stderr
 
 
 def test_atomic_write_leaves_no_half_written_file(tmp_path):

@@ -119,6 +119,35 @@ def test_each_sim_launch_has_its_own_link_script_and_tare(tmp_path):
             shutil.rmtree(plan.work)
 
 
+def test_a_wrong_sim_load_script_is_refused_before_anything_starts(tmp_path, monkeypatch):
+    """Before: sim_load_script:=missing.csv was handed to the board, which failed alone while the node
+    waited for its port for ever; without sim:=true it was ignored. Now refused at launch, in one line,
+    with no temporary directory left; a good script's relative path reaches the board absolute."""
+    import shutil
+    import tempfile
+
+    from cstomo_sensor.errors import ConfigError
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "bare.csv").write_text("0,0,0,0\n3,0,0,-20\n")
+    with pytest.raises(ConfigError, match=r"^sim_load_script:=missing\.csv: missing\.csv: cannot be read \(No such file"):
+        _plan(sim="true", sim_load_script="missing.csv")
+    with pytest.raises(ConfigError, match=r"^sim_load_script:=bare\.csv: bare\.csv:1: header .*time,fx,fy,fz"):
+        _plan(sim="true", sim_load_script="bare.csv")
+    with pytest.raises(ConfigError, match=r"^sim_load_script:=bare\.csv without sim:=true"):
+        _plan(sim_load_script="bare.csv")
+    assert not list((tmp_path / "tmp").iterdir())
+    (tmp_path / "load.csv").write_text("time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n")
+    plan = _plan(sim="true", sim_load_script="load.csv")
+    try:
+        b = plan.sensors[0].board
+        assert b[b.index("--load-script") + 1] == str(tmp_path / "load.csv")
+    finally:
+        shutil.rmtree(plan.work)
+
+
 def test_parent_frame_adds_the_static_transform_of_the_pose(tmp_path):
     (one,) = _plan(parent_frame="tool0", x="0.01", y="-0.02", z="0.115", roll="0", pitch="-1.5708", yaw="3.1416").sensors
     assert one.frame_id == "cstomo_socket"  # the parameter file's

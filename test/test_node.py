@@ -73,14 +73,16 @@ def test_bad_parameter_values_are_refused_at_configure(ros, capfd, name, value):
 
 
 def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
-    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+    """rclpy refuses them at declaration; the node says so as it says every refusal, naming the
+    parameter, the value and what it takes (before: rclpy's 'Invalid parameter value (-1.0) for
+    parameter. Reason: ... : stale_timeout')."""
     from rclpy.parameter import Parameter
 
     from cstomo_sensor.ros.node import CstomoSensorNode
 
-    with pytest.raises(InvalidParameterValueException, match="stale_timeout"):
+    with pytest.raises(ConfigError, match=r"^parameter 'stale_timeout'=-1\.0: expected [\d.]+\.\.[\d.]+ seconds$"):
         CstomoSensorNode("bad_range", context=ros, parameter_overrides=[Parameter("stale_timeout", value=-1.0)])
-    with pytest.raises(InvalidParameterTypeException, match="tare_frames"):
+    with pytest.raises(ConfigError, match=r"^parameter 'tare_frames'='many': expected an integer, 1\.\.\d+"):
         CstomoSensorNode("bad_type", context=ros, parameter_overrides=[Parameter("tare_frames", value="many")])
 
 
@@ -123,6 +125,11 @@ def test_an_unknown_parameter_is_refused_with_the_nearest_name(ros, tmp_path):
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("cstomo_sensor_node: unknown parameter 'stale_timout' "
                                                         "(did you mean 'stale_timeout'?)"), r.stderr
+    # a value out of the declared range, given on the command line: one line naming it and the range
+    r = subprocess.run([str(exe), "--ros-args", "-p", "rate_hz:=-5.0"], capture_output=True, text=True,
+                       timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines() == ["cstomo_sensor_node: parameter 'rate_hz'=-5.0: expected 0..10000 frames/s"]
 
 
 def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refused(ros, warm_model):

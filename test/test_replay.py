@@ -338,6 +338,34 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     assert len(read_bag(out)["/cstomo_sensor/wrench"]) == len(raws) - TARE - 1
 
 
+def test_a_missing_bag_or_a_wrong_topic_is_one_line_naming_it(tmp_path, capsys):
+    """Before: rosbags' own 'File 'nobag' does not exist.' (replay and calibrate --bag) and, for
+    calibrate --bag without --wrench-topic, '--bag takes --voltages-topic and --wrench-topic, not
+    --frames/--forces' though no --frames/--forces was given."""
+    from cstomo_sensor.tools.calibrate import main as calibrate
+    from cstomo_sensor.tools.replay import main as replay
+
+    (tmp_path / "empty").mkdir()
+    expected = "; expected a rosbag2 directory (metadata.yaml and its .db3 or .mcap files, as `ros2 bag record` writes)"
+    cases = [(replay, [str(tmp_path / "nobag"), "--out", str(tmp_path / "o1")], f"bag {tmp_path / 'nobag'}: not found"),
+             (replay, [str(tmp_path / "empty"), "--out", str(tmp_path / "o2")],
+              f"bag {tmp_path / 'empty'}: a directory without metadata.yaml"),
+             (calibrate, ["--bag", str(tmp_path / "nobag"), "--wrench-topic", "/ft/wrench", "--out", str(tmp_path / "d.yaml")],
+              f"bag {tmp_path / 'nobag'}: not found")]
+    for main, args, said in cases:
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert err.strip().splitlines()[-1].endswith(said + expected) and "Traceback" not in err, err
+    assert calibrate(["--bag", str(BAG), "--out", str(tmp_path / "d.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["cstomo calibrate: error: --bag needs --wrench-topic: the reference sensor's WrenchStamped topic in "
+                   "the bag (frames from --voltages-topic, default /cstomo_sensor/raw_voltages)"], err
+    assert replay([str(BAG), "--out", str(tmp_path / "o3"), "--topic", "/wrong"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("cstomo replay: topic='/wrong': not in the bag; it holds ["), err
+    assert not list(tmp_path.glob("o*")) and not (tmp_path / "d.yaml").exists()
+
+
 def test_a_failing_replay_writes_nothing_and_repeated_errors_are_throttled(tmp_path, capsys, caplog):
     """--forces into a missing directory or onto a directory: exit 2 with one line, no output bag and
     nothing beside it; a bag of 20 garbage messages: one line for them (not one per message)."""

@@ -85,9 +85,9 @@ def test_the_config_dataclasses_refuse_a_value_outside_the_declared_range_naming
 
 
 def test_the_node_declares_every_setting_with_its_default_range_and_description(ros):
-    from rclpy.exceptions import InvalidParameterValueException
     from rclpy.parameter import Parameter
 
+    from cstomo_sensor.errors import ConfigError
     from cstomo_sensor.ros.node import CstomoSensorNode, usage
 
     node = CstomoSensorNode("settings_probe", context=ros, parameter_overrides=[Parameter("autostart", value=False)])
@@ -108,13 +108,16 @@ def test_the_node_declares_every_setting_with_its_default_range_and_description(
     finally:
         node.destroy_node()
     # rclpy enforces the declared range: just above hi is refused
-    with pytest.raises(InvalidParameterValueException, match="max_sigma_n"):
+    with pytest.raises(ConfigError, match="^parameter 'max_sigma_n'=.*: expected 0"):
         CstomoSensorNode("settings_hi", context=ros, parameter_overrides=[
             Parameter("autostart", value=False), Parameter("max_sigma_n", value=SETTING["max_sigma_n"].hi * 1.01)])
     lines = usage().splitlines()
     for s in SETTINGS:  # --help: name, default, description on one line
         value = list(s.default) if isinstance(s.default, tuple) else s.default
         assert any(ln.split()[:1] == [s.name] and f"{value!r}" in ln and s.description in ln for ln in lines), s.name
+    # the defaults in one column, whatever the longest name (expected_wrench_sigma had pushed its own over)
+    params = lines[lines.index("parameters (default):") + 1:]
+    assert len({len(ln) - len(ln[2:].split(" ", 1)[1].lstrip()) for ln in params}) == 1, params
 
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:

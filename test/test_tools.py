@@ -41,6 +41,7 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     assert "settled lines" in tail and "against the scripted true force" in tail, tail
     board = tail[tail.index("simulated board"):]
     assert "sent" in board and "frames whole and unharmed" in board and "injected {" not in text, board
+    assert "computing" not in board, board  # board-sim's own 'computing' line: the demo's [1/3] said it
     if "overrun" in board:
         assert "nothing read it" in board, board
 
@@ -157,3 +158,22 @@ def test_a_scene_file_with_an_unknown_key_is_refused_naming_it(tmp_path, text, k
     f.write_text("loads:\n  - {socket: {force: [0, 0, -10]}}\n" + text)
     with pytest.raises(ConfigError, match=key):
         Scene.load(f)
+
+
+@pytest.mark.parametrize("load,why", [("{socket: {force: [0, -10]}}", "socket force \\[0, -10\\] has 2 components, not 3"),
+                                      ("{socket: {magnitude: 20}}", "missing 'elevation_deg'"),
+                                      ("{inclusion: {center: [0, 0, 0.01]}}", "missing 'radius'")])
+def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, why):
+    """Before: an IndexError traceback out of write_forces (a 2-component force, after frames.csv and
+    reference.csv were written) or a KeyError traceback (a missing key)."""
+    import re
+
+    f = tmp_path / "scene.yaml"
+    f.write_text(f"loads:\n  - {{socket: {{force: [0, 0, -10]}}}}\n  - {load}\n")
+    out = tmp_path / "out"
+    r = subprocess.run([str(Path(sys.executable).parent / "cstomo"), "simulate", "--scene", str(f), "--out", str(out)],
+                       capture_output=True, text=True, timeout=120, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert re.match(f"^cstomo simulate: error: {re.escape(str(f))}: loads\\[1\\]: load .*: {why}; expected socket: ", line), line
+    assert "(docs/formats.md#scene-file)" in line and not out.exists()

@@ -229,7 +229,8 @@ class Health:
                         f"(largest {sigma_max:.3g} N): the noise, the device's untracked change (a long load "
                         "since the last rest) or the calibration; forces still published")
         proc_mean = d["proc_sum"] / proc_n if proc_n else math.nan
-        kv.update(residual=f"{residual:.4g}", processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
+        kv.update(residual="" if math.isnan(residual) else f"{residual:.4g}",  # none before a stress field
+                  processing_time_mean_ms=f"{proc_mean * 1e3:.3f}",
                   processing_time_max_ms=f"{(proc_max if proc_n else math.nan) * 1e3:.3f}")
         level = max(level, self._part(tare, msgs, kv))
         report = pipe.scale_report

@@ -106,12 +106,29 @@ class Load:
 
     @classmethod
     def from_dict(cls, d: dict) -> Load:
+        """A load of a scene file (docs/formats.md#scene-file); :class:`ConfigError` naming it and what
+        each kind takes when a key is missing or a value of the wrong shape."""
+        try:
+            return cls._from_dict(d)
+        except ConfigError:
+            raise
+        except (KeyError, TypeError, ValueError, IndexError) as err:
+            why = f"missing {err}" if isinstance(err, KeyError) else str(err)
+            raise ConfigError(f"load {d!r}: {why}; expected socket: {{force: [fx, fy, fz]}} or {{magnitude: N, "
+                              "elevation_deg: D, azimuth_deg: D}, patches: [{shape:, size: or radius:, center:, "
+                              "face:}] with total_force: N, or inclusion: {center: [x, y, z], radius: m, contrast: c} "
+                              "(docs/formats.md#scene-file)") from None
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> Load:
         if not isinstance(d, dict) or len(d.keys() - {"total_force"}) != 1:
             raise ConfigError(f"load {d!r}: expected one of socket:, patches: (+ total_force:), inclusion:")
         if "socket" in d:
             s = d["socket"]
             if "force" in s:
                 f = tuple(float(v) for v in s["force"])
+                if len(f) != 3:
+                    raise ValueError(f"socket force {s['force']!r} has {len(f)} components, not 3")
             else:
                 f = tuple(force_from_angles(float(s["magnitude"]), np.radians(float(s["elevation_deg"])),
                                             np.radians(float(s.get("azimuth_deg", 0.0)))))
@@ -292,7 +309,13 @@ class Scene:
             sensor = str(p.parent / sensor)
         if "timeline" in d and not isinstance(d["timeline"], dict):
             raise ConfigError(f"{p}: timeline: expected a mapping (docs/formats.md#timeline)")
-        return cls(sensor=sensor, loads=tuple(Load.from_dict(x) for x in d.get("loads", ())),
+        loads = []
+        for i, x in enumerate(d.get("loads") or ()):
+            try:
+                loads.append(Load.from_dict(x))
+            except ConfigError as err:
+                raise ConfigError(f"{p}: loads[{i}]: {err}") from None
+        return cls(sensor=sensor, loads=tuple(loads),
                    snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
                    truth_mesh_size=float(d.get("truth_mesh_size", TRUTH_MESH_SIZE)),
                    mechanics_mesh_size=float(d.get("mechanics_mesh_size", MECHANICS_MESH_SIZE)),

@@ -24,7 +24,6 @@ import signal
 import sys
 
 import rclpy
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.task import Future
 
@@ -74,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for ns in namespaces:
             nodes.append(CstomoSensorNode(namespace=ns))
-    except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:
+    except ConfigError as err:
         print(f"cstomo_sensor_host: {namespaces[len(nodes)]}: {err}", file=sys.stderr)
         for node in nodes:
             node.destroy_node()

@@ -13,7 +13,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
-from ..errors import FrameError
+from ..errors import ConfigError, FrameError
 from ..sources import FrameSource, StampedFrame
 from .messages import RAW_TOPIC, TOPIC_TYPES, frame_from_raw_msg
 
@@ -65,7 +65,6 @@ class TopicSource(FrameSource):
 def find_raw_topic(connections, topic: str | None = None) -> str:
     """The input topic of a bag: ``topic`` if given, else the one topic whose name ends in
     ``raw_voltages``; its messages must be of the raw voltages' type (or the legacy one)."""
-    from ..errors import ConfigError
     from .messages import LEGACY_RAW_TYPE
 
     names = sorted({c.topic for c in connections})
@@ -84,6 +83,18 @@ def find_raw_topic(connections, topic: str | None = None) -> str:
     return topic
 
 
+def bag_path(path: str | Path) -> Path:
+    """``path`` as a rosbag2 recording to read; :class:`ConfigError` when there is none (rosbags' own
+    words, 'File 'x' does not exist.', say neither what it is nor what was expected)."""
+    p = Path(path)
+    what = ("not found" if not p.exists() else "a directory without metadata.yaml" if p.is_dir()
+            and not (p / "metadata.yaml").is_file() else "")
+    if what:
+        raise ConfigError(f"bag {path}: {what}; expected a rosbag2 directory (metadata.yaml and its .db3 or "
+                          ".mcap files, as `ros2 bag record` writes)")
+    return p
+
+
 class BagSource(FrameSource):
     """The raw frames of a rosbag2 recording (sqlite3 or mcap; the ``rosbags`` library): the topic
     ``topic``, else the one ending in ``raw_voltages`` (:func:`find_raw_topic`). A frame's
@@ -92,7 +103,7 @@ class BagSource(FrameSource):
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         from rosbags.rosbag2 import Reader  # optional: the [full] extra
 
-        self.path = Path(path)
+        self.path = bag_path(path)
         self._reader = Reader(self.path)
         self._reader.open()
         self.topic = find_raw_topic(self._reader.connections, topic)

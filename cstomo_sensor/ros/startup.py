@@ -18,6 +18,7 @@ from rclpy.parameter import Parameter
 
 from ..errors import ConfigError, CstomoError
 from ..outputs import help_lines
+from ..settings import SETTING
 from .params import PARAMETERS
 
 NODE_DOC = "cstomo_sensor_node: the sensor's managed (lifecycle) ROS 2 node, publishing the joint's force."
@@ -50,6 +51,19 @@ def as_double(p: Parameter) -> Parameter:
     return p
 
 
+def declare_all(node, overrides: dict) -> None:
+    """Declare every parameter; an override rclpy refuses (out of the declared range, of another
+    type) is refused in the words of every other refusal, :class:`ConfigError` ``parameter
+    'rate_hz'=-5.0: expected 0..10000 frames/s`` (rclpy's own names the value, then the parameter)."""
+    for name, (default, desc) in PARAMETERS.items():
+        try:
+            node.declare_parameter(name, default, desc)
+        except (InvalidParameterTypeException, InvalidParameterValueException) as err:
+            value = overrides[name].value if name in overrides else None
+            SETTING[name].check(value)  # raises the one-line refusal
+            raise ConfigError(f"parameter '{name}'={value!r}: {err}") from None
+
+
 def refuse_unknown(node, overrides: dict) -> None:
     """A parameter given to the node (file, launch, -p) that it does not have is a mistake
     (``tare_on_star``): refused with the nearest known name."""
@@ -79,8 +93,9 @@ def usage() -> str:
               "expected_wrench_sigma), a measurement of the device's change under load",
               f"  {'~/raw_voltages_in':<21} sensor_msgs/Image, as ~/raw_voltages (input: topic)",
               "(docs/node.md)", "", "parameters (default):"]
+    width = max(map(len, PARAMETERS))
     for name, (default, desc) in PARAMETERS.items():
-        lines.append(f"  {name:<20} {default!r:<16} {desc.description}")
+        lines.append(f"  {name:<{width}} {default!r:<16} {desc.description}")
     return "\n".join(lines)
 
 
@@ -166,7 +181,7 @@ def main(node_class, argv: list[str] | None = None) -> int:
         return 2
     try:
         node = node_class()
-    except (InvalidParameterTypeException, InvalidParameterValueException, ConfigError) as err:  # overrides refused
+    except ConfigError as err:  # overrides refused
         print(f"cstomo_sensor_node: {err}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2

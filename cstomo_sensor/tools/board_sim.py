@@ -73,6 +73,10 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+#: The start of the line board-sim says before computing its loads' frames (``cstomo demo`` says it in its own words).
+COMPUTING = "cstomo board-sim: computing the frames of"
+
+
 def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     p = parser()
@@ -97,6 +101,9 @@ def _interrupt(*_: object) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
+    if not 0 < args.rate < float("inf"):  # before the loads' frames are computed, not after
+        print(f"cstomo board-sim: --rate {args.rate:g}: expected a positive number of frames per second", file=sys.stderr)
+        return 2
     if not 0 <= args.creep < 1:  # NaN too
         print(f"cstomo board-sim: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
               "(rubbers: 0.02..0.06; 0: no creep)", file=sys.stderr)
@@ -109,6 +116,12 @@ def _main(args: argparse.Namespace) -> int:
             saturate_channel=args.saturate_channel, full_scale=args.full_scale, dead_electrode=args.dead_electrode,
         )
         layers = load_sensor(args.sensor).layers
+        if args.load_script:
+            read_load_script(args.load_script)  # a bad script is refused before the line below
+        # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
+        print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
+              "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
+              file=sys.stderr, flush=True)
         if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
             source = Timeline.from_scene(args.scene, snr_db=args.snr).prepare()
         elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline

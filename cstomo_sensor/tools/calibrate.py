@@ -116,9 +116,10 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
     from std_msgs.msg import Float32MultiArray
 
     from ..ros.messages import LEGACY_RAW_TYPE, frame_from_raw_msg
+    from ..ros.sources import bag_path
 
     frames, tf, forces, tw = [], [], [], []
-    with Reader(path) as reader:
+    with Reader(bag_path(path)) as reader:
         topics = {c.topic for c in reader.connections}
         for t in (voltages_topic, wrench_topic):
             if t not in topics:
@@ -300,8 +301,11 @@ def run(a) -> int:
         raise ConfigError("--calibration: calibrate against the nominal model (give no --calibration)")
     t0 = time.perf_counter()
     if a.bag:
-        if a.frames or a.forces or not a.wrench_topic:
-            raise ConfigError("--bag takes --voltages-topic and --wrench-topic, not --frames/--forces")
+        if a.frames or a.forces:
+            raise ConfigError("--bag reads the frames and the forces from the bag: give no --frames/--forces")
+        if not a.wrench_topic:
+            raise ConfigError("--bag needs --wrench-topic: the reference sensor's WrenchStamped topic in the bag "
+                              f"(frames from --voltages-topic, default {a.voltages_topic})")
         frames, forces, n_v, n_w, loads = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance, timing=True)
         recording, why_not = frames, ""
         source = {"bag": str(a.bag), "voltages_topic": a.voltages_topic, "wrench_topic": a.wrench_topic,

@@ -20,7 +20,7 @@ from ..force.device import read_reference
 from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
-from ..frames_io import atomic_write, read_frames, write_frames
+from ..frames_io import atomic_write, check_out_file, read_frames, write_frames
 from ..inverse.reconstruction import build_model
 from ..loop import Results, run
 from ..model.cem import ForwardModel
@@ -243,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     fn = handlers.get((a.cmd, getattr(a, "what", None))) or {
         "reconstruct": cmd_reconstruct, "estimate": cmd_estimate, "simulate": cmd_simulate}[a.cmd]
     try:
+        if fn is not cmd_simulate and getattr(a, "out", None):  # simulate's --out is a directory it makes
+            check_out_file(a.out)
         return fn(a)
     except (CstomoError, OSError) as err:
         print(f"cstomo {a.cmd}: error: {err}", file=sys.stderr)

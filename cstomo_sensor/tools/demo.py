@@ -36,6 +36,7 @@ from ..errors import CstomoError
 from ..force.config import PipelineConfig
 from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
+from .board_sim import COMPUTING
 from .common import NodeWithBoard, add_setting_arg, local_ros_env
 
 
@@ -144,8 +145,10 @@ def _run(a: argparse.Namespace) -> int:
 
 
 def _lines(path: Path) -> list[str]:
+    """The board's messages in its log, but the one the demo's step [1/3] has said already."""
     try:
-        return [ln.rstrip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+        return [ln.rstrip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()
+                if ln.strip() and not ln.startswith(COMPUTING)]
     except OSError:
         return []
 

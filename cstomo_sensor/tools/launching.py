@@ -26,6 +26,7 @@ from ..board.sim import DEFAULT_RATE_HZ
 from ..cache import default_cache_dir
 from ..errors import ConfigError, CstomoError
 from ..force.device import tare_file_name
+from ..frames_io import read_load_script
 from ..model.geometry import load_sensor
 from ..settings import SETTING, default
 from .common import PACKAGE, config_parameter, executable, package_executable, package_file
@@ -223,10 +224,18 @@ class _Work:
 
 
 def _sim_board(work: Path, sensor: str, script: str | None) -> tuple[list[str], str, str]:
-    """(board command, link, tare file) of a simulated board living in ``work``."""
+    """(board command, link, tare file) of a simulated board living in ``work``; a ``script`` that is no
+    load script is refused here, before anything starts (else the board would fail alone and the node
+    wait for it for ever)."""
     if not script:
         script = str(work / "load.csv")
         (work / "load.csv").write_text(SIM_LOAD)
+    else:
+        try:
+            read_load_script(script)
+        except CstomoError as err:
+            raise ConfigError(f"sim_load_script:={script}: {err}") from None
+        script = str(Path(script).resolve())
     link = str(work / "board")
     try:
         program = executable("cstomo")
@@ -328,6 +337,9 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
     if tare_on_start is not None:
         overrides["tare_on_start"] = tare_on_start
     board = None
+    if args.get("sim_load_script") and not sim:
+        raise ConfigError(f"sim_load_script:={args['sim_load_script']} without sim:=true: it is the simulated "
+                          "board's load script")
     if sim:
         sensor = args.get("sensor") or _from_file(config, "sensor") or default("sensor")
         board, link, tare = _sim_board(work(), str(sensor), args.get("sim_load_script"))

@@ -25,7 +25,9 @@ from .weight import choose_weight
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo bench", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="cstomo bench", description=(
+        "Speed and accuracy on honest simulations (docs/benchmark.md): by default the table of every knob; "
+        "one of the options below runs one other benchmark instead."))
     g = p.add_mutually_exclusive_group()
     g.add_argument("--smoke", action="store_true", help="default setting only, 2 scenes (under a minute, warm caches)")
     g.add_argument("--quick", action="store_true", help="every knob, 8 scenes (a few minutes)")
