@@ -87,7 +87,8 @@ def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
 
 
 def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_restart_is_needed(ros):
-    from cstomo_sensor.ros.node import PARAMETERS, CstomoSensorNode
+    from cstomo_sensor.ros.node import CstomoSensorNode
+    from cstomo_sensor.ros.params import PARAMETERS
 
     node = CstomoSensorNode("introspect", context=ros, parameter_overrides=[rclpy.parameter.Parameter("autostart", value=False)])
     try:

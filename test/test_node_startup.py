@@ -244,7 +244,7 @@ def test_help_prints_usage_and_every_parameter_instead_of_starting():
 
 
 def test_help_says_what_the_node_is_in_a_full_sentence():
-    from cstomo_sensor.ros.node import usage
+    from cstomo_sensor.ros.startup import usage
 
     first = usage().splitlines()[2]
     assert first.startswith("cstomo_sensor_node: ") and first.endswith("."), first
@@ -256,7 +256,7 @@ def test_help_says_what_the_node_is_in_a_full_sentence():
     (["-p"], "Couldn't parse trailing -p flag"),  # rcl's own refusal, in one line
 ])
 def test_a_command_line_rcl_refuses_fails_in_one_line(monkeypatch, tmp_path, capfd, ros_args, said):
-    from cstomo_sensor.ros import host, node
+    from cstomo_sensor.ros import host, node, startup
 
     monkeypatch.chdir(tmp_path)  # a workspace root: config/... is not there
     for prog, main, own in (("cstomo_sensor_node", node.main, []), ("cstomo_sensor_host", host.main, ["/a"])):
@@ -266,7 +266,7 @@ def test_a_command_line_rcl_refuses_fails_in_one_line(monkeypatch, tmp_path, cap
         mine = [ln for ln in err.splitlines() if ln.startswith(f"{prog}: ")]
         assert len(mine) == 1 and said in mine[0] and "Traceback" not in err, err
         if "params-file" in said:  # the file was checked before rcl: rcl says nothing, the line names the fix
-            assert err.count("\n") == 1 and node.INSTALLED_CONFIG in err, err
+            assert err.count("\n") == 1 and startup.INSTALLED_CONFIG in err, err
 
 
 def test_sigint_during_the_first_model_build_ends_the_node_at_once_and_quietly(tmp_path):

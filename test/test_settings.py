@@ -88,7 +88,8 @@ def test_the_node_declares_every_setting_with_its_default_range_and_description(
     from rclpy.parameter import Parameter
 
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.ros.node import CstomoSensorNode, usage
+    from cstomo_sensor.ros.node import CstomoSensorNode
+    from cstomo_sensor.ros.startup import usage
 
     node = CstomoSensorNode("settings_probe", context=ros, parameter_overrides=[Parameter("autostart", value=False)])
     try:

@@ -95,7 +95,7 @@ def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
 
 def test_help_lists_exactly_the_stream_outputs():
     from cstomo_sensor.outputs import OUTPUTS
-    from cstomo_sensor.ros.node import usage
+    from cstomo_sensor.ros.startup import usage
 
     text = usage()
     listed = set(re.findall(r"^\s+~/(\w+)\s", text, flags=re.M))

@@ -40,10 +40,10 @@ from ..outputs import RAW_TOPIC
 from ..sources import SerialSource
 from . import log as ros_log
 from . import status
-from .params import PARAMETERS, NodeConfig  # noqa: F401 - PARAMETERS: the node module names its parameters
+from .params import NodeConfig
 from .sinks import Publishers
 from .sources import TopicSource
-from .startup import INSTALLED_CONFIG, as_double, check_inputs, declare_all, failure_cause, link_warnings, refuse_unknown, usage  # noqa: F401
+from .startup import as_double, build_progress, check_inputs, declare_all, failure_cause, link_warnings, refuse_unknown
 from .startup import main as _main
 
 #: Frames the driver keeps for the frame thread; when it falls behind the oldest is dropped (counted
@@ -133,11 +133,9 @@ class CstomoSensorNode(LifecycleNode):
         try:
             return self._configure()
         except Exception as err:  # noqa: BLE001 - see above; the cause is logged, nothing is hidden
-            if not self.context.ok():  # SIGINT/SIGTERM while configuring: the node is ending, not failing
-                self._release()
-                return TransitionCallbackReturn.FAILURE
-            self.get_logger().error(f"refusing to start: {failure_cause(err)}")
-            self.get_logger().debug("".join(traceback.format_exception(err)))
+            if self.context.ok():  # else SIGINT/SIGTERM while configuring: the node is ending, not failing
+                self.get_logger().error(f"refusing to start: {failure_cause(err)}")
+                self.get_logger().debug("".join(traceback.format_exception(err)))
             self._release()
             return TransitionCallbackReturn.FAILURE
 
@@ -147,12 +145,7 @@ class CstomoSensorNode(LifecycleNode):
         geometry = load_sensor(cfg.pipeline.sensor)  # a bad sensor file is named before anything else
         self.tare_path = check_inputs(cfg, geometry, self.get_namespace())
         t0 = time.monotonic()
-        def progress(msg: str) -> None:
-            if not self.context.ok():  # SIGINT/SIGTERM during a long first build: stop at once, not after it
-                raise RuntimeError("shut down while the model was being built")
-            log.info(f"model: {msg}")
-
-        pipe = Pipeline.build(cfg.pipeline, progress=progress)
+        pipe = Pipeline.build(cfg.pipeline, progress=build_progress(self.context, log))
         log.info(f"model of '{cfg.pipeline.sensor}' ready in {time.monotonic() - t0:.2f} s "
                  f"({len(pipe.centers)} cells, estimator {cfg.pipeline.estimator})")
         log.info(f"calibration: {pipe.calibration.path} ({pipe.calibration.accuracy})" if pipe.calibration

@@ -64,6 +64,16 @@ def declare_all(node, overrides: dict) -> None:
             raise ConfigError(f"parameter '{name}'={value!r}: {err}") from None
 
 
+def build_progress(context, log):
+    """``Pipeline.build``'s progress callback: each step logged; a shutdown (SIGINT/SIGTERM) during a
+    long first build stops it at its next step instead of after it."""
+    def progress(msg: str) -> None:
+        if not context.ok():
+            raise RuntimeError("shut down while the model was being built")
+        log.info(f"model: {msg}")
+    return progress
+
+
 def refuse_unknown(node, overrides: dict) -> None:
     """A parameter given to the node (file, launch, -p) that it does not have is a mistake
     (``tare_on_star``): refused with the nearest known name."""
