@@ -1,7 +1,8 @@
 """What the drift tracker (:class:`~.drift.DriftTracker`) learns from rest frames besides their states
 (issue 26): the other states' slope against the scale (:class:`FollowSlope`), and whether the frames
 before one were quiet (:class:`QuietTest`): a frame counts as rest only then, so that a small load held
-still is not taken for the device.
+still is not taken for the device; and what a rest ends: a held load's own error of its measurement of the
+scale (:class:`LoadBias`, :data:`LOAD_BIAS_SIGMA`).
 
 A small load held still passes a frame's own rest tests (1 N straight down: 97 % of its frames at 60 dB;
 the best uniform change explains 75 % of its force) and its part along the contacts' and the gradient's
