@@ -223,7 +223,10 @@ class DriftTracker:
                     tot += delta
                     P -= np.multiply.outer(gain, Pc)
             else:
-                delta = self._bias.update(P, self._F, force, z - step, var / LOADED_WEIGHT)
+                # LOADED_WEIGHT per DEFAULT_PERIOD: a load's frames share its mismatch, so more of them in a second
+                # do not measure more (the same held load reads the same at 10 and 100 frames/s)
+                w = LOADED_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD
+                delta = self._bias.update(P, self._F, force, z - step, var / w)
                 if delta is not None:
                     tot += delta
         if rest:
