@@ -44,7 +44,7 @@ QUIET_BIG, QUIET_POST = 1.0, 2.0
 #: LOAD_MOVE_N newtons or LOAD_MOVE_REL of itself since its bias began. So a held load after a rest measures
 #: the device's change during it, not its own mismatch (cstomo bench --drift's device, no drift, tracking on:
 #: the scale had followed each task's mismatch by up to 1.2e-3, the median angle 0.99 deg against 0.82
-#: untracked, now 0.84); loads without a rest between them still find the scale, each to LOAD_BIAS_SIGMA
+#: untracked, now 0.81); loads without a rest between them still find the scale, each to LOAD_BIAS_SIGMA
 #: (a restart under load, back-to-back loads). The 30-minute warm-up reads 1.03-1.04 deg for 1.5e-4 to 3e-3;
 #: above 2e-4 back-to-back loads' sigma_n overstates their error beyond 2x (3e-4: 2.2x; 1e-3: 3.5x; these
 #: with LOADED_WEIGHT per frame, before it became per 10 ms: docs/benchmark.md, issue 26's warm-up).
