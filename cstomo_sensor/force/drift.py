@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from .creep import DEFAULT_PERIOD
-from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, FollowSlope, QuietTest  # noqa: F401 (the constants: drift's words)
+from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, FollowSlope, LoadBias, QuietTest  # noqa: F401 (the constants: drift's words)
 from .small import solve_small
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
@@ -136,6 +136,7 @@ class DriftTracker:
         self.force_step: np.ndarray | None = None  # observe()'s joint force step (N) of the latest frame
         self._follow = FollowSlope(m)
         self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
+        self._bias = LoadBias(m + 1)  # the held load's error of its measurement of the scale (force/rest.py)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
@@ -151,6 +152,7 @@ class DriftTracker:
         new._set_gradient(self.gradient)
         new._follow = self._follow.copy()
         new.follow = new._follow.slope
+        new._bias = self._bias.copy()
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
             q, o = new._quiet, self._quiet
@@ -209,15 +211,24 @@ class DriftTracker:
         if use_joint:
             # every frame, at rest or loaded: the scale measured with the frame's load marginalised
             # (JointScale, force/joint.py), so that a load is never taken for the device; a loaded frame counts as
-            # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise)
-            z, var, u, v, _ = joint
-            var = var / (REST_WEIGHT if rest else LOADED_WEIGHT)
-            Pc = P[:, 0].copy()
-            gain = Pc / (Pc[0] + var)
-            delta = gain * (z - step)
-            if math.isfinite(float(delta.sum())):
-                tot += delta
-                P -= np.multiply.outer(gain, Pc)
+            # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise), and the
+            # mismatch's part that stays while the load is held is a state of its own (force/rest.py LoadBias)
+            z, var, u, v, force = joint
+            if rest:
+                self._bias.rest()
+                Pc = P[:, 0].copy()
+                gain = Pc / (Pc[0] + var / REST_WEIGHT)
+                delta = gain * (z - step)
+                if math.isfinite(float(delta.sum())):
+                    tot += delta
+                    P -= np.multiply.outer(gain, Pc)
+            else:
+                # LOADED_WEIGHT per DEFAULT_PERIOD: a load's frames share its mismatch, so more of them in a second
+                # do not measure more (the same held load reads the same at 10 and 100 frames/s)
+                w = LOADED_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD
+                delta = self._bias.update(P, self._F, force, z - step, var / w)
+                if delta is not None:
+                    tot += delta
         if rest:
             self._unmeasured, self._t_rest = 0.0, self._t
         elif m > 1:  # unmeasured, the other states follow the scale by a slope known to FOLLOW_SIGMA
