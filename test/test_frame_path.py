@@ -90,6 +90,22 @@ def test_model_estimator_equals_its_previous_formulation(warm_model_estimator, m
         np.testing.assert_allclose(est.estimate(y), model_estimate(est, y), rtol=1e-10, atol=1e-10)
 
 
+def tared_stream(pipe, seed: int, creep: float, age_s: float | None = None):
+    """A stream of ``pipe`` (no field; creep compensated at ``creep`` per decade) tared on 20 frames of its
+    model's reference at 60 dB (``age_s``: a saved tare this old); with the reference, the noise's std
+    and the generator for the frames to come."""
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.stream import FrameStream
+
+    rng = np.random.default_rng(seed)
+    ref = pipe.model_reference
+    noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=creep))
+    tare = ref + noise * rng.normal(size=(20, len(ref)))
+    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare", age_s=age_s)
+    return stream, ref, noise, rng
+
+
 @pytest.mark.parametrize("masked", [False, True])
 def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
     """The tracker's update (the prediction's diagonal as a strided view, LAPACK's solve at rest, its
@@ -100,16 +116,9 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
 
     from reference_frame_path import drift_observe
 
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
 
     pipe = warm_model
-    rng = np.random.default_rng(6)
-    ref = pipe.model_reference
-    noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
-    tare = ref + noise * rng.normal(size=(20, len(ref)))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
+    stream, ref, noise, rng = tared_stream(pipe, 6, creep=0.0)
     flags = None
     if masked:  # three saturated channels on every frame
         flags = np.zeros(pipe.n_meas, bool)
@@ -161,16 +170,9 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
     with rests and loads, after a restart (the states' covariance wide)."""
     from reference_frame_path import model_sigma
 
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
 
     pipe = model_pipe
-    rng = np.random.default_rng(7)
-    ref = pipe.model_reference
-    noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.04))
-    tare = ref + noise * rng.normal(size=(20, len(ref)))
-    stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare", age_s=3600.0)
+    stream, ref, noise, rng = tared_stream(pipe, 7, creep=0.04, age_s=3600.0)
     flags = None
     if masked:
         flags = np.zeros(pipe.n_meas, bool)
