@@ -31,15 +31,18 @@ def numbers(row: dict, cold: bool = True) -> dict:
 
 def check_threads(row: dict, prefix: str = "") -> None:
     """The per-thread figures of the first node process: positive where the node works (its frame
-    thread, which reads, decodes and processes: no reader thread since issue 27), none negative, their
-    sum within the process total (a tolerance for its 10 ms ticks: utime and stime each read at both ends
-    of the window, up to 4 ticks, 200 us per frame over the smoke test's 200 frames; CI once read 1300.9
-    against 1.2 x 1000 + 100)."""
+    thread, which reads, decodes and processes: no reader thread since issue 27), none negative, and
+    their sum within what the machine's cores can give a frame. Not against the process total: that
+    comes from the kernel's ticks, a sample that a workload at the tick's own rate aliases (a fresh-clone
+    CI read the threads' exact 1070 us a frame against a total of 500 at 100 frames/s: 10 ticks where 21
+    ran; another read 1300.9 against 1000)."""
     total = row[f"{prefix}node0_cpu_us_per_frame"]
     groups = [row[f"{prefix}node0_{g}_us_per_frame"] for g in THREAD_GROUPS]
     assert total > 0 and all(g >= 0 for g in groups), row
     assert row[f"{prefix}node0_frames_us_per_frame"] > 0 and row[f"{prefix}node0_reader_us_per_frame"] == 0, row
-    assert sum(groups) <= 1.2 * total + 200, row
+    rate = row[f"{prefix}rate_hz"] if f"{prefix}rate_hz" in row else row["rate_hz"]
+    assert sum(groups) <= (os.cpu_count() or 1) * 1e6 / rate, row  # ns read as us would break it 1000-fold
+
 
 pytestmark = pytest.mark.slow  # bench-node runs real node and board processes (~30 s)
 
