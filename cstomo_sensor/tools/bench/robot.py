@@ -27,8 +27,14 @@ c. ``restart loaded +-2 %``: the same restart with the joint loaded from the fir
 d. ``warm-up 30 min (rests)``: the existing 30-minute warm-up (timeline.warmup_30min: 15 K, gradient,
    contacts, drive, creep 4 %/decade compensated at 4 %, contact tasks with unannounced rests) on this
    device, against the same tasks without the drift (``warm-up baseline``).
+e. ``warm-up 2 % in 5 min, rests``: issue 26's "warming with rests" (its aim: within 1.25 x of no warming):
+   the warming of a (2 %, uniform resistivity, contacts unchanged, 5 minutes) under the loads of a in the
+   same order (the same seed), each held :data:`HOLD_S` and followed by :data:`REST_S` unloaded (a rest
+   every 4 s: 75 loads, a quarter of the frames at rest), against the same loads and rests without
+   warming (``rests, no warming``); errors per minute and over all frames.
 
-Both estimators, drift tracking off and on; creep compensation off (0) except in d, whose truth creeps.
+Both estimators, drift tracking off and on; creep compensation off (0) except in d, whose truth creeps
+(a, d and e at :data:`LOADED_RATE`, b and c at :data:`RATE`).
 Per window of frames: ``err_n`` the median of |F - F_true| (the timeline's applied force),
 ``zero_p99_n`` the 99th percentile of |F| over its zero-load frames, ``angle_deg`` / ``magnitude_pct``
 the median errors over its loaded frames, ``wrong_pct`` the "silently wrong" share: published
@@ -67,27 +73,31 @@ CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515
 WARM = 0.02                 # the uniform resistivity change (a and b, c)
 RESISTIVITY_PER_K = 0.008   # so 2 % is 2.5 K
 WARM_S = 300.0              # a: 5 minutes
-HOLD_S = 3.0                # a, c: each load held 3 s, back to back
+HOLD_S = 3.0                # a, c, e: each load held 3 s (a, c: back to back)
+REST_S = 1.0                # e: the rest after each load
 RATE = 100.0                # b, c frames/s
-LOADED_RATE = 50.0          # a, d frames/s (the drift bench's warm-up rate)
+LOADED_RATE = 50.0          # a, d, e frames/s (the drift bench's warm-up rate)
 RESTART_S, RESTART_LOADED_S = 20.0, 60.0
 RESTART_AGE_S = 7200.0      # b, c: the saved tare is 2 hours old (FrameStream.set_reference's age_s)
 SEED = 31
 EXPECTED_SIGMA = 2.0        # N: c with a controller's expected load (FrameStream.expect_load), its error drawn per frame
 ZERO_TOL_N, LOAD_TOL = 0.5, 0.10   # the "silently wrong" bounds
+WITH_RESTS = ("warm-up 2 % in 5 min, rests", "rests, no warming")   # e's scenarios
 
 
-def back_to_back(duration: float, seed: int) -> Tasks:
-    """Socket loads from t = 0, each held :data:`HOLD_S`, no rest between them (5..30 N, 15..85 deg)."""
-    return Tasks(start=0.0, duration_s=(HOLD_S, HOLD_S), rest_s=(0.0, 0.0), magnitude=(5.0, 30.0),
+def socket_tasks(seed: int, rest_s: float = 0.0) -> Tasks:
+    """Socket loads from t = 0, each held :data:`HOLD_S`, then ``rest_s`` unloaded (0: back to back; 5..30 N,
+    15..85 deg). The loads and their order depend on ``seed`` only, not on ``rest_s``."""
+    return Tasks(start=0.0, duration_s=(HOLD_S, HOLD_S), rest_s=(rest_s, rest_s), magnitude=(5.0, 30.0),
                  elevation_deg=(15.0, 85.0), seed=seed)
 
 
-def loaded_warmup(warm: bool = True) -> TimelineSpec:
-    """Scenario a: 2 % over 5 minutes (or none) under back-to-back loads."""
+def loaded_warmup(warm: bool = True, rest_s: float = 0.0) -> TimelineSpec:
+    """Scenario a (``rest_s`` 0: back-to-back loads) and e (``rest_s`` :data:`REST_S`): 2 % over 5 minutes
+    (or none, ``warm`` False) under the same loads."""
     temp = Profile(((0.0, 0.0), (WARM_S, WARM / RESISTIVITY_PER_K))) if warm else ZERO
     return TimelineSpec(duration=WARM_S, temperature=temp, resistivity_per_k=RESISTIVITY_PER_K, contact_per_k=0.0,
-                        tasks=back_to_back(WARM_S, seed=SEED))
+                        tasks=socket_tasks(SEED, rest_s))
 
 
 def restart(change: float, loaded: bool) -> TimelineSpec:
@@ -95,7 +105,7 @@ def restart(change: float, loaded: bool) -> TimelineSpec:
     duration = RESTART_LOADED_S if loaded else RESTART_S
     return TimelineSpec(duration=duration, temperature=Profile(((0.0, change / RESISTIVITY_PER_K),)),
                         resistivity_per_k=RESISTIVITY_PER_K, contact_per_k=0.0,
-                        tasks=back_to_back(duration, seed=SEED + 1) if loaded else None)
+                        tasks=socket_tasks(SEED + 1) if loaded else None)
 
 
 def restart_changes(loaded: bool) -> tuple[float, ...]:
@@ -224,12 +234,15 @@ def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
     def minutes(t):
         return [(f"min {m + 1}", (t >= 60 * m) & (t < 60 * (m + 1))) for m in range(int(WARM_S // 60))]
 
-    for scenario, spec in (("loaded warm-up 2 % in 5 min", loaded_warmup(True)),
-                           ("loaded, no warming", loaded_warmup(False))):
+    for scenario, spec, windows in (
+            ("loaded warm-up 2 % in 5 min", loaded_warmup(True), minutes),
+            ("loaded, no warming", loaded_warmup(False), minutes),
+            (WITH_RESTS[0], loaded_warmup(True, REST_S), lambda t: minutes(t) + [("all", t >= 0.0)]),
+            (WITH_RESTS[1], loaded_warmup(False, REST_S), lambda t: minutes(t) + [("all", t >= 0.0)])):
         tl = timeline(spec)
         for name, pipe in pipes.items():
             for tracking in (False, True):
-                record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, LOADED_RATE, 0.0), minutes)
+                record(scenario, name, tracking, *run_stream(pipe, tl, tare, tracking, LOADED_RATE, 0.0), windows)
 
     def restart_windows(loaded):
         def w(t):
@@ -266,6 +279,12 @@ def _f(v, fmt=".2f") -> str:
     return "" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, fmt)
 
 
+def _ratio(warm: dict, still: dict, key: str) -> str:
+    """``warm`` / ``still`` (rows) of ``key`` and their ratio."""
+    r = warm[key] / still[key]
+    return f"{_f(warm[key])} / {_f(still[key])}" + (f" ({r:.2f} x)" if np.isfinite(r) else "")
+
+
 def markdown(rows: list[dict]) -> str:
     """The condensed tables of docs/benchmark.md (issue 26's "before")."""
     devices = list(dict.fromkeys(r["device"] for r in rows))
@@ -284,11 +303,13 @@ def markdown(rows: list[dict]) -> str:
     def short(d):
         return d.replace("cuboid_joint_", "")
 
-    lines = ["Loaded warm-up (a): median angle deg / magnitude % per minute, tracking off -> on; silently wrong % per minute",
+    lines = ["Loaded warm-up (a) and warm-up with rests (e): median angle deg / magnitude % per minute, tracking "
+             "off -> on; silently wrong % per minute",
              "", "| device | scenario | estimator | tracking | angle deg, min 1..5 | magnitude %, min 1..5 | wrong %, min 1..5 "
              "| > 3 sigma %, min 1..5 | sigma_n / error, min 1..5 |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for dev, scenario in ((d, s) for d in devices for s in ("loaded warm-up 2 % in 5 min", "loaded, no warming")):
+    for dev, scenario in ((d, s) for d in devices for s in ("loaded warm-up 2 % in 5 min", "loaded, no warming")
+                          + WITH_RESTS):
         for est in ESTIMATORS:
             for tracking in (False, True):
                 rs = [find(scenario, est, tracking, f"min {m + 1}") for m in range(int(WARM_S // 60))]
@@ -297,6 +318,25 @@ def markdown(rows: list[dict]) -> str:
                                           for k in ("angle_deg", "magnitude_pct", "wrong_pct")) + " | "
                              + " / ".join(_f(r["over3sigma_pct"], ".1f") for r in rs) + " | "
                              + " / ".join(_f(r["sigma_ratio"], ".2f") for r in rs) + " |")
+    last = f"min {int(WARM_S // 60)}"
+    lines += ["", "Warm-up with rests (e): warmed / unwarmed (the same loads and rests without warming, the same "
+              "tracking) and their ratio, the last minute and all frames", "",
+              "| device | estimator | tracking | angle deg, last min | angle deg, all | magnitude %, last min "
+              "| magnitude %, all | zero p99 N, all | > 3 sigma %, all | sigma_n / error, all |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for dev in devices:
+        for est in ESTIMATORS:
+            for tracking in (False, True):
+                w, u = ({wd: find(sc, est, tracking, wd) for wd in (last, "all")} for sc in WITH_RESTS)
+                if not all([*w.values(), *u.values()]):
+                    continue
+                lines.append(f"| {short(dev)} | {est} | {'on' if tracking else 'off'} | "
+                             f"{_ratio(w[last], u[last], 'angle_deg')} | {_ratio(w['all'], u['all'], 'angle_deg')} | "
+                             f"{_ratio(w[last], u[last], 'magnitude_pct')} | "
+                             f"{_ratio(w['all'], u['all'], 'magnitude_pct')} | {_f(w['all']['zero_p99_n'])} / "
+                             f"{_f(u['all']['zero_p99_n'])} | {_f(w['all']['over3sigma_pct'], '.1f')} / "
+                             f"{_f(u['all']['over3sigma_pct'], '.1f')} | {_f(w['all']['sigma_ratio'])} / "
+                             f"{_f(u['all']['sigma_ratio'])} |")
     lines += ["", "Restarts (b, c): tracking off -> on; first 0.1 s / 1 s: median |F - F_true| N; then the "
               "window from 1 s (at rest) or 5 s (loaded)", "",
               "| device | scenario | estimator | first 0.1 s N | first 1 s N | zero p99 N | angle deg | magnitude % | wrong % "
