@@ -349,6 +349,7 @@ class BoardDriver:
             self._port = port
         self._opens += 1
         self._fresh = True  # the first frame on a new connection may restart the counter
+        self.identity = None  # this connection's: a board that answers queued IDENTIFYs is logged once
         self._reconnects = max(self._opens - 1, 0)
         failed, self._open_failures, self._logged_error = self._open_failures, 0, None
         log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
@@ -430,8 +431,9 @@ class BoardDriver:
             elif isinstance(msg, DataFrame):
                 self._push(msg)
             elif isinstance(msg, Identity):
+                # a board that stalled answers the IDENTIFY of every reopen at once when it is back
+                (log.debug if msg == self.identity else log.info)("%s: %s", self.url, msg)
                 self.identity = msg
-                log.info("%s: %s", self.url, msg)
             elif isinstance(msg, Error):
                 self._error(f"board error {msg.code} on command 0x{msg.command:02x}: {msg.text}")
             else:
