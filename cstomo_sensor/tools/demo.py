@@ -36,7 +36,7 @@ from ..errors import CstomoError
 from ..force.config import PipelineConfig
 from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
-from .board_sim import COMPUTING
+from .board_sim import COMPUTING, MAX_LOAD
 from .common import NodeWithBoard, add_setting_arg, local_ros_env
 
 
@@ -92,7 +92,7 @@ def _interrupt(*_: object) -> None:
 def _run(a: argparse.Namespace) -> int:
     started = time.monotonic()  # the summary's times count from here
     if a.load_script:  # read before the (slow) model build: a bad file is reported at once
-        times, forces = read_load_script(a.load_script)
+        times, forces = read_load_script(a.load_script, MAX_LOAD)
         labels = [f"script row {i + 1}" for i in range(len(times))]
     else:
         times, forces, labels = load_script(a.hold)
