@@ -57,6 +57,8 @@ def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.nd
 
 def _fmt(f: np.ndarray) -> str:
     m, el, az = force_angles(f)
+    if m == 0:  # no force, no direction (not "el -0.0  az 0.0")
+        return f"{m:6.2f} N  el {'-':>6}  az {'-':>7}"
     return f"{m:6.2f} N  el {np.degrees(el):6.1f}  az {np.degrees(az):7.1f}"
 
 
