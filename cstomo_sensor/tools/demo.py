@@ -37,7 +37,7 @@ from ..force.config import PipelineConfig
 from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
 from .board_sim import COMPUTING, MAX_LOAD
-from .common import NodeWithBoard, add_setting_arg, local_ros_env
+from .common import NodeWithBoard, add_setting_arg, help_text, local_ros_env
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -64,7 +64,7 @@ def _fmt(f: np.ndarray) -> str:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo demo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="cstomo demo", description=help_text(__doc__.splitlines()[0]))
     add_setting_arg(p, "sensor")
     add_setting_arg(p, "estimator")
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")

@@ -47,7 +47,7 @@ from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
-from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
+from .common import add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config
 
 STORAGES = ("sqlite3", "mcap")
 
@@ -163,7 +163,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo replay", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="cstomo replay", description=help_text(__doc__.split("\n\n")[0]))
     p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
