@@ -14,11 +14,14 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 venv: $(STAMP)
 
-# Rebuilt whenever the dependency lists change (a stale .venv is never used).
+# Rebuilt whenever the dependency lists change (a stale .venv is never used). -qq: setuptools' editable
+# build prints a boxed warning on every install, which pip shows even with -q; errors (a failed build's
+# output included) still show. setuptools' default editable mode: `editable_mode=compat` is deprecated
+# (to be removed from setuptools), and the demo, the tests and the colcon install need none of it.
 $(STAMP): setup.py requirements-ros.txt
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
-	$(VPY) -m pip install -q --config-settings editable_mode=compat -e '.[full,test]' -r requirements-ros.txt
+	$(VPY) -m pip install -qq -e '.[full,test]' -r requirements-ros.txt
 	@touch $(STAMP)
 
 test: $(STAMP)

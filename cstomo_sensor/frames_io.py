@@ -227,9 +227,10 @@ def read_force_rows(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return np.array(frame, dtype=int), np.array(forces, dtype=float).reshape(-1, 3)
 
 
-def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def read_load_script(path: str | os.PathLike, max_force: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
     """Read a load script ``time,fx,fy,fz`` (header line first): (times (n,), forces (n, 3)); times
-    finite and not decreasing. A malformed file raises :class:`ConfigError` naming the file and line."""
+    finite and not decreasing, every force's magnitude at most ``max_force`` N. A malformed file
+    raises :class:`ConfigError` naming the file and line."""
     names, rows = _table(path, ConfigError, "load script (header time,fx,fy,fz)", ("time", "fx", "fy", "fz"))
     if names != ["time", "fx", "fy", "fz"]:
         raise ConfigError(f"{path}: columns {names}, expected time,fx,fy,fz")
@@ -238,6 +239,12 @@ def read_load_script(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     back = np.flatnonzero(np.diff(t[:, 0]) < 0)
     if len(back):
         raise ConfigError(f"{path}:{rows[back[0] + 1][0]}: time {t[back[0] + 1, 0]:g} s: times must not decrease")
+    magnitude = np.linalg.norm(t[:, 1:4], axis=1)
+    over = np.flatnonzero(magnitude > max_force)
+    if len(over):
+        i = over[0]
+        raise ConfigError(f"{path}:{rows[i][0]}: load {i + 1} (time {t[i, 0]:g} s) is {magnitude[i]:g} N; expected a "
+                          f"magnitude of 0..{max_force:g} N")
     return t[:, 0], t[:, 1:4]
 
 

@@ -1,4 +1,5 @@
 """End to end over a real pseudo-terminal: SimulatedBoard (in a thread) -> BoardDriver."""
+import logging
 import time
 
 import numpy as np
@@ -132,6 +133,29 @@ def test_stall_reopens_and_resumes(tmp_path):
     assert times.max() > 0.9 and np.diff(times).max() > 0.4  # frames on both sides of the stall
     assert [f.seq for f in frames] == list(range(len(frames))) and st.seq_gaps == 0
     check_values(frames, src)
+
+
+def test_a_board_back_from_a_stall_is_identified_once_not_once_per_reopen(tmp_path, caplog):
+    """While a board is silent the driver reopens the pty every stall, each time sending IDENTIFY; the
+    pty keeps them, and the board answers them all at once when it is back: one identity line (it was
+    logged once per queued IDENTIFY). Nor are the stall and the reopen logged at every reopen (two
+    lines every 2.5 s while a board stays frozen): the stall once per change of its text, the
+    reopens at debug, and one line when bytes come again."""
+    faults = FaultConfig(stall_at=0.3, stall_for=1.2)
+    with caplog.at_level(logging.DEBUG, logger="cstomo_sensor.board.driver"):
+        src, board, st, frames = run(tmp_path, faults, duration=2.0, stall_timeout=0.2, rate_hz=RATE)
+    records = [r for r in caplog.records if r.name == "cstomo_sensor.board.driver"]
+    info = [r.getMessage() for r in records if r.levelno == logging.INFO]
+    identities = [m for m in info if "Identity(" in m]
+    answered = [r for r in records if "Identity(" in r.getMessage()]
+    assert st.reconnects >= 3 and len(answered) >= 3, info  # the queued IDENTIFYs were answered together
+    assert len(identities) == 2, info  # the first connection's, and once when the board was back
+    assert sum("connected" in m for m in info) == 1, info  # the first open; the reopens at debug
+    warnings = [r.getMessage() for r in records if r.levelno == logging.WARNING]
+    assert len(warnings) <= 2 and all("stalled" in m for m in warnings), warnings  # 0.2 s, then 2.5 s
+    back = [m for m in info if "receiving again after" in m]  # (the end of the run is a stall too)
+    assert len(back) == 1 and int(back[0].split("after ")[1].split()[0]) >= 3, info
+    assert max(f.board_time_us for f in frames) / 1e6 > 1.6  # the stream resumed after the stall
 
 
 def test_saturated_channel_and_dead_electrode_are_flagged(tmp_path):

@@ -1,7 +1,9 @@
 """The calibration's fit on load means (fast, pure numpy: outside the slow test_calibration module)."""
 import numpy as np
+import pytest
 
-from cstomo_sensor.force.calibration import fit_correction, load_groups
+from cstomo_sensor.errors import ConfigError
+from cstomo_sensor.force.calibration import calibrate, fit_correction, load_groups
 
 
 def _device(seed: int = 8):
@@ -55,3 +57,14 @@ def test_a_reference_force_that_wanders_within_a_load_fits_as_every_frame_to_its
     # measured: 1e-5 against 1e-3 (A), 1.3 % of D's own error (this device's true D is zero)
     assert np.abs(A2 - A1).max() < 0.1 * np.abs(A1 - A_true).max()
     assert np.abs(D2 - D1).max() < 0.1 * np.abs(D1).max()
+
+
+def test_loads_in_one_plane_are_refused_saying_so():
+    """The paper's three planar cases (30, 90, 120 deg, all in the x-z plane) cannot fix A: refused in
+    words, before the pipeline is used (it printed "loads='3 loads spanning 2 directions'")."""
+    planar = np.array([[17.32, 0, -10], [0, 0, -20], [-10, 0, -17.32]])
+    with pytest.raises(ConfigError, match=r"^3 loads, all in one plane: expected at least 3 loads in independent "
+                                          r"directions \(forces not all in one plane through the origin\)$"):
+        calibrate(None, np.zeros((3, 208)), planar)
+    with pytest.raises(ConfigError, match=r"^2 loads, all in one plane: "):
+        calibrate(None, np.zeros((2, 208)), planar[:2])

@@ -185,6 +185,28 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
         "cstomo board-sim: --rate -5: expected a positive number of frames per second"], r.stderr
 
 
+def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(tmp_path):
+    """2000 N is 50 x the rated 40 N (docs/physics.md): one line naming the load, its time and the
+    accepted range, before board-sim's 'computing' line (nothing simulated)."""
+    script = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,0,1200,-1600\n", "load.csv")
+    for cmd in ("board-sim", "demo"):
+        r = _cstomo(cmd, "--load-script", str(script), *(["--link", str(tmp_path / "b")] if cmd == "board-sim" else []))
+        assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
+        assert r.stderr.strip().splitlines() == [
+            f"cstomo {cmd}: {script}:4: load 3 (time 6 s) is 2000 N; expected a magnitude of 0..60 N"], r.stderr
+    assert not (tmp_path / "b").exists()
+
+
+def test_load_script_magnitude_limit_is_inclusive(tmp_path):
+    from cstomo_sensor.errors import ConfigError
+
+    p = _write(tmp_path, "time,fx,fy,fz\n0,36,0,-48\n1,0,0,-60.001\n", "load.csv")
+    with pytest.raises(ConfigError, match=r":3: load 2 \(time 1 s\) is 60.001 N; expected a magnitude of 0..60 N$"):
+        read_load_script(p, max_force=60.0)
+    t, f = read_load_script(p)  # no limit asked: as before
+    assert np.allclose(np.linalg.norm(f, axis=1), [60.0, 60.001], rtol=0, atol=1e-9)
+
+
 def test_atomic_write_leaves_no_half_written_file(tmp_path):
     from cstomo_sensor.frames_io import atomic_write
 

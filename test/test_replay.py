@@ -387,3 +387,20 @@ def test_a_failing_replay_writes_nothing_and_repeated_errors_are_throttled(tmp_p
     assert "none of the 20 messages" in err[-1], err
     dropped = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage()]
     assert len(dropped) == 1, dropped
+
+
+def test_a_bag_that_never_tares_is_an_error_and_writes_nothing(tmp_path, capsys):
+    """The committed bag is unloaded for its first 20 frames only: a 50-frame tare never completes.
+    Before, an empty output bag, an empty forces file and exit 0; now one line that says what to give."""
+    from cstomo_sensor.tools.replay import main
+
+    out, forces = tmp_path / "out", tmp_path / "f.csv"
+    args = [str(BAG), "--out", str(out), "--forces", str(forces), "--mesh-size", str(PIPE["mesh_size"]),
+            "--grid", *map(str, PIPE["grid"]), "--tare-frames", "50"]
+    assert main(args) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err.strip().splitlines()[-1] == (
+        f"cstomo replay: {BAG}: the bag ended during the tare (200 frames, none taken as the reference: the tare "
+        "needs 50 steady unloaded frames); give --reference FILE (unloaded frames of this device) or a bag that "
+        "starts unloaded; no output written"), cap.err
+    assert list(tmp_path.iterdir()) == []

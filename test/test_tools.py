@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cstomo_sensor.inverse.reconstruction import ReconSpec
@@ -177,3 +178,11 @@ def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, wh
     (line,) = r.stderr.strip().splitlines()
     assert re.match(f"^cstomo simulate: error: {re.escape(str(f))}: loads\\[1\\]: load .*: {why}; expected socket: ", line), line
     assert "(docs/formats.md#scene-file)" in line and not out.exists()
+
+
+def test_the_demo_prints_no_angles_for_no_force():
+    from cstomo_sensor.tools.demo import _fmt
+
+    assert _fmt(np.zeros(3)).split() == ["0.00", "N", "el", "-", "az", "-"]
+    assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0])))  # the columns stay aligned
+    assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "N", "el", "90.0", "az", "0.0"]

@@ -226,6 +226,7 @@ class BoardDriver:
         self._corrupt = self._duplicates = self._reordered = self._resyncs = self._bad = 0
         self._logged_error: str | None = None  # the error last logged (not logged again until it changes)
         self._open_failures = 0  # failed opens since the last successful one
+        self._silent_reopens = 0  # stall reopens since the board's last byte (logged once, not each)
         self._last_seq: int | None = None
         self._fresh = True
         self._missing: OrderedDict[int, str] = OrderedDict()  # recently lost seq -> 'corrupt' or 'gap'
@@ -349,9 +350,14 @@ class BoardDriver:
             self._port = port
         self._opens += 1
         self._fresh = True  # the first frame on a new connection may restart the counter
+        self.identity = None  # this connection's: a board that answers queued IDENTIFYs is logged once
         self._reconnects = max(self._opens - 1, 0)
-        failed, self._open_failures, self._logged_error = self._open_failures, 0, None
-        log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
+        failed, self._open_failures = self._open_failures, 0
+        if self._silent_reopens and not failed:  # reopened after a stall: the board is back when its bytes are
+            log.debug("%s: connected (reopen %d after a stall)", self.url, self._silent_reopens)
+        else:
+            self._silent_reopens, self._logged_error = 0, None
+            log.info("%s: connected%s", self.url, f" after {failed} failed attempts to open" if failed else "")
         if self.protocol == "binary":
             self.send(encode(Identify()) + encode(Start(self._rate_hz or 0.0)))
         return True
@@ -401,11 +407,15 @@ class BoardDriver:
         if not data:
             stall = self._stall_after()
             if now - self._last_byte > stall:
+                self._silent_reopens += 1
                 self._error(f"stalled: no bytes for {stall:.2g} s, reopening")
                 self._intervals.clear()  # its rate may have changed: measured again
                 self._close_port()
             return
         self._last_byte = now
+        if self._silent_reopens:
+            log.info("%s: receiving again after %d reopens", self.url, self._silent_reopens)
+            self._silent_reopens, self._logged_error = 0, None
         self._handle(self._decoder.feed(data, marks=True))
 
     def _read(self, wait: float) -> bytes:
@@ -430,8 +440,9 @@ class BoardDriver:
             elif isinstance(msg, DataFrame):
                 self._push(msg)
             elif isinstance(msg, Identity):
+                # a board that stalled answers the IDENTIFY of every reopen at once when it is back
+                (log.debug if msg == self.identity else log.info)("%s: %s", self.url, msg)
                 self.identity = msg
-                log.info("%s: %s", self.url, msg)
             elif isinstance(msg, Error):
                 self._error(f"board error {msg.code} on command 0x{msg.command:02x}: {msg.text}")
             else:

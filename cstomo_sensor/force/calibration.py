@@ -236,8 +236,9 @@ def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | No
     groups = load_groups(forces)
     n_loads = int(groups.max()) + 1
     if n_loads < 3 or np.linalg.matrix_rank(forces) < 3:
-        raise ConfigError.bad_value("loads", f"{n_loads} loads spanning {np.linalg.matrix_rank(forces)} directions",
-                                    "at least 3 loads in independent directions")
+        span = {1: "all along one line", 2: "all in one plane"}.get(int(np.linalg.matrix_rank(forces)), "")
+        raise ConfigError(f"{n_loads} loads{', ' + span if span and n_loads >= 2 else ''}: expected at least 3 "
+                          "loads in independent directions (forces not all in one plane through the origin)")
     base = pipe.base_estimator
     y = pipe.normalise(frames)
     noise = pipe.estimator.noise

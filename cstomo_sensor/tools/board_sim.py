@@ -24,7 +24,13 @@ from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
 from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
+from ..settings import RATED_FORCE, default
 from .common import add_setting_arg
+
+#: The largest force (N) a load script may ask of the simulated sensor: the node's default ``max_force``,
+#: 1.5 x the rated range of docs/physics.md (the calibration's largest load); beyond it the node
+#: publishes nothing and the simulation's small-strain mechanics means nothing either.
+MAX_LOAD = default("max_force")
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -40,8 +46,8 @@ def parser() -> argparse.ArgumentParser:
     src.add_argument("--scene", help="scene YAML file: a timeline scene's rubber creeps as its timeline's creep: "
                                      "says; a scene's list of loads (foreign loads too) holds each load exactly, "
                                      "1 s each (--creep does not apply to scenes)")
-    src.add_argument("--load-script", help="load script CSV (time,fx,fy,fz; socket forces); its rubber creeps "
-                                           "(--creep)")
+    src.add_argument("--load-script", help=f"load script CSV (time,fx,fy,fz; socket forces up to {MAX_LOAD:g} N, "
+                                           f"1.5 x the rated {RATED_FORCE:g} N); its rubber creeps (--creep)")
     p.add_argument("--creep", type=float, default=TYPICAL_CREEP_PER_DECADE, metavar="C",
                    help="the load script's rubber creep per decade of time from 0.1 s after each change of load "
                         "(default %(default)g: the typical rubber, the node's default creep_per_decade, so the "
@@ -117,7 +123,7 @@ def _main(args: argparse.Namespace) -> int:
         )
         layers = load_sensor(args.sensor).layers
         if args.load_script:
-            read_load_script(args.load_script)  # a bad script is refused before the line below
+            read_load_script(args.load_script, MAX_LOAD)  # a bad script is refused before the line below
         # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
         print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
               "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",

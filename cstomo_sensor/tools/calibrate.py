@@ -1,4 +1,4 @@
-"""``cstomo calibrate``: fit a device calibration on known loads (see cstomo_sensor.force.calibration).
+"""``cstomo calibrate``: fit a device calibration on known loads (docs/calibration.md).
 
 From files (formats: docs/formats.md)::
 
@@ -39,7 +39,7 @@ from ..force.creep import HELD_FOR, MIN_HELD
 from ..force.device import read_reference, reference_of
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
-from .common import add_pipeline_args, pipeline_config
+from .common import add_pipeline_args, help_text, pipeline_config
 
 STAMP_TOLERANCE = 0.02  # s
 UNLOADED_BELOW = 0.5  # N
@@ -194,8 +194,8 @@ def file_loads(idx: np.ndarray, forces: np.ndarray, rate: float) -> HeldLoads:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo calibrate", description=__doc__.splitlines()[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n", 1)[1])
+    p = argparse.ArgumentParser(prog="cstomo calibrate", description=help_text(__doc__.splitlines()[0]),
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=help_text(__doc__.split("\n", 1)[1]))
     add_pipeline_args(p)
     p.add_argument("--reference", help="frames file of unloaded frames (required with --frames)")
     p.add_argument("--frames", help="frames file of the loaded frames")

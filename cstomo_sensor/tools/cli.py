@@ -170,25 +170,29 @@ scene file (docs/formats.md#scene-file; a YAML mapping, only `loads` (or `timeli
 """
 
 
+FRAMES_HELP = "frames file: 208 comma-separated volts a line (docs/formats.md#frames-file; `cstomo simulate` writes one)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
-    p = argparse.ArgumentParser(prog="cstomo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="cstomo", description="The force sensor's tools without ROS; to see it work, start "
+                                "with `cstomo demo` (README.md, docs/). Each command's --help says what it reads and writes.")
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
     model = sub.add_parser("model", help="forward model").add_subparsers(dest="what", required=True)
     b = model.add_parser("build", help="build (or load) the forward model and print a summary")
     v = model.add_parser("voltages", help="write the model's predicted unloaded frame")
-    v.add_argument("--out", required=True)
+    v.add_argument("--out", required=True, help="frames file to write (CSV, one line of 208 volts)")
     r = sub.add_parser("reconstruct", help="per-cell conductivity change for each frame (npz)")
-    r.add_argument("--reference", required=True)
-    r.add_argument("--frames", required=True)
-    r.add_argument("--out", required=True)
+    r.add_argument("--reference", required=True, help="frames file of unloaded frames (their mean is the reference)")
+    r.add_argument("--frames", required=True, help=FRAMES_HELP)
+    r.add_argument("--out", required=True, help="npz file to write")
     e = sub.add_parser("estimate", help="force vector for each frame (forces CSV)")
     e.add_argument("--reference", required=True,
                    help="frames file of unloaded frames (several: mean and noise; one without its .noise.csv: "
                         "the noise is estimated from the --frames file, a time series of the board)")
-    e.add_argument("--frames", required=True)
-    e.add_argument("--out", required=True)
+    e.add_argument("--frames", required=True, help=FRAMES_HELP)
+    e.add_argument("--out", required=True, help="forces file to write (CSV, docs/formats.md#forces-file)")
     e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
                    help="frames per second of the frames file, in file order: the clock of the drift tracking "
                         "(default %(default)g)")

@@ -26,6 +26,11 @@ from ..settings import SETTING, text_of
 _SAME = object()
 
 
+def help_text(doc: str) -> str:
+    """A docstring as ``--help`` shows it: reST's double backquotes as single ones."""
+    return doc.replace("``", "`")
+
+
 def add_setting_arg(p: argparse.ArgumentParser, name: str, *, flag: str | None = None, default=_SAME,
                     note: str = "") -> argparse.Action:
     """The flag (``--name-with-dashes`` unless ``flag``) of node setting ``name``: its default (or

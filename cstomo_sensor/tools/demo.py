@@ -36,8 +36,8 @@ from ..errors import CstomoError
 from ..force.config import PipelineConfig
 from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
-from .board_sim import COMPUTING
-from .common import NodeWithBoard, add_setting_arg, local_ros_env
+from .board_sim import COMPUTING, MAX_LOAD
+from .common import NodeWithBoard, add_setting_arg, help_text, local_ros_env
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -57,12 +57,14 @@ def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.nd
 
 def _fmt(f: np.ndarray) -> str:
     m, el, az = force_angles(f)
+    if m == 0:  # no force, no direction (not "el -0.0  az 0.0")
+        return f"{m:6.2f} N  el {'-':>6}  az {'-':>7}"
     return f"{m:6.2f} N  el {np.degrees(el):6.1f}  az {np.degrees(az):7.1f}"
 
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo demo", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="cstomo demo", description=help_text(__doc__.splitlines()[0]))
     add_setting_arg(p, "sensor")
     add_setting_arg(p, "estimator")
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
@@ -92,7 +94,7 @@ def _interrupt(*_: object) -> None:
 def _run(a: argparse.Namespace) -> int:
     started = time.monotonic()  # the summary's times count from here
     if a.load_script:  # read before the (slow) model build: a bad file is reported at once
-        times, forces = read_load_script(a.load_script)
+        times, forces = read_load_script(a.load_script, MAX_LOAD)
         labels = [f"script row {i + 1}" for i in range(len(times))]
     else:
         times, forces, labels = load_script(a.hold)

@@ -47,9 +47,7 @@ from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
-from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
-
-log = logging.getLogger(__name__)
+from .common import add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config
 
 STORAGES = ("sqlite3", "mcap")
 
@@ -117,6 +115,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         raise ConfigError(f"output bag {out_bag}: its directory {out_bag.parent} does not exist")
     if forces_file is not None and not Path(forces_file).parent.is_dir():
         raise ConfigError(f"forces file {forces_file}: its directory {Path(forces_file).parent} does not exist")
+    had_forces = forces_file is not None and Path(forces_file).exists()
     stream_cfg = StreamConfig(tare_frames=tare_frames, stress_field_every=stress_field_every,
                               wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking,
                               creep_per_decade=creep_per_decade)
@@ -144,20 +143,27 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             if n_in and corrupt == n_in:
                 raise ConfigError(f"{in_bag}: none of the {n_in} messages of {source.topic} could be read as frames; "
                                   "no output written")
+            if stream.taring:  # no reference ever: no result, not an empty bag and exit 0
+                raise ConfigError(f"{in_bag}: the bag ended during the tare ({n_in} frames, none taken as the "
+                                  f"reference: the tare needs {tare_frames} steady unloaded frames); give --reference "
+                                  "FILE (unloaded frames of this device) or a bag that starts unloaded; no output "
+                                  "written")
             os.replace(partial, out_bag)
+        except BaseException:
+            if forces_file is not None and not had_forces:  # written at the run's end: only a complete replay leaves it
+                Path(forces_file).unlink(missing_ok=True)
+            raise
         finally:
             shutil.rmtree(work, ignore_errors=True)
     finally:
         source.close()
-    if stream.taring:
-        log.warning("the bag ended during the tare (%d frames): no output", n_in)
     return ReplaySummary(n_in, bag.results, corrupt, source.topic, tuple(prefix + n for n in names), stream.implausible,
                          sum(r.foreign_load for r in results.results))
 
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo replay", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="cstomo replay", description=help_text(__doc__.split("\n\n")[0]))
     p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
