@@ -44,7 +44,8 @@ def diagnostics(name: str, counts: dict, now_ns: int) -> DiagnosticArray:
 
 def run(port: str, rate: float) -> int:
     node = rclpy.create_node("cstomo_sensor")
-    pub = node.create_publisher(WrenchStamped, "~/wrench", QoSProfile(depth=10, reliability=ReliabilityPolicy.SYSTEM_DEFAULT))
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.SYSTEM_DEFAULT)  # the node's defaults
+    pub = node.create_publisher(WrenchStamped, "~/wrench", qos)
     diag_pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
     name = f"{node.get_namespace().rstrip('/')}/cstomo_sensor: sensor"
     rng = np.random.default_rng(0)  # the products' cost depends on their sizes, not their values
@@ -86,6 +87,9 @@ def run(port: str, rate: float) -> int:
                 busy_ns = period_frames = 0
     except KeyboardInterrupt:
         pass
+    except OSError as err:  # the board's pty closed under the loop
+        print(f"lean loop: {port}: {err}", file=sys.stderr)
+        return 1
     finally:
         s.close()
         node.destroy_node()

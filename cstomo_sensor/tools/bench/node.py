@@ -169,7 +169,8 @@ def thread_group(tid: int, pid: int, comm: str, main_comm: str) -> str:
 
 def thread_figures(pid: int, before: dict, after: dict, frames: float) -> dict:
     """CPU microseconds per frame of a process's thread groups between two :func:`thread_cpu`
-    readings (a thread started in between counts from zero, one that ended is lost), and every thread name's, as 'name=us ...' (largest first)."""
+    readings (a thread started in between counts from zero, one that ended is lost), and every thread
+    name's, as 'name=us ...' (largest first)."""
     main_comm = after.get(pid, before.get(pid, ("", 0)))[0]
     groups = dict.fromkeys(THREAD_GROUPS, 0)
     names: dict[str, int] = {}
@@ -483,10 +484,12 @@ def _table(head: list[str], keys: list[str], rows: list[dict]) -> str:
 
 def markdown(rows: list[dict]) -> str:
     head = ["fps", "stress", "lean", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
-            "lat med ms", "lat p99 ms", "node CPU %", "ticks %", "CPU us/wrench", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms", "load 1m"]
+            "lat med ms", "lat p99 ms", "node CPU %", "ticks %", "CPU us/wrench", "board CPU %", "VmRSS MB", "VmHWM MB",
+            "proc ms", "load 1m"]
     keys = ["rate_hz", "stress_field_every", "lean", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
             "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
-            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_ticks_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb",
+            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_ticks_pct", "node_cpu_us_per_wrench",
+            "board_cpu_pct", "node_vmrss_mb",
             "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
     if any(r.get("sensors", 1) > 1 or r.get("hosted") for r in rows):  # several sensors: the figures of the issue
         head = ["fps", "stress", "lean", "sensors", "hosted", "published min %", "of nominal min %", "dropped", "s0 wrench/s",
@@ -576,7 +579,8 @@ def main(argv: list[str] | None = None) -> int:
             for stress in a.stress:
                 for n in a.sensors:
                     for hosted in modes:
-                        what = f"{n} sensors" + (" hosted" if hosted else " (a process each)" if n > 1 else "") + (", lean loop" if a.lean else "")
+                        what = f"{n} sensors" + (" hosted" if hosted else " (a process each)" if n > 1 else "")
+                        what += ", lean loop" if a.lean else ""
                         print(f"run: {rate:g} fps, stress_field_every {stress}, {what}, {a.seconds:g} s window ...",
                               flush=True)
                         t = time.monotonic()
