@@ -18,10 +18,10 @@ import os
 import select
 import sys
 import time
+import tty
 
 import numpy as np
 import rclpy
-import serial
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import WrenchStamped
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -51,9 +51,9 @@ def run(port: str, rate: float) -> int:
     rng = np.random.default_rng(0)  # the products' cost depends on their sizes, not their values
     gain, ref = rng.normal(size=(3, N_VALUES)), rng.normal(size=N_VALUES)
     out, clock, dec = OutputMessages(np.zeros((1, 3)), "cstomo_socket"), ClockMapper(), Decoder()
-    s = serial.serial_for_url(port, timeout=0.05)
-    fd = s.fileno()
-    s.write(encode(Identify()) + encode(Start(rate)))
+    fd = os.open(port, os.O_RDWR | os.O_NOCTTY)  # a pty: raw, as pyserial opens it for the driver
+    tty.setraw(fd)
+    os.write(fd, encode(Identify()) + encode(Start(rate)))
     frames = gaps = published = period_frames = busy_ns = 0
     last_seq, handle = None, pub.handle
     next_diag = time.monotonic()
@@ -91,7 +91,7 @@ def run(port: str, rate: float) -> int:
         print(f"lean loop: {port}: {err}", file=sys.stderr)
         return 1
     finally:
-        s.close()
+        os.close(fd)
         node.destroy_node()
     return 0
 
