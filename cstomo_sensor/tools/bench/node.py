@@ -18,9 +18,11 @@ subscriber, so the measuring side stays small), the CPU of every node process an
   smallest transport delay seen* (pty + serial driver thread + queue hand-over): that minimum is
   not included in the latency; what is measured is everything above it (processing, DDS,
   the subscriber's executor, scheduling);
-* CPU of the node process (all threads): utime+stime from /proc/<pid>/stat over the window, in %
-  of one core and in microseconds per wrench received (and of the board simulator, which shares the
-  2 cores);
+* CPU of the node process (all threads): the sum of its threads' run times
+  (``/proc/<pid>/task/<tid>/schedstat``, ns, exact) over the window, in % of one core and in
+  microseconds per wrench received (and of the board simulator, which shares the 2 cores, and of this
+  bench); the kernel's tick-sampled utime+stime (``/proc/<pid>/stat``) as a cross-check
+  (``node_cpu_ticks_pct``: at 100 frames/s a workload at the tick's own rate aliases it);
 * wrenches received per second, the node's frames per second and its dropped frames (queue
   overflow, late, sequence gaps: differences of the /diagnostics counters over the window);
 * VmRSS and VmHWM of the node from /proc/<pid>/status at the end of the window (the largest node
@@ -45,6 +47,9 @@ subscriber, so the measuring side stays small), the CPU of every node process an
   does per second whatever the rate (diagnostics, timers) spread over fewer frames;
 * the outputs built: the topics the first sensor published on over the window and their rates
   (``outputs``, from the ``messages_published`` counters of its diagnostics).
+
+With ``--lean`` the lean loop of :mod:`.lean` runs in place of each node (a process each, same boards,
+ptys, rates, subscriber and accounting): the floor of any rclpy node under these conditions.
 
 Prints markdown tables and writes ``node_bench.csv``, ``node_bench_sensors.csv`` and ``node_bench.md``
 in ``--out``.
@@ -80,7 +85,7 @@ COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate
            "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb", "node_vmhwm_mb",
            "processing_mean_ms", "host_loadavg_1m",
            "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct", "node_cpu_us_per_frame",
-           "node_cpu_max_pct", "bench_cpu_pct", "host_loadavg_end"]
+           "node_cpu_max_pct", "bench_cpu_pct", "host_loadavg_end", "lean", "node_cpu_ticks_pct"]
 #: Thread groups of the first node process, by OS thread name (/proc/<pid>/task/<tid>/comm): the frame
 #: thread, the driver's reader thread (both named by the node), the executor (the main thread and the
 #: threads named as it: Python's, as the executor's pool) and the other threads (the middleware's,
@@ -97,8 +102,10 @@ SENSOR_COLUMNS = ["rate_hz", "stress_field_every", "sensors", "hosted", "sensor"
 METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the node's ROS clock) - "
           "wrench header.stamp (board write time mapped to host time by the lower envelope of "
           "host_time - board_time); caveat: the minimum transport delay (pty + driver + queue hand-over) is "
-          "absorbed into the clock offset and NOT included. CPU = utime+stime of the process (all threads) "
-          "over the window, % of one core; with several sensors the sum over the node processes (the one "
+          "absorbed into the clock offset and NOT included. CPU = the sum of the process's threads' run times "
+          "(/proc/<pid>/task/<tid>/schedstat, ns; a thread that ends within the window is lost) over the "
+          "window, % of one core (ticks % = utime+stime of /proc/<pid>/stat, 10 ms ticks, a sample: a "
+          "cross-check); with several sensors the sum over the node processes (the one "
           "host process with --hosted), and the boards' sum. dropped = diagnostics dropped_overflow + "
           "late_dropped + seq_gaps over the window (every sensor). published = a sensor's frames minus its "
           "late, rejected and implausible ones, of the frames its board sent (frames + overflow + gaps + "
@@ -108,8 +115,8 @@ METHOD = ("latency = subscriber receive time (time.time_ns, system clock = the n
           "(/proc/<pid>/task/<tid>/schedstat, ns) over the window by OS thread name (comm), per frame the "
           "process received (its sensors' diagnostics 'frames'); frame thr = cstomo_frames, reader thr = "
           "cstomo_reader (the driver), executor = the main thread and the threads named as it (the "
-          "executor's pool), other = the middleware's threads; us/frame = the process's utime+stime "
-          "(/proc/<pid>/stat, 10 ms ticks, ended threads included). cold = the same configuration at a low "
+          "executor's pool), other = the middleware's threads; us/frame = their sum. lean = the lean loop "
+          "(tools/bench/lean.py) in place of the node. cold = the same configuration at a low "
           "rate (--cold-rate): every frame comes after an idle period (caches and branch predictors cold, "
           "CPU clock down). outputs = the topics the first sensor published on over the window "
           "(its diagnostics' messages_published).")
@@ -140,6 +147,12 @@ def thread_cpu(pid: int) -> dict[int, tuple[str, int]]:
     return out
 
 
+def cpu_ns(before: dict, after: dict) -> int:
+    """CPU time (ns) of a process between two :func:`thread_cpu` readings: the sum over its threads
+    (a thread started in between counts from zero, one that ended is lost)."""
+    return sum(ns - before.get(tid, (comm, 0))[1] for tid, (comm, ns) in after.items())
+
+
 def thread_group(tid: int, pid: int, comm: str, main_comm: str) -> str:
     """The group of THREAD_GROUPS a thread of process ``pid`` belongs to."""
     from ...board.driver import READER_THREAD
@@ -156,8 +169,8 @@ def thread_group(tid: int, pid: int, comm: str, main_comm: str) -> str:
 
 def thread_figures(pid: int, before: dict, after: dict, frames: float) -> dict:
     """CPU microseconds per frame of a process's thread groups between two :func:`thread_cpu`
-    readings (a thread started in between counts from zero, one that ended is lost: the process
-    total, from /proc/<pid>/stat, has it), and every thread name's, as 'name=us ...' (largest first)."""
+    readings (a thread started in between counts from zero, one that ended is lost), and every thread
+    name's, as 'name=us ...' (largest first)."""
     main_comm = after.get(pid, before.get(pid, ("", 0)))[0]
     groups = dict.fromkeys(THREAD_GROUPS, 0)
     names: dict[str, int] = {}
@@ -272,6 +285,8 @@ class _Sensors:
         # startup (rclpy import, model load, tare, 2 s unloaded; N boards and nodes share the cores) +
         # warm-up + window + margin
         duration = 30.0 + 8.0 * n + a.warmup + a.seconds
+        if a.lean and hosted:
+            raise CstomoError("--lean runs a lean loop in place of each node process: not with --hosted")
         self.params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": float(rate), "protocol": "binary",
                        "tare_on_start": True,
                        # the tare within the load script's unloaded 2 s at a low (cold) rate too
@@ -285,8 +300,12 @@ class _Sensors:
             self.logs += [node_log, board_log]
             params = {k: str(v).lower() if isinstance(v, bool) else v for k, v in self.params.items()}
             params["tare_file"] = work / f"tare_{tag}_{i}.csv"
-            self.runs.append(NodeWithBoard(work / f"board_{tag}_{i}", params, board_args, node_out=node_log,
-                                           board_err=board_log, namespace=ns))
+            run = NodeWithBoard(work / f"board_{tag}_{i}", params, board_args, node_out=node_log,
+                                board_err=board_log, namespace=ns)
+            if a.lean:  # the floor: the lean loop in place of the node (tools/bench/lean.py)
+                run.node_cmd = [sys.executable, "-m", "cstomo_sensor.tools.bench.lean", run.link, "--rate", str(rate),
+                                "--ros-args", "--log-level", "warn"] + (["-r", f"__ns:={ns}"] if ns else [])
+            self.runs.append(run)
         self.host: subprocess.Popen | None = None
         self.host_cmd: list[str] = []
         if hosted:
@@ -374,11 +393,11 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
         with rec.lock:
             rec.recording, n0 = True, rec.wrenches
         pids = sensors.node_pids + sensors.board_pids + [me]
-        th0 = thread_cpu(pids[0])
-        t0, c0 = time.monotonic(), [cpu_seconds(p) for p in pids]
+        th0, k0 = [thread_cpu(p) for p in pids], [cpu_seconds(p) for p in pids]
+        t0 = time.monotonic()
         time.sleep(a.seconds)
-        t1, c1 = time.monotonic(), [cpu_seconds(p) for p in pids]
-        th1 = thread_cpu(pids[0])
+        t1 = time.monotonic()
+        th1, k1 = [thread_cpu(p) for p in pids], [cpu_seconds(p) for p in pids]
         with rec.lock:
             rec.recording, n1 = False, rec.wrenches
             lat = np.array(rec.latencies_ns, float) * 1e-6
@@ -396,7 +415,8 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
             ros_node.destroy_subscription(s)
 
     window = t1 - t0
-    cpu = [100 * (b - a_) / window for a_, b in zip(c0, c1)]
+    cpu = [1e-7 * cpu_ns(b, a_) / window for b, a_ in zip(th0, th1)]  # exact: the threads' run times
+    ticks = [100 * (b - a_) / window for a_, b in zip(k0, k1)]  # a sample: the cross-check
     k = len(sensors.node_pids)
     node_cpu, board_cpu, bench_cpu = cpu[:k], cpu[k:k + n], cpu[-1]
     figs = [_sensor_figures(diags.get(name, []), t0, t1, rate) for name in rec.names]
@@ -418,7 +438,7 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
     nominal_min = min((f.get("published_of_nominal", math.nan) for f in figs), default=math.nan) if all(figs) else math.nan
     frames_all = total("frames")
     frames0 = frames_all if hosted else f0.get("frames", math.nan)  # the frames of the first node process
-    node0 = thread_figures(sensors.node_pids[0], th0, th1, frames0)
+    node0 = thread_figures(sensors.node_pids[0], th0[0], th1[0], frames0)
     keeps_up = int(wrench_rate >= 0.98 * rate and dropped == 0 and published_min >= 99.9)
     pct = lambda q: float(np.percentile(lat, q)) if lat.size else math.nan  # noqa: E731
     row = {"rate_hz": rate, "stress_field_every": stress, "window_s": round(window, 3), "wrenches": n1 - n0,
@@ -437,7 +457,8 @@ def run_one(ros_node, a, rate: float, stress: int, work: Path, script: Path, n: 
            "node_cpu_us_per_frame": round(1e4 * sum(node_cpu) * window / frames_all, 1)
            if math.isfinite(frames_all) and frames_all > 0 else math.nan,
            "node_cpu_max_pct": round(max(node_cpu), 1), "bench_cpu_pct": round(bench_cpu, 1),
-           "host_loadavg_end": round(load, 2),
+           "host_loadavg_end": round(load, 2), "lean": int(bool(a.lean)),
+           "node_cpu_ticks_pct": round(sum(ticks[:k]), 1),
            "node0_cpu_us_per_frame": round(1e4 * node_cpu[0] * window / frames0, 1) if frames0 > 0 else math.nan,
            **node0, "outputs": published_topics(diags.get(rec.names[0], []), t0, t1),
            **{c: math.nan for c in COLUMNS if c.startswith("cold_")}}
@@ -455,24 +476,26 @@ def _table(head: list[str], keys: list[str], rows: list[dict]) -> str:
     assert len(head) == len(keys)
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [("yes" if r[k] else "no") if k in ("keeps_up", "hosted") else
+        cells = [("yes" if r[k] else "no") if k in ("keeps_up", "hosted", "lean") else
                  (r[k] if isinstance(r[k], str) else f"{r[k]:g}") for k in keys]
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 
 
 def markdown(rows: list[dict]) -> str:
-    head = ["fps", "stress", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
-            "lat med ms", "lat p99 ms", "node CPU %", "CPU us/wrench", "board CPU %", "VmRSS MB", "VmHWM MB", "proc ms", "load 1m"]
-    keys = ["rate_hz", "stress_field_every", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
+    head = ["fps", "stress", "lean", "wrench/s", "node fr/s", "dropped", "overflow", "seq gaps", "late", "keeps up",
+            "lat med ms", "lat p99 ms", "node CPU %", "ticks %", "CPU us/wrench", "board CPU %", "VmRSS MB", "VmHWM MB",
+            "proc ms", "load 1m"]
+    keys = ["rate_hz", "stress_field_every", "lean", "wrench_rate_hz", "node_frame_rate_hz", "frames_dropped",
             "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
-            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_us_per_wrench", "board_cpu_pct", "node_vmrss_mb",
+            "latency_median_ms", "latency_p99_ms", "node_cpu_pct", "node_cpu_ticks_pct", "node_cpu_us_per_wrench",
+            "board_cpu_pct", "node_vmrss_mb",
             "node_vmhwm_mb", "processing_mean_ms", "host_loadavg_1m"]
     if any(r.get("sensors", 1) > 1 or r.get("hosted") for r in rows):  # several sensors: the figures of the issue
-        head = ["fps", "stress", "sensors", "hosted", "published min %", "of nominal min %", "dropped", "s0 wrench/s",
+        head = ["fps", "stress", "lean", "sensors", "hosted", "published min %", "of nominal min %", "dropped", "s0 wrench/s",
                 "lat med ms", "lat p99 ms", "nodes CPU %", "max node CPU %", "CPU us/frame", "boards CPU %",
                 "bench CPU %", "VmRSS MB", "load 1m start/end"]
-        keys = ["rate_hz", "stress_field_every", "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct",
+        keys = ["rate_hz", "stress_field_every", "lean", "sensors", "hosted", "published_min_pct", "published_of_nominal_min_pct",
                 "frames_dropped", "wrench_rate_hz", "latency_median_ms", "latency_p99_ms", "node_cpu_pct",
                 "node_cpu_max_pct", "node_cpu_us_per_frame", "board_cpu_pct", "bench_cpu_pct", "node_vmrss_mb", "load"]
         rows = [dict(r, load=f"{r['host_loadavg_1m']:g}/{r['host_loadavg_end']:g}") for r in rows]
@@ -482,10 +505,10 @@ def markdown(rows: list[dict]) -> str:
 def threads_markdown(rows: list[dict]) -> str:
     """CPU per frame of the first node process by thread group, warm and (with --cold) cold, and the
     topics it published."""
-    head = ["fps", "stress", "sensors", "hosted", "us/frame", "frame thr", "reader thr", "executor", "other",
+    head = ["fps", "stress", "lean", "sensors", "hosted", "us/frame", "frame thr", "reader thr", "executor", "other",
             "cold fps", "cold us/frame", "cold frame thr", "cold reader thr", "cold executor", "cold other",
             "load 1m warm/cold", "outputs (msgs/s)"]
-    keys = ["rate_hz", "stress_field_every", "sensors", "hosted", *_NODE0, "cold_rate_hz",
+    keys = ["rate_hz", "stress_field_every", "lean", "sensors", "hosted", *_NODE0, "cold_rate_hz",
             *[f"cold_{c}" for c in _NODE0], "load", "outputs"]
     rows = [dict(r, load=f"{r['host_loadavg_1m']:g}/{r['cold_host_loadavg_1m']:g}") for r in rows]
     return _table(head, keys, rows)
@@ -509,6 +532,8 @@ def parser() -> argparse.ArgumentParser:
                    help="numbers of boards and sensors run together (default 1)")
     p.add_argument("--hosted", action="store_true",
                    help="the sensors in one cstomo_sensor_host process (default: a cstomo_sensor_node each)")
+    p.add_argument("--lean", action="store_true",
+                   help="the lean loop of tools/bench/lean.py in place of each node: the floor of an rclpy node")
     p.add_argument("--both", action="store_true", help="every configuration with a process each and hosted")
     p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
     p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
@@ -526,6 +551,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if min(a.sensors) < 1:
         p.error("--sensors: at least 1")
+    if a.lean and (a.hosted or a.both):
+        p.error("--lean runs the lean loop in place of each node process: not with --hosted or --both")
 
     local_ros_env(30)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -553,6 +580,7 @@ def main(argv: list[str] | None = None) -> int:
                 for n in a.sensors:
                     for hosted in modes:
                         what = f"{n} sensors" + (" hosted" if hosted else " (a process each)" if n > 1 else "")
+                        what += ", lean loop" if a.lean else ""
                         print(f"run: {rate:g} fps, stress_field_every {stress}, {what}, {a.seconds:g} s window ...",
                               flush=True)
                         t = time.monotonic()
