@@ -161,6 +161,12 @@ def default(name: str):
     return SETTING[name].default
 
 
+#: The largest socket force (N) a load script or a scene may ask of the simulated sensor: the node's
+#: default ``max_force``, 1.5 x the rated range of docs/physics.md (the calibration's largest load);
+#: beyond it the node publishes nothing and the simulation's small-strain mechanics means nothing either.
+MAX_LOAD = default("max_force")
+
+
 def check_value(name: str, value: object) -> None:
     """Raise :class:`ConfigError` ``name=value: expected ...`` unless ``value`` is one of setting ``name``'s."""
     why = SETTING[name].problem(value)

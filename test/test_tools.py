@@ -180,6 +180,48 @@ def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, wh
     assert "(docs/formats.md#scene-file)" in line and not out.exists()
 
 
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+@pytest.mark.parametrize("text,why", [
+    ("loads:\n  - {socket: {force: [0, 0, -20]}}\n  - {socket: {force: [0, 1200, -1600]}}\n",
+     "loads[1] (socket) is 2000 N"),
+    ("loads:\n  - {socket: {magnitude: 60.5, elevation_deg: 90}}\n", "loads[0] (socket) is 60.5 N"),
+    ("timeline:\n  duration: 5\n  loads:\n    - {time: 1, force: [0, 0, -20]}\n"
+     "    - {time: 2, magnitude: 75, elevation_deg: 90}\n", "timeline.loads[1] (time 2 s) is 75 N"),
+    ("timeline: {duration: 50, tasks: {magnitude: [5, 80]}}\n", "tasks.magnitude=[5.0, 80.0]"),
+])
+def test_simulate_and_board_sim_refuse_a_scene_socket_load_beyond_the_range_before_computing(tmp_path, text, why):
+    """A scene's socket load beyond 60 N (1.5 x the rated 40 N, the limit of a load script) is refused in
+    one line naming the file, the load, its magnitude and the range: no 'computing' line, nothing written."""
+    f = tmp_path / "scene.yaml"
+    f.write_text(text)
+    exe = str(Path(sys.executable).parent / "cstomo")
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    for cmd, args, prefix in (("simulate", ["--out", str(tmp_path / "out")], "cstomo simulate: error: "),
+                              ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: ")):
+        r = subprocess.run([exe, cmd, "--scene", str(f), *args], capture_output=True, text=True, timeout=120, env=env)
+        assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
+        (line,) = r.stderr.strip().splitlines()
+        assert line.startswith(f"{prefix}{f}: {why}") and "0..60 N" in line, line
+    assert not (tmp_path / "out").exists() and not (tmp_path / "b").exists()
+
+
+def test_every_shipped_scene_loads_and_a_60_n_socket_load_is_accepted(tmp_path):
+    from cstomo_sensor.model.simulate import Scene
+    from cstomo_sensor.model.timeline import Timeline
+
+    scenes = sorted(SCENES.glob("*.yaml"))  # scenes/devices/ holds sensor files, not scenes
+    assert len(scenes) >= 13
+    for scene in scenes:
+        loaded = Scene.load(scene)
+        if loaded.timeline is not None:
+            Timeline.from_scene(scene)  # parses the timeline (its loads, tasks, load script); builds no mesh
+    f = tmp_path / "scene.yaml"
+    f.write_text("loads:\n  - {socket: {force: [0, 36, -48]}}\n")  # 60 N: the limit is inclusive
+    assert np.linalg.norm(Scene.load(f).loads[0].force) == pytest.approx(60.0, abs=1e-9)
+
+
 def test_the_demo_prints_no_angles_for_no_force():
     from cstomo_sensor.tools.demo import _fmt
 

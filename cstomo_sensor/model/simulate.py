@@ -43,6 +43,7 @@ from ..angles import force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
+from ..settings import MAX_LOAD
 from . import elasticity
 from .cem import ForwardModel
 from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor
@@ -315,6 +316,10 @@ class Scene:
                 loads.append(Load.from_dict(x))
             except ConfigError as err:
                 raise ConfigError(f"{p}: loads[{i}]: {err}") from None
+            magnitude = float(np.linalg.norm(loads[-1].force))
+            if loads[-1].kind == "socket" and not magnitude <= MAX_LOAD:  # before any mesh is built
+                raise ConfigError(f"{p}: loads[{i}] (socket) is {magnitude:g} N; expected a magnitude of "
+                                  f"0..{MAX_LOAD:g} N")
         return cls(sensor=sensor, loads=tuple(loads),
                    snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
                    truth_mesh_size=float(d.get("truth_mesh_size", TRUTH_MESH_SIZE)),

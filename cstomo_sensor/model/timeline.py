@@ -60,6 +60,7 @@ from ..angles import force_angles, force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
+from ..settings import MAX_LOAD
 from . import elasticity
 from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
 from .material import CREEP_T0, TYPICAL_CREEP_PER_DECADE, conductivity_of_theta
@@ -212,6 +213,8 @@ class Tasks:
                 raise ConfigError.bad_value(f"tasks.{name}", [lo, hi], "[low, high] with 0 <= low <= high")
         if not (0 < self.elevation_deg[0] and self.elevation_deg[1] <= 90):
             raise ConfigError.bad_value("tasks.elevation_deg", self.elevation_deg, "within (0, 90] deg")
+        if not self.magnitude[1] <= MAX_LOAD:
+            raise ConfigError.bad_value("tasks.magnitude", list(self.magnitude), f"a range within 0..{MAX_LOAD:g} N")
 
     def steps(self, duration: float) -> tuple[np.ndarray, np.ndarray]:
         """(times (n,), forces (n, 3)): each task's force at its start, a zero force at its end."""
@@ -303,6 +306,12 @@ class TimelineSpec:
         t = np.asarray(self.load_times, dtype=float)
         if len(t) != len(self.load_forces) or not np.isfinite(t).all() or np.any(t < 0) or np.any(np.diff(t) < 0):
             raise ConfigError("timeline.loads: times must be finite, >= 0 and not decrease, one force each")
+        magnitude = np.linalg.norm(np.reshape(self.load_forces, (-1, 3)), axis=1)
+        over = np.flatnonzero(~(magnitude <= MAX_LOAD))
+        if len(over):
+            i = over[0]
+            raise ConfigError(f"timeline.loads[{i}] (time {t[i]:g} s) is {magnitude[i]:g} N; expected a magnitude of "
+                              f"0..{MAX_LOAD:g} N")
 
     @classmethod
     def from_dict(cls, d: dict, base: Path | None = None) -> TimelineSpec:
@@ -339,7 +348,7 @@ class TimelineSpec:
             kw["load_forces"] = tuple(tuple(_force_of(it, f"timeline.loads[{i}]")) for i, it in enumerate(items))
         if "load_script" in d:
             p = Path(d["load_script"])
-            times, forces = read_load_script(p if p.is_absolute() or base is None else base / p)
+            times, forces = read_load_script(p if p.is_absolute() or base is None else base / p, MAX_LOAD)
             kw["load_times"], kw["load_forces"] = tuple(times), tuple(map(tuple, forces))
         return cls(**kw)
 
@@ -536,13 +545,17 @@ class Timeline:
     def from_scene(cls, scene, cache_dir=None, snr_db: float | None = None) -> Timeline:
         """From a scene file (or :class:`~cstomo_sensor.model.simulate.Scene`) with a ``timeline:``
         section; ``snr_db`` None takes the scene's."""
-        base = None
+        base = path = None
         if not isinstance(scene, Scene):
-            base = Path(scene).parent
+            path, base = scene, Path(scene).parent
             scene = Scene.load(scene)
         if scene.timeline is None:
             raise ConfigError("the scene has no timeline: section (docs/formats.md#timeline)")
-        return cls(TimelineSpec.from_dict(scene.timeline, base), snr_db=scene.snr_db if snr_db is None else snr_db,
+        try:  # before any mesh is built
+            spec = TimelineSpec.from_dict(scene.timeline, base)
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}" if base is not None else str(err)) from None
+        return cls(spec, snr_db=scene.snr_db if snr_db is None else snr_db,
                    seed=scene.seed, truth=scene.truth(cache_dir), cache_dir=cache_dir)
 
     # --- the device's state ------------------------------------------------------------------

@@ -24,13 +24,8 @@ from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
 from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
-from ..settings import RATED_FORCE, default
+from ..settings import MAX_LOAD, RATED_FORCE
 from .common import add_setting_arg
-
-#: The largest force (N) a load script may ask of the simulated sensor: the node's default ``max_force``,
-#: 1.5 x the rated range of docs/physics.md (the calibration's largest load); beyond it the node
-#: publishes nothing and the simulation's small-strain mechanics means nothing either.
-MAX_LOAD = default("max_force")
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -122,14 +117,18 @@ def _main(args: argparse.Namespace) -> int:
             saturate_channel=args.saturate_channel, full_scale=args.full_scale, dead_electrode=args.dead_electrode,
         )
         layers = load_sensor(args.sensor).layers
+        # a bad script or scene is refused before the line below (reading them builds no mesh)
         if args.load_script:
-            read_load_script(args.load_script, MAX_LOAD)  # a bad script is refused before the line below
+            read_load_script(args.load_script, MAX_LOAD)
+        timeline = None
+        if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
+            timeline = Timeline.from_scene(args.scene, snr_db=args.snr)
         # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
         print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
               "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
               file=sys.stderr, flush=True)
-        if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
-            source = Timeline.from_scene(args.scene, snr_db=args.snr).prepare()
+        if timeline is not None:
+            source = timeline.prepare()
         elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline
             source = script_timeline(args.load_script, args.creep, sensor=args.sensor, duration=args.duration,
                                      snr_db=args.snr, seed=args.seed)

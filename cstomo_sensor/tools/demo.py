@@ -36,7 +36,8 @@ from ..errors import CstomoError
 from ..force.config import PipelineConfig
 from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
-from .board_sim import COMPUTING, MAX_LOAD
+from ..settings import MAX_LOAD
+from .board_sim import COMPUTING
 from .common import NodeWithBoard, add_setting_arg, help_text, local_ros_env
 
 
