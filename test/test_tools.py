@@ -228,3 +228,24 @@ def test_the_demo_prints_no_angles_for_no_force():
     assert _fmt(np.zeros(3)).split() == ["0.00", "N", "el", "-", "az", "-"]
     assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0])))  # the columns stay aligned
     assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "N", "el", "90.0", "az", "0.0"]
+
+
+def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
+    """Before: an unloaded line read '0.02 N  el  -15.8  az   -76.3', a direction of noise. Its sigma_n
+    (the node's ~/wrench_sigma) is about 0.3 N on the demo's 60 dB board: below 2 sigma_n, no angles."""
+    from cstomo_sensor.angles import force_from_angles
+    from cstomo_sensor.tools.demo import _fmt, judge
+
+    noise = force_from_angles(0.02, np.radians(-15.8), np.radians(-76.3))
+    assert _fmt(noise, sigma_n=0.3).split() == ["0.02", "N", "el", "-", "az", "-"]
+    assert _fmt(noise).split() == ["0.02", "N", "el", "-15.8", "az", "-76.3"]  # sigma unknown: as before
+    small = force_from_angles(0.61, np.radians(60.0), np.radians(45.0))  # just above 2 x 0.3 N: shown
+    assert _fmt(small, sigma_n=0.3).split() == ["0.61", "N", "el", "60.0", "az", "45.0"]
+    assert _fmt(force_from_angles(0.59, np.radians(60.0), 0.0), sigma_n=0.3).split()[2:] == ["el", "-", "az", "-"]
+    assert len({len(_fmt(f, sigma_n=0.3)) for f in (noise, small, np.zeros(3), np.array([0.0, 0.0, -20.0]))}) == 1
+    # a demo line of the unloaded sensor: the estimate's columns say no direction, aligned with a loaded line
+    times, forces = np.array([0.0, 3.0]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -20.0]])
+    unloaded, counted = judge(times, forces, ["unloaded (tare)", "down"], 1.0, noise, 0.3)
+    loaded, _ = judge(times, forces, ["unloaded (tare)", "down"], 4.0, np.array([0.3, 0.0, -20.1]), 0.3)
+    assert counted is None and unloaded.split()[-7:] == ["0.02", "N", "el", "-", "az", "-", "-"], unloaded
+    assert len(unloaded) == len(loaded) and loaded.split()[-7:-1] == ["20.10", "N", "el", "89.1", "az", "0.0"], loaded

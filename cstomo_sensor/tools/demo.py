@@ -7,7 +7,8 @@
    20 N at 30, 90 and 120 degrees, a sweep of azimuths at 60 degrees elevation, and magnitudes from
    5 to 40 N;
 4. prints, live, the true and the estimated force (magnitude, elevation, azimuth) and the frame
-   rate, from the node's ``~/wrench`` topic; exits when the sequence ends. Each line judges the
+   rate, from the node's ``~/wrench`` topic (an estimate below :data:`DIRECTION_SIGMAS` times its
+   1-sigma ``sigma_n``, from ``~/wrench_sigma``, shows no direction); exits when the sequence ends. Each line judges the
    latest wrench against the load in force when its frame was measured: its stamp (the board's clock
    mapped to the host's) minus the load script's t = 0 on the same clock (from ``board-sim``), not
    the demo's own clock, which lags the script by the board's report and the wrench's transport.
@@ -19,6 +20,7 @@ compensates that (its default ``creep_per_decade``): both are the model layer's
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import signal
 import sys
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import WrenchStamped
+from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 
 from ..angles import angle_between, force_angles, force_from_angles
 from ..errors import CstomoError
@@ -56,9 +58,16 @@ def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.nd
     return times, np.array([f for _, f in steps]), [s for s, _ in steps]
 
 
-def _fmt(f: np.ndarray) -> str:
+#: An estimated force is shown without a direction (``el - az -``) when its magnitude is below this many
+#: times its own 1-sigma ``sigma_n`` (the rms of its error's norm): its direction is then the noise's.
+DIRECTION_SIGMAS = 2.0
+
+
+def _fmt(f: np.ndarray, sigma_n: float = math.nan) -> str:
+    """``|F| N  el D  az D`` of force ``f``; no angles for no force, or for a force below
+    :data:`DIRECTION_SIGMAS` x its 1-sigma ``sigma_n`` (N; nan: unknown, angles shown)."""
     m, el, az = force_angles(f)
-    if m == 0:  # no force, no direction (not "el -0.0  az 0.0")
+    if m == 0 or m < DIRECTION_SIGMAS * sigma_n:  # no (meaningful) direction (not "el -0.0  az 0.0")
         return f"{m:6.2f} N  el {'-':>6}  az {'-':>7}"
     return f"{m:6.2f} N  el {np.degrees(el):6.1f}  az {np.degrees(az):7.1f}"
 
@@ -193,10 +202,12 @@ class _View:
         self.executor.add_node(self.node)
         self.latest: np.ndarray | None = None
         self.stamp: float | None = None  # the latest wrench's header.stamp, s (system clock)
+        self.sigma_n = math.nan  # the latest ~/wrench_sigma's norm: the 1-sigma sigma_n of its wrench, N
         self.count = 0
         self.first: float | None = None  # time.monotonic() of the first wrench
-        self.wake = threading.Event()  # set by the first wrench (and by the watch's signal handlers)
+        self.wake = threading.Event()  # set by the first wrench with its sigma (and by the watch's signal handlers)
         self.node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", self._on_wrench, 10)
+        self.node.create_subscription(Vector3Stamped, "/cstomo_sensor/wrench_sigma", self._on_sigma, 10)
         self._spinner = threading.Thread(target=self._spin, daemon=True)
         self._spinner.start()
 
@@ -207,7 +218,22 @@ class _View:
         self.count += 1
         if self.first is None:
             self.first = time.monotonic()
-            self.wake.set()  # its line is printed at once, not at the next half second
+            self._first_line()
+
+    def _first_line(self) -> None:
+        """The first wrench's line is printed at once, not at the next half second, once its sigma has
+        come too (published right after it; without it the line would show a noise's direction)."""
+        if self.latest is not None and not math.isnan(self.sigma_n):
+            self.wake.set()
+
+    def _on_sigma(self, msg: Vector3Stamped) -> None:
+        """The per-axis 1-sigma of a wrench (published with it, under its stamp): sigma_n = its norm,
+        sqrt(trace(cov)); the sigma of the latest wrench or of one a frame away, which differ little."""
+        v = msg.vector
+        first = math.isnan(self.sigma_n)
+        self.sigma_n = math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
+        if first:
+            self._first_line()
 
     def _spin(self) -> None:
         from rclpy.executors import ExternalShutdownException
@@ -225,11 +251,11 @@ class _View:
 
 
 def judge(times: np.ndarray, forces: np.ndarray, labels: list[str], t: float, est: np.ndarray,
-          settle: float = 0.6) -> tuple[str, tuple[float, float] | None]:
+          sigma_n: float = math.nan, settle: float = 0.6) -> tuple[str, tuple[float, float] | None]:
     """(the line's columns from ``t`` to the angle error, (angle error deg, relative magnitude error)
-    if the line counts in the summary) of an estimate ``est`` of the frame measured at script time
-    ``t``: judged against the load in force at ``t``; it counts when that load is not zero and had
-    been held over ``settle`` s."""
+    if the line counts in the summary) of an estimate ``est`` (1-sigma ``sigma_n``, :func:`_fmt`) of
+    the frame measured at script time ``t``: judged against the load in force at ``t``; it counts
+    when that load is not zero and had been held over ``settle`` s."""
     i = load_index(times, t)
     true = force_at(times, forces, t)
     settled = i >= 0 and t - times[i] > settle
@@ -238,7 +264,7 @@ def judge(times: np.ndarray, forces: np.ndarray, labels: list[str], t: float, es
     counted = None
     if settled and np.isfinite(err):
         counted = (float(err), float(abs(np.linalg.norm(est) - np.linalg.norm(true)) / np.linalg.norm(true)))
-    return f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true):<34} {_fmt(est):<34} {shown}", counted
+    return f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true):<34} {_fmt(est, sigma_n):<34} {shown}", counted
 
 
 def _watch(a, t0, duration, times, forces, labels, board, view: _View,
@@ -253,6 +279,8 @@ def _watch(a, t0, duration, times, forces, labels, board, view: _View,
         view.wake.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    print(f"estimated: the node's ~/wrench; 'el - az -' when |F| < {DIRECTION_SIGMAS:g} x its 1-sigma sigma_n "
+          "(~/wrench_sigma): a direction within the noise")
     print(f"{'t [s]':>6}  {'load':<22} {'true':<34} {'estimated':<34} {'angle err':>9} {'rate':>7}")
     errors = []
     last_n, last_t = 0, time.monotonic()
@@ -274,7 +302,7 @@ def _watch(a, t0, duration, times, forces, labels, board, view: _View,
             # the script time of the wrench's frame: its stamp on the script's clock (the demo's own
             # clock lags: at a load change it would judge the new load's estimate against the old load)
             t = stamp - script_t0 if script_t0 is not None and stamp else now - t0
-            line, counted = judge(times, forces, labels, t, est)
+            line, counted = judge(times, forces, labels, t, est, view.sigma_n)
             if counted is not None:
                 errors.append(counted)
             print(f"{line} {rate:6.0f}/s", flush=True)
