@@ -401,6 +401,46 @@ def test_a_bag_that_never_tares_is_an_error_and_writes_nothing(tmp_path, capsys)
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.strip().splitlines()[-1] == (
         f"cstomo replay: {BAG}: the bag ended during the tare (200 frames, none taken as the reference: the tare "
-        "needs 50 steady unloaded frames); give --reference FILE (unloaded frames of this device) or a bag that "
-        "starts unloaded; no output written"), cap.err
+        "needs 50 steady unloaded frames); give --reference FILE (unloaded frames of this device), fewer "
+        "--tare-frames (at most the unloaded frames it starts with) or a bag that starts unloaded for longer; no "
+        "output written"), cap.err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_documented_replay_example_runs_as_written(tmp_path):
+    """docs/node.md's replay example (and README's copy of it), run line by line as written from a
+    folder that holds the repository's test/ (so out/ lands in tmp_path): a newcomer's first replay.
+    Judged on the bag's true forces (test/data/raw_voltages_truth.csv), not on another replay."""
+    import os
+    import re
+    import shlex
+    import subprocess
+    import sys
+
+    from cstomo_sensor.frames_io import read_force_rows
+
+    root = BAG.parents[2]
+    section = (root / "docs" / "node.md").read_text().split("### Replay", 1)[1].split("\n### ", 1)[0]
+    (block,) = re.findall(r"```bash\n(.*?)```", section, re.S)
+    lines = [ln for ln in block.splitlines() if ln.strip()]
+    assert len(lines) == 2 and lines[1].startswith("cstomo replay "), lines
+    assert lines[1] in " ".join((root / "README.md").read_text().split()), "README's copy differs from docs/node.md's"
+    (tmp_path / "test").symlink_to(root / "test")
+    exe = str(Path(sys.executable).parent / "cstomo")
+    for line in lines:
+        words = shlex.split(line, comments=True)
+        assert words[0] in ("mkdir", "cstomo"), line
+        r = subprocess.run([exe if words[0] == "cstomo" else words[0], *words[1:]], cwd=tmp_path, capture_output=True,
+                           text=True, timeout=240, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+        assert r.returncode == 0, line + "\n" + r.stdout + r.stderr
+    assert r.stdout.startswith("200 frames from /cstomo_sensor/raw_voltages: 190 results written to out/replayed_bag ("), r.stdout
+    assert (tmp_path / "out" / "replayed_bag" / "metadata.yaml").is_file()
+    frame, est = read_force_rows(tmp_path / "out" / "replayed.csv")
+    _, truth = read_force_rows(BAG.parent / "raw_voltages_truth.csv")
+    assert frame.tolist() == list(range(190))  # the frames after the 10-frame tare, numbered from 0
+    held = slice(20, 50)  # the bag's frames 30-59: 20 N straight down, held since frame 20 (0.4 s)
+    assert (truth[30:60] == [0.0, 0.0, -20.0]).all()
+    mag = np.linalg.norm(est[held], axis=1)
+    assert np.median(mag) == pytest.approx(20.0, rel=0.05), mag  # measured: 19.35 N (creep compensated)
+    cos = est[held] @ truth[30:60][0] / (mag * 20.0)
+    assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 3.0, est[held]

@@ -146,8 +146,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             if stream.taring:  # no reference ever: no result, not an empty bag and exit 0
                 raise ConfigError(f"{in_bag}: the bag ended during the tare ({n_in} frames, none taken as the "
                                   f"reference: the tare needs {tare_frames} steady unloaded frames); give --reference "
-                                  "FILE (unloaded frames of this device) or a bag that starts unloaded; no output "
-                                  "written")
+                                  "FILE (unloaded frames of this device), fewer --tare-frames (at most the unloaded "
+                                  "frames it starts with) or a bag that starts unloaded for longer; no output written")
             os.replace(partial, out_bag)
         except BaseException:
             if forces_file is not None and not had_forces:  # written at the run's end: only a complete replay leaves it
