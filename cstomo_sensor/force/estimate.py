@@ -306,12 +306,16 @@ class ModelEstimator:
     def _follow(self, state) -> None:
         """The surrogate's coefficients for the device ``state`` (None: the nominal device), unless it
         is within :data:`STATE_TOLERANCE` of the one they are for (a few microseconds otherwise)."""
-        now = self._state
+        now, tol = self._state, STATE_TOLERANCE
         if state is None or now is None:
             if state is now:
                 return
-        elif max(abs(a - b) for a, b in zip(state, now)) <= STATE_TOLERANCE:
-            return
+        else:
+            for a, b in zip(state, now):
+                if not -tol <= a - b <= tol:
+                    break
+            else:
+                return
         c = self._coef0 if state is None else np.tensordot(np.asarray(state, float), self._dcoef, 1) + self._coef0
         n = len(self.forces)
         self._coef[:] = c

@@ -56,7 +56,7 @@ class SlowStates:
         self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
         self.scale = 1.0  # the pipeline's arguments for the next frame: the voltages' uniform scale
         self.offset: np.ndarray | None = None  # ... and the drift's and the creep's offsets, summed (y units)
-        self.gradient: tuple | None = None  # ... and the resistivity gradients' states (force/joint.py), 3 floats
+        self.gradient: list | None = None  # ... and the resistivity gradients' states (force/joint.py), 3 floats
         self._sum = np.zeros(n_meas)
         self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
@@ -162,7 +162,7 @@ class SlowStates:
 
     def _offsets(self) -> None:
         # the tracker's other states: the contacts', then the resistivity gradients' (reset)
-        self.gradient = tuple(self.drift.gradient[-3:].tolist()) if self.drift is not None else None
+        self.gradient = self.drift.gradient[-3:].tolist() if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)
