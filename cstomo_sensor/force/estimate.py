@@ -299,7 +299,8 @@ class ModelEstimator:
         self._d0, self._d0_target = self._coef0[n].copy(), self._coef[n]
         # ... and their change per unit state (response), and the state they are for
         self._dcoef = None if response is None else np.array(
-            [self.surrogate.coefficients_of((r[:, self.keep] * self.w) @ self.basis.T) for r in response])
+            [self.surrogate.coefficients_of((r[:, self.keep] * self.w) @ self.basis.T) for r in response]
+        ).reshape(len(response), -1)  # (k, (n + 4) m): one product gives the change of every coefficient
         self._state = None
         self.last_fit: ModelFit | None = None
 
@@ -316,10 +317,13 @@ class ModelEstimator:
                     break
             else:
                 return
-        c = self._coef0 if state is None else np.tensordot(np.asarray(state, float), self._dcoef, 1) + self._coef0
-        n = len(self.forces)
-        self._coef[:] = c
-        self._d0[:] = c[n]
+        coef = self._coef
+        if state is None:
+            coef[:] = self._coef0
+        else:
+            np.dot(state, self._dcoef, out=coef.reshape(-1))
+            coef += self._coef0
+        self._d0[:] = coef[len(self.forces)]
         self._state = None if state is None else tuple(state)
 
     def estimate(self, y: np.ndarray, state=None) -> np.ndarray:
