@@ -14,7 +14,9 @@ module for the normalisation). The calibration never sees the honest-simulation 
 - ``model`` (the default, accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/tps.py), started from the linear estimate;
-  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``).
+  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``). The surrogate follows the
+  device's resistivity gradients (the drift tracker's states, passed per frame) to first order
+  (:func:`response_set`): a warmed block's gradient changes how a load shows in the voltages.
 
 Both honour the bad-channel mask (``masked``), which refits the ridge map on the kept channels.
 """
