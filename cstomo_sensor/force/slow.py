@@ -161,7 +161,7 @@ class SlowStates:
         self._expected = (f, float(sigma), stamp_ns * 1e-9)
 
     def _offsets(self) -> None:
-        # the tracker's other states: the contacts', then the resistivity gradients' (reset)
+        # the tracker's other states are the contacts', then the resistivity gradients' (see reset)
         self.gradient = self.drift.gradient[-3:].tolist() if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
