@@ -14,7 +14,9 @@ module for the normalisation). The calibration never sees the honest-simulation 
 - ``model`` (the default, accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/tps.py), started from the linear estimate;
-  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``).
+  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``). The surrogate follows the
+  device's resistivity gradients (the drift tracker's states, passed per frame) to first order
+  (:func:`response_set`): a warmed block's gradient changes how a load shows in the voltages.
 
 Both honour the bad-channel mask (``masked``), which refits the ridge map on the kept channels.
 """
@@ -37,6 +39,7 @@ from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.material import conductivity_of_theta
 from ..model.mesh import MeshSpec, TetMesh, build_mesh
+from .joint import gradient_coordinates
 from .small import cramer3
 from .tps import ThinPlateSpline
 
@@ -44,6 +47,10 @@ log = logging.getLogger(__name__)
 
 CALIB_FORMAT = 1
 MECHANICS_FORMAT = 1
+RESPONSE_FORMAT = 1
+#: The resistivity gradients' state (relative per half extent) at which the load's response to them is
+#: taken (:func:`response_set`).
+RESPONSE_STEP = 0.03
 
 
 @dataclass(frozen=True)
@@ -112,37 +119,81 @@ def socket_mechanics(geometry: SensorGeometry, spec: CalibrationSpec, cache_dir=
     return mech, dirs, theta
 
 
+def _calibration_key(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec) -> dict:
+    # y depends on the forward mesh, the model reference and v_scale, not on the voxel grid or
+    # the Landweber settings: one calibration serves every grid
+    return {"format": CALIB_FORMAT, "geometry": geometry.digest(), "mesh_h": model.meta["mesh_h"],
+            "v_scale": model.v_scale, "reference": model.model_reference, "spec": spec.__dict__}
+
+
+def _calibration_loads(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
+                       cache_dir=None, progress=None, what: str = "calibrating force estimators"):
+    """(the forward model on the model's mesh, its mesh, the calibration's loads: an iterator of
+    (force (3,) N, per-cell conductivity))."""
+    say = progress or (lambda m: log.info("%s", m))
+    mech, dirs, theta = socket_mechanics(geometry, spec, cache_dir, progress)
+    fwd_mesh = build_mesh(geometry, MeshSpec(h=model.meta["mesh_h"]), cache_dir)
+    sample = elasticity.point_sampler(mech.points, mech.tets, fwd_mesh.centers)  # located once
+
+    def loads():
+        for i, d in enumerate(dirs):
+            theta1 = sample(theta[i])  # per N
+            for m in spec.magnitudes:
+                yield m * d, conductivity_of_theta(m * theta1, geometry.material)[0]
+            if i % 10 == 0:
+                say(f"{what}: direction {i + 1}/{len(dirs)}")
+
+    return ForwardModel(geometry, fwd_mesh), fwd_mesh, loads()
+
+
 def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
                     cache_dir=None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """(forces (n, 3), y (n, n_meas)) noise-free, through the model's mesh (cached)."""
-    say = progress or (lambda m: log.info("%s", m))
-    # y depends on the forward mesh, the model reference and v_scale, not on the voxel grid or
-    # the Landweber settings: one calibration serves every grid
-    key = input_hash({"format": CALIB_FORMAT, "geometry": geometry.digest(), "mesh_h": model.meta["mesh_h"],
-                      "v_scale": model.v_scale, "reference": model.model_reference, "spec": spec.__dict__})
+    key = input_hash(_calibration_key(geometry, model, spec))
     path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-{key}.npz"
     hit = cache_load(path, key, names=("forces", "y"))
     if hit is not None:
         return hit["forces"], hit["y"]
     t0 = time.perf_counter()
-    mech, dirs, theta = socket_mechanics(geometry, spec, cache_dir, progress)
-    fwd_mesh = build_mesh(geometry, MeshSpec(h=model.meta["mesh_h"]), cache_dir)
-    fm = ForwardModel(geometry, fwd_mesh)
-    sample = elasticity.point_sampler(mech.points, mech.tets, fwd_mesh.centers)  # located once
+    fm, _, loads = _calibration_loads(geometry, model, spec, cache_dir, progress)
     forces, ys = [], []
-    for i, d in enumerate(dirs):
-        theta1 = sample(theta[i])  # per N
-        for m in spec.magnitudes:
-            sigma, _ = conductivity_of_theta(m * theta1, geometry.material)
-            v = fm.voltages(sigma)
-            forces.append(m * d)
-            ys.append((v - model.model_reference) / model.v_scale)
-        if i % 10 == 0:
-            say(f"calibrating force estimators: direction {i + 1}/{len(dirs)}")
+    for f, sigma in loads:
+        forces.append(f)
+        ys.append((fm.voltages(sigma) - model.model_reference) / model.v_scale)
     forces, ys = np.array(forces), np.array(ys)
     cache_save(path, key, forces=forces, y=ys)
     log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)
     return forces, ys
+
+
+def response_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
+                 cache_dir=None, progress=None) -> np.ndarray:
+    """(3, n, n_meas): how the calibration set's y (:func:`calibration_set`, same rows) changes per unit
+    state of the resistivity gradients along x, y and z that the drift tracker follows
+    (:func:`~.joint.gradient_coordinates`, :func:`~.joint.gradient_directions`), the gradient's own
+    unloaded change taken out (the pipeline removes it as the tracker's offset): the load's response
+    on a warmed block, ``[y_g(F) - y_g(0) - y(F)] / g``, by a secant at ``g`` = :data:`RESPONSE_STEP`
+    (the 30-minute warm-up's 15 K with a 30 % gradient reaches 0.03; within 1 % of the secant at 0.01).
+    Three forward solves per load, the same physics as the calibration (cached; docs/benchmark.md)."""
+    key = input_hash({**_calibration_key(geometry, model, spec), "response": RESPONSE_FORMAT, "step": RESPONSE_STEP})
+    path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-response-{key}.npz"
+    hit = cache_load(path, key, names=("dy",))
+    if hit is not None:
+        return hit["dy"]
+    forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
+    t0 = time.perf_counter()
+    fm, mesh, loads = _calibration_loads(geometry, model, spec, cache_dir, progress,
+                                         "the calibration's response to the resistivity gradients")
+    factor = 1.0 + RESPONSE_STEP * gradient_coordinates(model, mesh.centers).T  # (3, n_cells): resistivity
+    v0 = np.array([fm.voltages(geometry.material.sigma0 / f) for f in factor])  # unloaded, per gradient
+    dy = np.empty((3, *y.shape))
+    for i, (_, sigma) in enumerate(loads):
+        for k, f in enumerate(factor):
+            dy[k, i] = ((fm.voltages(sigma / f) - v0[k]) / model.v_scale - y[i]) / RESPONSE_STEP
+    cache_save(path, key, dy=dy)
+    log.info("calibration's response to the resistivity gradients: %d solves in %.1f s", 3 * (len(y) + 1),
+             time.perf_counter() - t0)
+    return dy
 
 
 def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
@@ -150,6 +201,12 @@ def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
     :data:`~cstomo_sensor.force.device.DEFAULT_NOISE_DB`; a tare of several frames replaces it)."""
     ref = model.model_reference
     return np.sqrt(np.mean(ref**2)) * 10 ** (-db / 20) / model.v_scale
+
+
+#: :meth:`ModelEstimator.estimate` keeps its surrogate's coefficients while the device's states it follows
+#: move by less than this (relative resistivity per half extent: a load's response changes by 1e-4 of
+#: itself, far below the noise; the 30-minute warm-up's gradient grows to 0.03).
+STATE_TOLERANCE = 1e-4
 
 
 class LinearEstimator:
@@ -170,7 +227,8 @@ class LinearEstimator:
         self.W = np.zeros((3, y.shape[1]))
         self.W[:, self.keep] = Wk
 
-    def estimate(self, y: np.ndarray) -> np.ndarray:
+    def estimate(self, y: np.ndarray, state=None) -> np.ndarray:
+        """The force (N) of the change ``y``; ``state`` (the device's, :class:`ModelEstimator`) is not used."""
         return self.W.dot(y)  # ndarray.dot: the frame path uses one kind of product, without np.dot's dispatch (issue 27)
 
     def masked(self, keep: np.ndarray) -> LinearEstimator:
@@ -201,16 +259,22 @@ class ModelFit(NamedTuple):
 
 
 class ModelEstimator:
-    """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics."""
+    """Gauss-Newton fit of F to y through a radial-basis surrogate of the forward + mechanics.
+
+    ``response`` (k, n, n_meas) or None: how each node's y changes per unit of k device states
+    (:func:`response_set`: the resistivity gradients the drift tracker follows); the surrogate then
+    follows the states :meth:`estimate` is given, to first order (its coefficients are linear in its
+    node values: ``coef(g) = coef_0 + sum_k g_k C_k``)."""
 
     name = "model"
 
     def __init__(self, forces: np.ndarray, y: np.ndarray, noise: np.ndarray, ridge: float,
-                 keep: np.ndarray | None = None, iterations: int = 6) -> None:
+                 keep: np.ndarray | None = None, iterations: int = 6, response: np.ndarray | None = None) -> None:
 
         self.linear = LinearEstimator(forces, y, noise, ridge, keep)
         self.keep = self.linear.keep
         self.forces, self.y, self.noise, self.ridge = forces, y, noise, ridge
+        self.response = response
         self.iterations = iterations
         self.scale = 10.0  # N: forces enter the surrogate in units of 10 N
         self._W_unit = self.linear.W / self.scale  # the linear estimate's map in those units
@@ -231,11 +295,44 @@ class ModelEstimator:
         self._G = np.empty((3, 4))
         # the spline's coefficients with the frame's target taken from its constant term (row n),
         # so that one product gives the residual (with its sign changed) and the Jacobian
-        self._coef = self.surrogate.coefficients.copy()
-        self._d0, self._d0_target = self.surrogate.coefficients[len(forces)], self._coef[len(forces)]
+        n = len(forces)
+        self._coef0 = self.surrogate.coefficients
+        self._coef = self._coef0.copy()
+        self._d0, self._d0_target = self._coef0[n].copy(), self._coef[n]
+        # ... and their change per unit state (response), and the state they are for
+        self._dcoef = None if response is None else np.array(
+            [self.surrogate.coefficients_of((r[:, self.keep] * self.w) @ self.basis.T) for r in response]
+        ).reshape(len(response), -1)  # (k, (n + 4) m): one product gives the change of every coefficient
+        self._state = None
         self.last_fit: ModelFit | None = None
 
-    def estimate(self, y: np.ndarray) -> np.ndarray:
+    def _follow(self, state) -> None:
+        """The surrogate's coefficients for the device ``state`` (None: the nominal device), unless it
+        is within :data:`STATE_TOLERANCE` of the one they are for (a few microseconds otherwise)."""
+        now, tol = self._state, STATE_TOLERANCE
+        if state is None or now is None:
+            if state is now:
+                return
+        else:
+            for a, b in zip(state, now):
+                if not -tol <= a - b <= tol:
+                    break
+            else:
+                return
+        coef = self._coef
+        if state is None:
+            coef[:] = self._coef0
+        else:
+            np.dot(state, self._dcoef, out=coef.reshape(-1))
+            coef += self._coef0
+        self._d0[:] = coef[len(self.forces)]
+        self._state = None if state is None else tuple(state)
+
+    def estimate(self, y: np.ndarray, state=None) -> np.ndarray:
+        """The force (N) of the change ``y`` (n_meas,); ``state``: the device's states the surrogate
+        follows (``response``; the drift tracker's resistivity gradients, 3 floats; None: nominal)."""
+        if self._dcoef is not None:
+            self._follow(state)
         x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
         by = self.basis.dot(yw)
@@ -259,16 +356,20 @@ class ModelEstimator:
         k = self.scale
         return np.array((x[0] * k, x[1] * k, x[2] * k))
 
+    def _like(self, forces, y, noise, keep) -> ModelEstimator:
+        return ModelEstimator(forces, y, noise, self.ridge, keep, self.iterations, self.response)
+
     def masked(self, keep: np.ndarray) -> ModelEstimator:
-        return ModelEstimator(self.forces, self.y, self.noise, self.ridge, keep, self.iterations)
+        return self._like(self.forces, self.y, self.noise, keep)
 
     def with_set(self, forces: np.ndarray, y: np.ndarray) -> ModelEstimator:
-        """The same estimator on another training set (a device calibration's corrected one)."""
-        return ModelEstimator(forces, y, self.noise, self.ridge, self.keep, self.iterations)
+        """The same estimator on another training set (a device calibration's corrected one: the same
+        loads, row by row, so the same ``response``)."""
+        return self._like(forces, y, self.noise, self.keep)
 
     def with_noise(self, noise: np.ndarray) -> ModelEstimator:
         """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
-        return ModelEstimator(self.forces, self.y, noise, self.ridge, self.keep, self.iterations)
+        return self._like(self.forces, self.y, noise, self.keep)
 
 
 #: The force estimators by name; the first is the default: ``model``, the more accurate, whose
@@ -279,13 +380,16 @@ ESTIMATORS = ("model", "linear")
 def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionModel, cache_dir=None,
                     progress=None, spec: CalibrationSpec = CalibrationSpec()):
     """The estimator called ``name`` ('linear' or 'model'), calibrated (cached) for ``model``."""
-    classes = {"linear": LinearEstimator, "model": ModelEstimator}
-    if name not in classes:
+    if name not in ESTIMATORS:
         raise ConfigError.bad_value("estimator", name, f"one of {list(ESTIMATORS)}")
     if geometry.socket_radius <= 0:
         raise ConfigError(f"sensor {geometry.name!r} has no socket: force estimation needs one")
     forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
     # the unloaded state is a calibration point too: no load, no change
     forces, y = np.vstack([np.zeros(3), forces]), np.vstack([np.zeros(y.shape[1]), y])
-    return classes[name](forces, y, _noise_y(model, spec.noise_db), spec.ridge)
+    if name == "linear":
+        return LinearEstimator(forces, y, _noise_y(model, spec.noise_db), spec.ridge)
+    dy = response_set(geometry, model, spec, cache_dir, progress)
+    response = np.concatenate([np.zeros((len(dy), 1, y.shape[1])), dy], axis=1)
+    return ModelEstimator(forces, y, _noise_y(model, spec.noise_db), spec.ridge, response=response)
 

@@ -9,15 +9,21 @@ import numpy as np
 from .small import solve_small
 
 
-def gradient_directions(model) -> np.ndarray:
-    """(3, n_meas): the normalised change of a resistivity rising linearly across the block along x,
-    y and z, by 1 (relative) per half of the block's extent from its middle, through the model's
-    sensitivity (``S`` is per relative conductivity change of its basis voxels: ``-S`` per relative
-    resistivity change; ``-S @ 1`` is the uniform scaling's ``r`` to 5e-4)."""
+def gradient_coordinates(model, points: np.ndarray) -> np.ndarray:
+    """(n, 3): the relative resistivity change at ``points`` (n, 3) m of the gradients along x, y and z:
+    rising linearly by 1 per half of the block's extent (its basis voxels' centres) from its middle."""
     c = np.asarray(model.basis_centers, float)
     lo, hi = c.min(axis=0), c.max(axis=0)
-    xi = (c - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
-    return -(model.S @ xi).T
+    return (np.asarray(points, float) - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
+
+
+def gradient_directions(model) -> np.ndarray:
+    """(3, n_meas): the normalised change of the resistivity gradients along x, y and z
+    (:func:`gradient_coordinates`) through the model's sensitivity (``S`` is per relative conductivity
+    change of its basis voxels: ``-S`` per relative resistivity change; ``-S @ 1`` is the uniform
+    scaling's ``r`` to 5e-4). The ``model`` estimator's response follows their states
+    (force/estimate.py :func:`~.estimate.response_set`)."""
+    return -(model.S @ gradient_coordinates(model, model.basis_centers)).T
 
 
 class JointScale:

@@ -250,10 +250,12 @@ class Pipeline:
         self._update_gate()
 
     def process(self, frame: np.ndarray, with_field: bool = True, gate: bool = True, scale: float = 1.0,
-                offset: np.ndarray | None = None) -> FrameResult:
+                offset: np.ndarray | None = None, gradient=None) -> FrameResult:
         """Estimate the force (and the field) from one frame of (n_meas,) volts; ``scale`` and ``offset``:
         the device's slow change since the tare (the uniform scale of the voltages and the change along
-        other directions in y units: the frame stream's, force/slow.py; 1 and None: none).
+        other directions in y units: the frame stream's, force/slow.py; 1 and None: none); ``gradient``:
+        the states of its resistivity gradients (3 floats, force/joint.py; None: none), which the ``model``
+        estimator's response follows (force/estimate.py).
 
         ``gate=False`` skips the plausibility gate (studies of what the estimator does with any
         input, e.g. the benchmark's stability table); the node, replay and the command line keep it.
@@ -278,7 +280,7 @@ class Pipeline:
         self.change_plausible = not why  # a change some load (or a uniform drift) can cause
         if why:
             return FrameResult.implausible(why)
-        force = self.estimator.estimate(y)
+        force = self.estimator.estimate(y, gradient)
         mag, el, az = force_angles3(force)
         why = self.gate.force(mag) if gate else ""
         if why:

@@ -5,8 +5,9 @@ A stage of the frame stream (force/stream.py). With each reference it makes a dr
 (:class:`~.drift.DriftTracker`, ``drift_tracking``: the device's slow uniform change and its gradient)
 and a creep compensator (:class:`~.creep.CreepCompensator`, ``creep_per_decade`` or the calibration's);
 frame by frame it follows them, and hands the pipeline what it takes as arguments: :attr:`SlowStates.scale`
-(the voltages' uniform scale) and :attr:`SlowStates.offset` (the drift's gradient and the creep, summed,
-in y units). It never writes the pipeline's attributes: it reads what it needs (the reference, the
+(the voltages' uniform scale), :attr:`SlowStates.offset` (the drift's gradient and the creep, summed,
+in y units) and :attr:`SlowStates.gradient` (the resistivity gradients' states, which the ``model``
+estimator's response follows). It never writes the pipeline's attributes: it reads what it needs (the reference, the
 estimator, the mask, the calibration) when the stream tells it one of them changed.
 """
 from __future__ import annotations
@@ -55,6 +56,7 @@ class SlowStates:
         self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
         self.scale = 1.0  # the pipeline's arguments for the next frame: the voltages' uniform scale
         self.offset: np.ndarray | None = None  # ... and the drift's and the creep's offsets, summed (y units)
+        self.gradient: list | None = None  # ... and the resistivity gradients' states (force/joint.py), 3 floats
         self._sum = np.zeros(n_meas)
         self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/sigma.py), for _sigma_for
@@ -159,6 +161,8 @@ class SlowStates:
         self._expected = (f, float(sigma), stamp_ns * 1e-9)
 
     def _offsets(self) -> None:
+        # the tracker's other states are the contacts', then the resistivity gradients' (see reset)
+        self.gradient = self.drift.gradient[-3:].tolist() if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)

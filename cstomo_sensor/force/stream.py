@@ -246,7 +246,8 @@ class FrameStream:
         self.update_mask(saturated, contact_ok)
         every, k = self.config.stress_field_every, self.processed
         self.processed += 1
-        result = pipe.process(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset)
+        result = pipe.process(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset,
+                              slow.gradient)
         if not result.valid or self.counter.implausible_run:
             self.counter.plausible(result)
         if self.noise_state.estimate is not None and not pipe.noise_measured:

@@ -46,6 +46,7 @@ class ThinPlateSpline:
         except np.linalg.LinAlgError as err:
             raise ConfigError("thin-plate spline: singular system (repeated or coplanar points)") from err
         self.points = p
+        self._A = A
         self.M = np.ascontiguousarray(coef.T)  # (m, n + 1 + d): [c | d_0 | d]
         # basis_rows' work arrays: the rows (1 + d, n + 1 + d) of basis values (row 0) and gradients (rows
         # 1..d), whose constant and linear parts are set once, x written into row 0's last d columns
@@ -101,6 +102,14 @@ class ThinPlateSpline:
     def coefficients(self) -> np.ndarray:
         """(n + 1 + d, m): ``[c; d_0; d]``, the right factor of :meth:`basis_rows`."""
         return self._Mt
+
+    def coefficients_of(self, values: np.ndarray) -> np.ndarray:
+        """(n + 1 + d, m): the coefficients of the spline of other ``values`` (n, m) at the same nodes
+        (they are linear in the values: the derivative of :attr:`coefficients` along a change of them)."""
+        v = np.asarray(values, dtype=float)
+        if v.ndim != 2 or len(v) != len(self.points):
+            raise ConfigError(f"values.shape={v.shape}: expected ({len(self.points)}, m), one row per node")
+        return np.linalg.solve(self._A, np.vstack([v, np.zeros((self._A.shape[0] - len(v), v.shape[1]))]))
 
     def value_and_jacobian(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(value (m,), Jacobian (m, d)) at one point ``x`` (d,); the arrays are new."""
