@@ -66,6 +66,9 @@ def test_every_launch_argument_is_a_declared_parameter_and_defaults_to_the_file(
     assert node_args <= set(declared), node_args - set(declared)
     # an argument left at its default never overrides the parameter file
     assert all(args[name][0] == "" for name in node_args), {n: args[n][0] for n in node_args}
+    # `ros2 launch ... --show-args` prints "(default: '')" under each description: a description says what
+    # empty means, never a "(default ...)" of its own beside launch's
+    assert not [n for n, (default, desc) in args.items() if "(default" in desc], args
     src = LAUNCH.read_text()
     assert "PythonExpression" not in src and "eval(" not in src  # user text is never evaluated
     assert 'executable="cstomo_sensor_node"' in src and "name=NODE_NAME" in src
