@@ -274,7 +274,7 @@ def test_a_list_excludes_the_one_sensor_arguments_and_leaves_no_directory(tmp_pa
     from cstomo_sensor.errors import ConfigError
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    with pytest.raises(ConfigError, match="names every sensor: give \\['port', 'namespace'\\]"):
+    with pytest.raises(ConfigError, match="names every sensor: port:=/dev/x, namespace:=n: give these in its entries"):
         _plan(sensors=str(EXAMPLE), port="/dev/x", namespace="n")
     with pytest.raises(ConfigError, match="not YAML|expected 'sensors:'"):
         _plan(sensors=str(CONFIG))

@@ -322,7 +322,8 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
     if listing:
         given = [k for k in SENSOR_ARGUMENTS if args.get(k) and not (k == "sim" and _bool("sim", args[k]) is False)]
         if given:
-            raise ConfigError(f"sensors:={listing} names every sensor: give {given} in its entries, not as arguments")
+            raise ConfigError(f"sensors:={listing} names every sensor: {', '.join(f'{k}:={args[k]}' for k in given)}: "
+                              "give these in its entries, not as arguments")
         found, places = package_file(listing)
         if found is None:
             raise ConfigError(f"sensors:={listing}: no such file: not {' nor '.join(map(str, places))}")
