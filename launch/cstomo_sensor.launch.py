@@ -17,14 +17,15 @@ sensors instead of the one of the arguments (docs/robot.md); ``rviz:=true`` star
 launch, before anything starts, when an executable it would start is not installed (tf2_ros's
 static_transform_publisher, rviz2, the node, the simulated board); this file only turns the plan into
 actions. With ``sim:=true`` the simulated board, its link and the node's tare file live in
-a temporary directory of this launch, removed when it ends. Arguments are plain strings: nothing in
+a temporary directory of this launch, removed when it ends. A node that exits with an error (a refused
+parameter) ends the launch. Arguments are plain strings: nothing in
 them is evaluated.
 """
 import os
 import shutil
 
 from ament_index_python.packages import get_package_share_directory
-from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, RegisterEventHandler
+from launch.actions import DeclareLaunchArgument, ExecuteProcess, OpaqueFunction, RegisterEventHandler, Shutdown
 from launch.event_handlers import OnShutdown
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
@@ -33,6 +34,17 @@ from cstomo_sensor.tools.launching import ARGUMENTS, NODE_NAME, launch_plan
 from launch import LaunchDescription
 
 _DEFAULT_FILES = {"config": "cstomo_sensor.yaml", "rviz_config": "cstomo_sensor.rviz"}  # in share/.../config
+
+
+def _on_exit(node: str):
+    """What node ``node`` exiting does: with an error (it refused its parameters, or failed) it ends the
+    launch (launch says "was required: shutting down"); else its simulated board, transform and RViz
+    would go on without it, silently. While the launch stops, any exit is launch's own business."""
+    def on_exit(event, context):
+        if event.returncode == 0 or context.is_shutdown:
+            return None
+        return [Shutdown(reason=f"{node} exited with code {event.returncode}")]
+    return on_exit
 
 
 def _setup(context):
@@ -47,7 +59,8 @@ def _setup(context):
             actions.append(ExecuteProcess(cmd=sensor.board, output="screen"))
         actions.append(LifecycleNode(package="cstomo_sensor", executable="cstomo_sensor_node", name=NODE_NAME,
                                      namespace=sensor.namespace, output="screen",
-                                     parameters=[*([sensor.config] if sensor.config else []), sensor.overrides]))
+                                     parameters=[*([sensor.config] if sensor.config else []), sensor.overrides],
+                                     on_exit=_on_exit(sensor.node)))
         if sensor.transform is not None:
             actions.append(Node(package="tf2_ros", executable="static_transform_publisher", name=f"{NODE_NAME}_tf",
                                 namespace=sensor.namespace, output="screen", arguments=sensor.transform.arguments()))

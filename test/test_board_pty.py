@@ -381,3 +381,43 @@ def test_the_boards_counts_are_said_in_words():
 
     counted = set(re.findall(r'_injected\["(\w+)"\]', open(sim.__file__, encoding="utf-8").read()))
     assert counted == set(INJECTED_MEANING), counted ^ set(INJECTED_MEANING)  # every count the board keeps
+
+
+@pytest.mark.slow
+def test_board_sim_stopped_by_sigint_exits_cleanly_through_repeated_sigints(tmp_path):
+    """``cstomo board-sim`` as ros2 launch stops it when not run from a terminal: the group's SIGINT,
+    then launch's own SIGINT while the board is exiting (it takes ~0.1 s). A late SIGINT must not turn
+    the clean exit into a death by SIGINT (launch: "process has died [exit code -2]") or a traceback."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from cstomo_sensor.tools.launching import SIM_LOAD
+
+    script = tmp_path / "load.csv"
+    script.write_text(SIM_LOAD)  # a launch's own (its frames are cached by the launch tests)
+    exe = Path(sys.executable).parent / "cstomo"
+    err = tmp_path / "err.txt"
+    with open(err, "w") as fe:
+        p = subprocess.Popen([str(exe), "board-sim", "--load-script", str(script), "--rate", "200", "--protocol",
+                              "text", "--link", str(tmp_path / "board")], stdout=subprocess.PIPE, stderr=fe, text=True,
+                             env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+        try:
+            for line in p.stdout:  # text protocol: streams without a reader
+                if line.startswith("streaming"):
+                    break
+            time.sleep(0.3)
+            p.send_signal(signal.SIGINT)
+            while p.poll() is None:  # launch's SIGINT, at any moment of the exit
+                time.sleep(0.01)
+                p.send_signal(signal.SIGINT)
+            code = p.wait(30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    text = err.read_text()
+    assert code == 0, (code, text)
+    assert "Traceback" not in text and "frames whole and unharmed" in text, text

@@ -66,6 +66,9 @@ def test_every_launch_argument_is_a_declared_parameter_and_defaults_to_the_file(
     assert node_args <= set(declared), node_args - set(declared)
     # an argument left at its default never overrides the parameter file
     assert all(args[name][0] == "" for name in node_args), {n: args[n][0] for n in node_args}
+    # `ros2 launch ... --show-args` prints "(default: '')" under each description: a description says what
+    # empty means, never a "(default ...)" of its own beside launch's
+    assert not [n for n, (default, desc) in args.items() if "(default" in desc], args
     src = LAUNCH.read_text()
     assert "PythonExpression" not in src and "eval(" not in src  # user text is never evaluated
     assert 'executable="cstomo_sensor_node"' in src and "name=NODE_NAME" in src
@@ -271,7 +274,7 @@ def test_a_list_excludes_the_one_sensor_arguments_and_leaves_no_directory(tmp_pa
     from cstomo_sensor.errors import ConfigError
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    with pytest.raises(ConfigError, match="names every sensor: give \\['port', 'namespace'\\]"):
+    with pytest.raises(ConfigError, match="names every sensor: port:=/dev/x, namespace:=n: give these in its entries"):
         _plan(sensors=str(EXAMPLE), port="/dev/x", namespace="n")
     with pytest.raises(ConfigError, match="not YAML|expected 'sensors:'"):
         _plan(sensors=str(CONFIG))
@@ -429,7 +432,7 @@ def _load_launch_file(monkeypatch):
 
     kinds = {}
     for kind in ("DeclareLaunchArgument", "ExecuteProcess", "OpaqueFunction", "RegisterEventHandler", "OnShutdown",
-                 "LifecycleNode", "Node", "LaunchDescription"):
+                 "LifecycleNode", "Node", "LaunchDescription", "Shutdown"):
         kinds[kind] = type(kind, (Rec,), {})
 
     class LaunchConfiguration:
@@ -441,7 +444,7 @@ def _load_launch_file(monkeypatch):
 
     mods = {"launch": {"LaunchDescription": kinds["LaunchDescription"]},
             "launch.actions": {k: kinds[k] for k in ("DeclareLaunchArgument", "ExecuteProcess", "OpaqueFunction",
-                                                     "RegisterEventHandler")},
+                                                     "RegisterEventHandler", "Shutdown")},
             "launch.event_handlers": {"OnShutdown": kinds["OnShutdown"]},
             "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration},
             "launch_ros": {}, "launch_ros.actions": {"LifecycleNode": kinds["LifecycleNode"], "Node": kinds["Node"]},
@@ -498,6 +501,14 @@ def test_the_launch_file_turns_the_plan_into_its_actions(monkeypatch, tmp_path):
         ("left_knee", "cstomo_sensor", "cstomo_sensor_node"), ("right_knee", "cstomo_sensor", "cstomo_sensor_node")]
     assert nodes[0].kwargs["parameters"][0] == str(CONFIG)
     assert nodes[1].kwargs["parameters"][1]["frame_id"] == "right_knee_socket"
+    # a node that exits with an error (a refused parameter) ends the launch, naming it; a clean exit or
+    # one while the launch stops does not
+    from types import SimpleNamespace as NS
+
+    (stop,) = nodes[1].kwargs["on_exit"](NS(returncode=1), NS(is_shutdown=False))
+    assert isinstance(stop, kinds["Shutdown"]) and stop.kwargs["reason"] == "/right_knee/cstomo_sensor exited with code 1"
+    assert nodes[1].kwargs["on_exit"](NS(returncode=0), NS(is_shutdown=False)) is None
+    assert nodes[1].kwargs["on_exit"](NS(returncode=-9), NS(is_shutdown=True)) is None
     tf = [n for n in by_kind["Node"] if n.kwargs["package"] == "tf2_ros"]
     assert [(n.kwargs["executable"], n.kwargs["namespace"]) for n in tf] == [
         ("static_transform_publisher", "left_knee"), ("static_transform_publisher", "right_knee")]

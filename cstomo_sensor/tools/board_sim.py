@@ -143,7 +143,8 @@ def _main(args: argparse.Namespace) -> int:
     except (CstomoError, OSError) as err:
         print(f"cstomo board-sim: {err}", file=sys.stderr)
         return 2
-    previous = {sig: signal.signal(sig, lambda *_: board.stop()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: board.stop())
     print(f"device: {board.device}", flush=True)
     streaming = False
     try:
@@ -156,9 +157,7 @@ def _main(args: argparse.Namespace) -> int:
                 t0 = time.time() - (time.monotonic() - board.script_start)
                 print(f"streaming t0={t0:.6f}", flush=True)
     finally:
-        board.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        board.close()  # a signal until main() returns only stops the stopped board again (main restores)
     st = board.stats()
     for line in st.describe():
         print(line, file=sys.stderr)

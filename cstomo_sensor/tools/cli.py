@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import logging
 import resource
+import signal
 import sys
 import time
 from importlib import import_module
@@ -238,7 +239,14 @@ def subcommand_parser(argv: list[str]) -> tuple[argparse.ArgumentParser, list[st
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv is None:  # the `cstomo` process: once its command is done it only exits, and a late SIGINT
+        # must not turn that clean exit into a death by SIGINT (ros2 launch not run from a terminal sends
+        # its own SIGINT to each process it started, after the group's Ctrl-C: board-sim's exit takes
+        # ~0.1 s, then launch said "process has died [exit code -2]")
+        code = main(sys.argv[1:])
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        return code
+    argv = list(argv)
     if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
         return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
     a = build_parser().parse_args(argv)

@@ -55,7 +55,7 @@ _FRAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_./-]*$")
 def _node_argument(name: str) -> tuple[str, str]:
     """A launch argument overriding node parameter ``name``: empty (the parameter file's value) and the
     setting's description."""
-    return "", f"{SETTING[name].description} (default: the parameter file's)"
+    return "", f"{SETTING[name].description} (empty: the parameter file's value)"
 
 
 #: Every argument of launch/cstomo_sensor.launch.py: name -> (default, description); a default None is
@@ -66,19 +66,19 @@ ARGUMENTS = {
     "sim": ("false", "true: also start `cstomo board-sim` and read its pty link"),
     **{name: _node_argument(name) for name in NODE_ARGUMENTS[1:]},
     "namespace": ("", "namespace of the node's topics"),
-    "sim_load_script": ("", "with sim: load script CSV for the simulated board (default: built in)"),
+    "sim_load_script": ("", "with sim: load script CSV for the simulated board (empty: the built-in one)"),
     "parent_frame": ("", "frame the sensor is fixed to: also publish the static transform to frame_id"),
-    "x": ("", "with parent_frame: the socket centre's x in parent_frame, metres (default 0)"),
-    "y": ("", "with parent_frame: y, metres (default 0)"),
-    "z": ("", "with parent_frame: z, metres (default 0)"),
-    "roll": ("", "with parent_frame: rotation about x, radians (default 0)"),
-    "pitch": ("", "with parent_frame: rotation about y, radians (default 0)"),
-    "yaw": ("", "with parent_frame: rotation about z, radians (default 0)"),
+    "x": ("", "with parent_frame: the socket centre's x in parent_frame, metres (empty: 0)"),
+    "y": ("", "with parent_frame: y, metres (empty: 0)"),
+    "z": ("", "with parent_frame: z, metres (empty: 0)"),
+    "roll": ("", "with parent_frame: rotation about x, radians (empty: 0)"),
+    "pitch": ("", "with parent_frame: rotation about y, radians (empty: 0)"),
+    "yaw": ("", "with parent_frame: rotation about z, radians (empty: 0)"),
     "sensors": ("", "YAML list of sensors (docs/robot.md) instead of the one of the arguments above; a relative "
                     "path from the current directory, else from the installed package (config/sensors_example.yaml)"),
     "rviz": ("false", "true: also start RViz2 showing the wrench and the stress cloud"),
     "rviz_config": (None, "RViz2 configuration whose /cstomo_sensor/... displays are repeated per sensor"),
-    "rviz_fixed_frame": ("", "RViz fixed frame (default: the first sensor's parent_frame, else its frame_id)"),
+    "rviz_fixed_frame": ("", "RViz fixed frame (empty: the first sensor's parent_frame, else its frame_id)"),
 }
 
 
@@ -322,7 +322,8 @@ def _sensors(args: dict[str, str], work: _Work) -> list[SensorPlan]:
     if listing:
         given = [k for k in SENSOR_ARGUMENTS if args.get(k) and not (k == "sim" and _bool("sim", args[k]) is False)]
         if given:
-            raise ConfigError(f"sensors:={listing} names every sensor: give {given} in its entries, not as arguments")
+            raise ConfigError(f"sensors:={listing} names every sensor: {', '.join(f'{k}:={args[k]}' for k in given)}: "
+                              "give these in its entries, not as arguments")
         found, places = package_file(listing)
         if found is None:
             raise ConfigError(f"sensors:={listing}: no such file: not {' nor '.join(map(str, places))}")
