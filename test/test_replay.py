@@ -443,6 +443,7 @@ def test_the_documented_replay_example_runs_as_written(tmp_path):
     held = np.flatnonzero((frame >= 30) & (frame < 60))  # 20 N straight down, held since frame 20 (0.4 s)
     assert len(held) == 30 and (truth[frame[held]] == [0.0, 0.0, -20.0]).all()
     mag = np.linalg.norm(est[held], axis=1)
-    assert np.median(mag) == pytest.approx(20.0, rel=0.05), mag  # measured: 19.35 N (creep compensated)
+    # measured: 19.93 N (default creep compensation on this creep-free bag: 19.32 N, falling 19.59 -> 19.24)
+    assert np.median(mag) == pytest.approx(20.0, rel=0.015), mag
     cos = est[held] @ truth[30] / (mag * 20.0)
     assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 3.0, est[held]
