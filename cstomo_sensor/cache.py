@@ -13,6 +13,7 @@ import struct
 import tempfile
 import zipfile
 import zlib
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -51,10 +52,32 @@ UNREADABLE = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.
               RuntimeError, NotImplementedError)
 
 
+_miss_callbacks: list = []
+
+
+@contextmanager
+def on_miss(callback):
+    """Call ``callback(path)`` at each cache miss (an entry about to be built) inside the block: a
+    command says it computes for a while only when it does (cstomo board-sim)."""
+    _miss_callbacks.append(callback)
+    try:
+        yield
+    finally:
+        _miss_callbacks.remove(callback)
+
+
 def cache_load(path: Path, key: str, names: tuple[str, ...] = ()) -> dict[str, np.ndarray] | None:
     """Arrays of a cache entry if it exists and was written for ``key`` and holds every array of
     ``names``; else None (a stale, unreadable or damaged entry, one missing an array, or one holding
     a non-finite float, is logged and ignored, so the caller rebuilds it)."""
+    arrays = _load(path, key, names)
+    if arrays is None:
+        for callback in list(_miss_callbacks):
+            callback(path)
+    return arrays
+
+
+def _load(path: Path, key: str, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
     if not path.is_file():
         return None
     try:

@@ -130,8 +130,11 @@ def write_frames(path: str | os.PathLike, frames: np.ndarray, comment: str | Non
 
 def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray | None = None,
                  consistency: np.ndarray | None = None, foreign_load: np.ndarray | None = None,
-                 sigma_n: np.ndarray | None = None) -> None:
+                 sigma_n: np.ndarray | None = None, index: np.ndarray | None = None) -> None:
     """Write a forces file from (n, 3) force vectors (newtons, wrench frame).
+
+    ``index`` (int (n,)): the ``frame`` column, each row's frame index in its input (docs/formats.md#forces-file);
+    None: 0, 1, 2, ... (one row per input frame).
 
     ``valid`` (bool (n,)), when given, adds the optional ``valid`` column of the forces file
     (docs/formats.md#forces-file): 1, or 0 for a frame rejected as implausible, whose force fields are left empty.
@@ -153,6 +156,9 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
         sig = np.asarray(sigma_n, float)
         if sig.shape != (len(f),):
             raise FrameError(f"sigma_n has shape {sig.shape}, expected ({len(f)},)")
+    idx = np.arange(len(f)) if index is None else np.asarray(index, int)
+    if idx.shape != (len(f),):
+        raise FrameError(f"index has shape {idx.shape}, expected ({len(f)},)")
     mag, el, az = force_angles(np.where(ok[:, None], f, 0.0))
     table = np.column_stack([f, mag, el, az])
     lines = [FORCES_HEADER + (",valid" if valid is not None else "")
@@ -165,7 +171,7 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
             extra += f",{cons[i]:.6g},{int(flag[i])}" if np.isfinite(cons[i]) else ",,"
         if sigma_n is not None:
             extra += f",{sig[i]:.6g}" if good and np.isfinite(sig[i]) else ","
-        lines.append(f"{i},{fields}" + extra)
+        lines.append(f"{idx[i]},{fields}" + extra)
     with atomic_write(path) as out:
         out.write(("\n".join(lines) + "\n").encode())
 

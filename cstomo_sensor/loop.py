@@ -82,12 +82,19 @@ class Results:
         self.path = path
         self.valid_column = valid_column
         self.results: list[FrameResult] = []
+        self.index: list[int] = []  # each result's frame index in the input (the forces file's `frame`)
+        self._seen = 0
 
     def __call__(self, frame: StampedFrame, out) -> None:
         if out is not None:
             self.results.append(out.result)
         elif self.every_frame:
             self.results.append(FrameResult.implausible(self.stream.counts.reject_reason))
+        else:
+            self._seen += 1
+            return
+        self.index.append(self._seen)
+        self._seen += 1
 
     @property
     def forces(self) -> np.ndarray:
@@ -104,7 +111,7 @@ class Results:
         write_forces(self.path, self.forces, valid=None if self.valid_column == "auto" and valid.all() else valid,
                      consistency=np.array([x.consistency for x in r], float),
                      foreign_load=np.array([x.foreign_load for x in r], bool),
-                     sigma_n=np.array([x.sigma_n for x in r], float))
+                     sigma_n=np.array([x.sigma_n for x in r], float), index=np.array(self.index, int))
 
 
 class Trace:

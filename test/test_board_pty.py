@@ -296,10 +296,21 @@ def test_replugged_board_is_read_again_within_a_quarter_second(tmp_path):
     assert st.last_error == "" and st.reconnects == 1
 
 
-def test_missing_device_is_retried_not_raised(tmp_path):
-    with BoardDriver(str(tmp_path / "nothing"), reconnect_backoff=(0.01, 0.02)) as driver:
-        assert wait_for(lambda: "open failed" in driver.stats().last_error)
-        assert driver.get(0.05) is None and not driver.stats().connected
+def test_missing_device_is_retried_not_raised(tmp_path, caplog):
+    """A missing port: retried, and warned once in one sentence (not pyserial's '[Errno 2] could not
+    open port X: [Errno 2] No such file or directory: X') that says what to check."""
+    url = str(tmp_path / "nothing")
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.board.driver"):
+        with BoardDriver(url, reconnect_backoff=(0.01, 0.02)) as driver:
+            assert wait_for(lambda: "open failed" in driver.stats().last_error)
+            assert driver.get(0.05) is None and not driver.stats().connected
+            time.sleep(0.1)  # several more failed opens: logged once
+    warnings = [r.getMessage() for r in caplog.records if "open failed" in r.getMessage()]
+    assert len(warnings) == 1, warnings
+    w = warnings[0]
+    assert w.count(url) == 1 and "Errno" not in w, w
+    for what in ("cable", "power", "'port' parameter", "config/99-cstomo.rules", "retrying (logged again when it changes)"):
+        assert what in w, (what, w)
 
 
 @pytest.mark.parametrize("kw", [{"protocol": "ascii"}, {"rate_hz": 0.0}, {"rate_hz": -5}])

@@ -249,3 +249,28 @@ def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
     loaded, _ = judge(times, forces, ["unloaded (tare)", "down"], 4.0, np.array([0.3, 0.0, -20.1]), 0.3)
     assert counted is None and unloaded.split()[-7:] == ["0.02", "N", "el", "-", "az", "-", "-"], unloaded
     assert len(unloaded) == len(loaded) and loaded.split()[-7:-1] == ["20.10", "N", "el", "89.1", "az", "0.0"], loaded
+
+
+@pytest.mark.slow
+def test_board_sim_says_it_computes_only_when_it_does(tmp_path):
+    """board-sim's '20-60 s' line is printed on a cold cache (it computes the frames), not on the next
+    run of the same inputs (it reads them from the cache in a fraction of a second)."""
+    script = tmp_path / "s.csv"
+    script.write_text("time,fx,fy,fz\n0,0,0,-5\n")
+    exe = Path(sys.executable).parent / "cstomo"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", CSTOMO_CACHE_DIR=str(tmp_path / "cache"))
+    said = []
+    for _ in range(2):
+        p = subprocess.Popen([str(exe), "board-sim", "--load-script", str(script), "--creep", "0", "--rate", "10"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            assert p.stdout.readline().startswith("device: ")  # the frames are ready
+            p.send_signal(2)
+            _, err = p.communicate(timeout=30)
+        finally:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        assert p.returncode == 0, err
+        said.append("20-60 s" in err)
+    assert said == [True, False], said

@@ -11,6 +11,7 @@ is back). Nothing raises out of the reader.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
@@ -142,6 +143,16 @@ def _set_low_latency(port: serial.SerialBase, url: str) -> None:
         setter(True)
     except (OSError, ValueError, AttributeError) as err:  # ptys/ports without TIOCGSERIAL
         log.debug("low-latency flag not set on %s: %s", url, err)
+
+
+def _open_failed(err: Exception) -> str:
+    """One sentence for a port that does not open: a missing device names what to check; else the
+    cause once (pyserial's own message repeats '[Errno N]': 'could not open port X: [Errno N] ...')."""
+    if getattr(err, "errno", None) == errno.ENOENT:
+        return ("open failed: no such device (check the cable and the board's power, the node's 'port' "
+                "parameter, and the udev rule config/99-cstomo.rules that makes the name: docs/node.md#udev)")
+    text = err.strerror if isinstance(err, OSError) and isinstance(err.strerror, str) else str(err)
+    return f"open failed: {text}"
 
 
 class BoardDriver:
@@ -341,7 +352,7 @@ class BoardDriver:
             port = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=self._read_timeout)
         except (serial.SerialException, OSError, ValueError) as err:
             self._open_failures += 1
-            self._error(f"open failed: {err}")
+            self._error(_open_failed(err))
             return False
         _set_low_latency(port, self.url)
         self._fd = port.fileno() if isinstance(port, _FD_PORTS) else None

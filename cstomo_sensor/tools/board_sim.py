@@ -18,6 +18,7 @@ import numpy as np
 
 from ..board.links import is_virtual
 from ..board.sim import DEFAULT_RATE_HZ, FaultConfig, SimulatedBoard
+from ..cache import on_miss
 from ..errors import CstomoError
 from ..frames_io import read_load_script
 from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
@@ -123,19 +124,27 @@ def _main(args: argparse.Namespace) -> int:
         timeline = None
         if args.scene and is_timeline_scene(args.scene):  # a device over time (docs/formats.md#timeline)
             timeline = Timeline.from_scene(args.scene, snr_db=args.snr)
-        # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so
-        print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
-              "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
-              file=sys.stderr, flush=True)
-        if timeline is not None:
-            source = timeline.prepare()
-        elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline
-            source = script_timeline(args.load_script, args.creep, sensor=args.sensor, duration=args.duration,
-                                     snr_db=args.snr, seed=args.seed)
-        else:
-            source = VoltageSource.from_args(
-                sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
-            )
+        # a cold cache computes the loads' frames for tens of seconds before the pty exists: say so at
+        # its first miss (a warm cache reads them in a fraction of a second: nothing to say)
+        said = []
+
+        def computing(_path) -> None:
+            if not said:
+                said.append(True)
+                print(f"{COMPUTING} {args.scene or args.load_script} on the simulator's own "
+                      "mesh (the first run of these inputs takes 20-60 s, later runs read them from the cache)",
+                      file=sys.stderr, flush=True)
+
+        with on_miss(computing):
+            if timeline is not None:
+                source = timeline.prepare()
+            elif args.load_script and args.creep != 0:  # a creeping rubber: the script as a timeline
+                source = script_timeline(args.load_script, args.creep, sensor=args.sensor, duration=args.duration,
+                                         snr_db=args.snr, seed=args.seed)
+            else:
+                source = VoltageSource.from_args(
+                    sensor=args.sensor, scene=args.scene, load_script=args.load_script, snr_db=args.snr, seed=args.seed
+                )
         board = SimulatedBoard(
             source, protocol=args.protocol, rate_hz=args.rate, duration=args.duration, link=args.link,
             faults=faults, seed=args.seed, layers=layers,

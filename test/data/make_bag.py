@@ -3,7 +3,8 @@
     .venv/bin/python test/data/make_bag.py
 
 A simulated device (cstomo_sensor.model.simulate.VoltageSource: honest simulation, independent mesh,
-mismatched electrodes, 60 dB noise) follows a load script: unloaded, then four socket forces, then
+mismatched electrodes, 60 dB noise, a rubber without creep: replay it with --creep-per-decade 0) follows
+a load script: unloaded, then four socket forces, then
 unloaded again; 50 frames per second for 4 s, recorded as the node records them
 (std_msgs/Float32MultiArray on /cstomo_sensor/raw_voltages, as the node recorded them before its raw
 frames carried a stamp: the bag tests replay's reading of older recordings; built by
