@@ -18,7 +18,8 @@ from dataclasses import dataclass, fields
 from .board.wire import PROTOCOLS
 from .errors import ConfigError
 from .force.creep import DEFAULT_CREEP, MAX_CREEP
-from .force.estimate import ESTIMATORS, CalibrationSpec
+from .force.estimate import ESTIMATORS
+from .force.training import CalibrationSpec
 from .inverse.reconstruction import ReconSpec
 from .model.geometry import DEFAULT_SENSOR
 from .model.mesh import MESH_SIZE_RANGE

@@ -1,4 +1,4 @@
-"""The ``model`` estimator's surrogate follows the resistivity gradients' states (force/estimate.py
+"""The ``model`` estimator's surrogate follows the resistivity gradients' states (force/training.py
 ``response_set``, issue 26): a warmed block's gradient changes how a load shows in the voltages, not
 only the zero. Judged on the honest truth (its own finer mesh, mismatched electrodes), never on the
 estimator's own model."""

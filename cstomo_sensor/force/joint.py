@@ -22,7 +22,7 @@ def gradient_directions(model) -> np.ndarray:
     (:func:`gradient_coordinates`) through the model's sensitivity (``S`` is per relative conductivity
     change of its basis voxels: ``-S`` per relative resistivity change; ``-S @ 1`` is the uniform
     scaling's ``r`` to 5e-4). The ``model`` estimator's response follows their states
-    (force/estimate.py :func:`~.estimate.response_set`)."""
+    (force/training.py :func:`~.training.response_set`)."""
     return -(model.S @ gradient_coordinates(model, model.basis_centers)).T
 
 

@@ -255,11 +255,10 @@ class Pipeline:
         the device's slow change since the tare (the uniform scale of the voltages and the change along
         other directions in y units: the frame stream's, force/slow.py; 1 and None: none); ``gradient``:
         the states of its resistivity gradients (3 floats, force/joint.py; None: none), which the ``model``
-        estimator's response follows (force/estimate.py).
+        estimator's response follows (force/estimate.py, force/training.py).
 
         ``gate=False`` skips the plausibility gate (studies of what the estimator does with any
         input, e.g. the benchmark's stability table); the node, replay and the command line keep it.
-
         Raises :class:`FrameError` for a frame of the wrong length or with NaN/Inf in a used channel.
         """
         if self.reference is None:

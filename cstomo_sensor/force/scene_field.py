@@ -6,8 +6,8 @@ For a socket scene (the joint) the mechanics predicts the whole stress field fro
 The frictionless contact problem is positively homogeneous in the force, so the field of a force
 F is ``|F| * theta1(F / |F|)`` with ``theta1`` the volumetric compression per newton of a
 direction. ``theta1`` is solved once per calibration direction (the estimators' 40 directions,
-:func:`~cstomo_sensor.force.estimate.calibration_directions`, on the calibration's mechanics mesh:
-the very solves of the calibration, :func:`~cstomo_sensor.force.estimate.socket_mechanics`)
+:func:`~cstomo_sensor.force.training.calibration_directions`, on the calibration's mechanics mesh:
+the very solves of the calibration, :func:`~cstomo_sensor.force.training.socket_mechanics`)
 and sampled at the reconstruction's cell centres, the points the node publishes (cached on disk,
 keyed by every input). Between directions it is interpolated by a thin-plate spline of degree 1
 on the unit directions (force/tps.py: exact at the 40 directions; measured error against direct
@@ -52,8 +52,8 @@ from ..inverse.reconstruction import ReconstructionModel
 from ..model import elasticity
 from ..model.geometry import SensorGeometry
 from ..model.material import StressField, conductivity_of_theta, pressure_of_theta
-from .estimate import CalibrationSpec, calibration_directions, socket_mechanics
 from .tps import ThinPlateSpline
+from .training import CalibrationSpec, calibration_directions, socket_mechanics
 
 log = logging.getLogger(__name__)
 

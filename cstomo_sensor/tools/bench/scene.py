@@ -16,9 +16,10 @@ import numpy as np
 
 from ...angles import force_from_angles
 from ...force.config import PipelineConfig
-from ...force.estimate import CalibrationSpec, _noise_y
+from ...force.estimate import _noise_y
 from ...force.pipeline import Pipeline
 from ...force.scene_field import Consistency, change_noise, mismatch_allowance
+from ...force.training import CalibrationSpec
 from ...model import elasticity
 from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh
