@@ -143,8 +143,11 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("max_sigma_n", 5.0, "A published force whose 1-sigma uncertainty (~/wrench_sigma, the rms of its "
             "error's norm) exceeds it is counted and said in /diagnostics (WARN); 0 = no check", 0.0, 100000.0, "N"),
     Setting("expected_wrench_sigma", 2.0, "The 1-sigma per axis of the load a controller expects on ~/expected_wrench "
-            "(geometry_msgs/WrenchStamped, its force used for 0.5 s after its stamp): a measurement of the device's "
-            "change under load (force/joint.py JointScale)", 0.01, 1000.0, "N"),
+            "(geometry_msgs/WrenchStamped): a measurement of the device's change under load (force/joint.py "
+            "JointScale); checked first (force/expected.py)", 0.01, 1000.0, "N"),
+    Setting("expected_wrench_tolerance", 0.5, "A ~/expected_wrench stamped further than this before or after the "
+            "frames is refused; one within it is used for frames up to this long after its stamp", 0.001, 60.0,
+            "seconds"),
     Setting("qos_depth", 10, "History depth of the publishers and of the ~/raw_voltages_in subscription", 1, 10_000),
     Setting("qos_reliability", RELIABILITIES[0], "Reliability of the publishers and the subscription (REP 2003: "
             "system_default is reliable)", choices=RELIABILITIES),

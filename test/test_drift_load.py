@@ -168,13 +168,13 @@ def test_an_expected_load_is_checked(model_pipe):
     stream = FrameStream(model_pipe)
     with pytest.raises(ConfigError, match="sigma"):
         stream.expect_load((0.0, 0.0, -2.0), 0.0)
-    with pytest.raises(ConfigError, match="3 finite"):
+    with pytest.raises(ConfigError, match="3 force components"):
         stream.expect_load((0.0, -2.0), 1.0)
 
 
 def test_the_node_takes_a_controllers_expected_wrench(ros, tmp_path, source, warm_model):
     """``~/expected_wrench`` (geometry_msgs/WrenchStamped) reaches the stream as an expected load with
-    the node's ``expected_wrench_sigma`` and the message's stamp (docs/node.md)."""
+    the node's ``expected_wrench_sigma`` and the message's stamp (docs/node.md); its checks: test_expected.py."""
     from conftest import start, wait_for
     from geometry_msgs.msg import WrenchStamped
 
@@ -184,12 +184,13 @@ def test_the_node_takes_a_controllers_expected_wrench(ros, tmp_path, source, war
         assert wait_for(lambda: pub.get_subscription_count() == 1, 5.0)
         msg = WrenchStamped()
         msg.header.stamp.sec, msg.header.stamp.nanosec = 12, 500
+        msg.header.frame_id = "cstomo_socket"
         msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = 1.0, -2.0, -9.5
-        pub.publish(msg)
-        assert wait_for(lambda: h.node.stream.slow._expected is not None, 5.0)
-        force, sigma, t = h.node.stream.slow._expected
+        pub.publish(msg)  # before any frame: its stamp is checked against the first frames'
+        assert wait_for(lambda: h.node.stream.slow.expected.pending is not None, 5.0)
+        force, sigma, t, checked = h.node.stream.slow.expected.pending
         np.testing.assert_allclose(force, [1.0, -2.0, -9.5])
-        assert sigma == 1.5 and t == pytest.approx(12.0000005)
+        assert sigma == 1.5 and t == pytest.approx(12.0000005) and not checked
     finally:
         board.close()
         h.close()

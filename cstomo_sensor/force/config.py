@@ -50,6 +50,8 @@ class StreamConfig:
     creep_per_decade: float = default("creep_per_decade")  # the rubber's creep (force/creep.py) unless the calibration's; 0 off
     noise_estimation: bool = True  # a reference without a measured noise: estimate it from the frames (force/noise.py)
     max_sigma_n: float = default("max_sigma_n")  # N: a force's 1-sigma above it is said in the diagnostics; 0 off
+    frame_id: str = default("frame_id")  # the wrench's frame: an expected load in another is refused (force/expected.py)
+    expected_wrench_tolerance: float = default("expected_wrench_tolerance")  # s: an expected load's stamp vs the frames'
 
     def __post_init__(self) -> None:
         check_config(self)

@@ -17,16 +17,13 @@ import math
 import numpy as np
 
 from ..angles import force_angles3
-from ..errors import ConfigError
 from .creep import CreepCompensator
 from .drift import DriftTracker
+from .expected import ExpectedLoad, bounded
 from .joint import JointScale, gradient_directions
 from .scene_field import change_noise
 from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
 
-#: A controller's expected load (:meth:`SlowStates.expect_load`) holds for frames up to this many
-#: seconds after its stamp (a dynamics model's output at its own rate, tens of Hz or more).
-EXPECTED_HOLD = 0.5
 #: The drift tracker's change (``|s - 1|``) beyond which a re-tare is advised, and beyond which it is
 #: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
@@ -46,12 +43,14 @@ def force_map(pipe) -> np.ndarray | None:
 
 
 class SlowStates:
-    """The drift tracker (``tracking``) and the creep compensator (``creep_setting`` per decade, 0:
-    off) of a pipeline's reference, and the offset and scale they give."""
+    """The drift tracker (``config.drift_tracking``) and the creep compensator (``config.creep_per_decade``,
+    0: off) of a pipeline's reference, the offset and scale they give, and the checks of a controller's
+    expected load (:class:`~.expected.ExpectedLoad`: a sensor of range ``max_force``, the stream ``config``'s
+    ``frame_id`` and ``expected_wrench_tolerance``)."""
 
-    def __init__(self, n_meas: int, tracking: bool, creep_setting: float) -> None:
-        self.tracking = bool(tracking)
-        self.creep_setting = float(creep_setting)
+    def __init__(self, n_meas: int, config, max_force: float = math.inf) -> None:
+        self.tracking = bool(config.drift_tracking)
+        self.creep_setting = float(config.creep_per_decade)
         self.drift: DriftTracker | None = None  # made with each reference (tracking)
         self.creep: CreepCompensator | None = None  # made with each reference (creep_per_decade)
         self.scale = 1.0  # the pipeline's arguments for the next frame: the voltages' uniform scale
@@ -64,7 +63,9 @@ class SlowStates:
         self.sigma_source = ""  # where the calibration residual of the sigma comes from
         self._joint: JointScale | None = None  # the joint fit of force and scale (force/joint.py), for _joint_for
         self._joint_for: DriftTracker | None = None
-        self._expected: tuple | None = None  # a controller's expected load (force, sigma, t): expect_load
+        # a controller's expected load, checked (force/expected.py); the latest frame's per-axis 1-sigma for its check
+        self.expected = ExpectedLoad(max_force, config.expected_wrench_tolerance, config.frame_id)
+        self._frame_sigma: tuple | None = None
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -113,6 +114,7 @@ class SlowStates:
         the tracker and the compensator follow its change (``frozen``: the excluded channels, the
         creep's history held there), and the result gets its force's 1-sigma."""
         drift, creep = self.drift, self.creep
+        self.expected.t_frame = t
         sig = creep_f = None
         if result.valid:
             sig = self._sigma_model(pipe)
@@ -123,7 +125,7 @@ class SlowStates:
             if drift is not None:
                 # every frame measures the scale jointly with its force (force/joint.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
-                drift.observe(y, t, self._joint_scale(pipe, t))
+                drift.observe(y, t, self._joint_scale(pipe, t, result))
                 self.scale = drift.scale
                 if drift.force_step is not None and result.valid:
                     result.force = result.force + drift.force_step
@@ -134,31 +136,32 @@ class SlowStates:
         if sig is not None:  # the tracker's covariance after this frame's predict and update
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
                                                drift.change if drift is not None else 0.0)
+            self._frame_sigma = result.sigma
 
-    def _joint_scale(self, pipe, t: float | None):
+    def _joint_scale(self, pipe, t: float | None, result):
         """The latest frame's joint measurement of the scale (force/joint.py JointScale), None for an
-        estimator without a joint fit (``linear``); with the controller's expected load (:meth:`expect_load`)
-        when it is at most :data:`EXPECTED_HOLD` s older than the frame (or the frame has no time)."""
+        estimator without a joint fit (``linear``); with the controller's expected load when one is in
+        effect for this frame and agrees with it (:meth:`.expected.ExpectedLoad.for_frame`), bounded by
+        the frame's own (:func:`.expected.bounded`)."""
         est = pipe.estimator
         if getattr(est, "last_fit", None) is None:
             return None
         if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
             self._joint, self._joint_for = JointScale(est, self.drift._D[0]), self.drift
-        e = self._expected
-        use = e is not None and (t is None or not e[2] or 0.0 <= t - e[2] <= EXPECTED_HOLD)
-        return self._joint.measure(e[:2] if use else None)
+        e = None
+        if self.expected.pending is not None and result.valid:
+            e = self.expected.for_frame(t, result.force, self._frame_sigma)
+        own = self._joint.measure()
+        return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)
 
-    def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
-        """A controller's expected load now: ``force`` (3,) N in the wrench frame, its 1-sigma ``sigma``
-        (N, per axis), at ``stamp_ns`` (the frames' clock; 0: the next frames). Used as a measurement of
-        the force in the joint fit of the device's scale for frames up to :data:`EXPECTED_HOLD` s
-        after it."""
-        f = np.asarray(force, float).reshape(-1)
-        if f.shape != (3,) or not np.isfinite(f).all():
-            raise ConfigError.bad_value("expected load", force, "3 finite force components in newtons")
-        if not (math.isfinite(sigma) and sigma > 0):
-            raise ConfigError.bad_value("expected load sigma", sigma, "a 1-sigma > 0 in newtons")
-        self._expected = (f, float(sigma), stamp_ns * 1e-9)
+    def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,
+                    source: str | None = None) -> str:
+        """A controller's expected load now: ``force`` (3,) N in ``frame_id`` (None: the wrench's), its
+        1-sigma ``sigma`` (N, per axis), at ``stamp_ns`` (the frames' clock; None: from the next frame),
+        from the input ``source`` (its name in the log and the diagnostics; None: as before);
+        checked (:meth:`.expected.ExpectedLoad.offer`: '' accepted, else why refused), then a measurement
+        of the force in the joint fit of the device's scale for frames within the tolerance of its stamp."""
+        return self.expected.offer(force, sigma, stamp_ns, frame_id, source)
 
     def _offsets(self) -> None:
         # the tracker's other states are the contacts', then the resistivity gradients' (see reset)
@@ -203,7 +206,9 @@ class SlowStates:
             kv = dict(drift_change="not tracked (drift_tracking false)" if not self.tracking
                       else "not tracked yet: no reference (tracking starts with the tare)")
         kv.update(creep=self.creep_text(calibration))
-        return (level if msgs else 0), msgs, kv
+        e_level, e_msgs, e_kv = self.expected.status()
+        kv.update(e_kv)
+        return max(level if msgs else 0, e_level), msgs + e_msgs, kv
 
 
 def kelvin_text(drift: DriftTracker) -> str:

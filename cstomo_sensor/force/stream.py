@@ -56,7 +56,7 @@ class FrameStream:
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.tares = Taring(pipe.n_meas, tare_file, tare_comment, on_tare, started)
         self.channels = ChannelMask(pipe.geometry, pipe.bad_channels)
-        self.slow = SlowStates(pipe.n_meas, config.drift_tracking, config.creep_per_decade)
+        self.slow = SlowStates(pipe.n_meas, config, pipe.max_force)
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
@@ -255,11 +255,11 @@ class FrameStream:
         slow.observe(pipe, result, t, self.channels.frozen)
         return result
 
-    def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
-        """A controller's expected load now (its dynamics model: the link's weight): ``force`` (3,) N in
-        the wrench frame, its 1-sigma ``sigma`` (N, per axis), at ``stamp_ns`` (the frames' clock; 0:
-        the next frames): a measurement of the device's states (:meth:`.slow.SlowStates.expect_load`)."""
-        self.slow.expect_load(force, sigma, stamp_ns)
+    def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,
+                    source: str | None = None) -> str:
+        """A controller's expected load now (its dynamics model: the link's weight): checked, then a measurement
+        of the device's states; '' or why refused (:meth:`.slow.SlowStates.expect_load`, force/expected.py)."""
+        return self.slow.expect_load(force, sigma, stamp_ns, frame_id, source)
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> FrameOutput | None:
@@ -297,4 +297,5 @@ class FrameStream:
         """:meth:`health` of the period that ends ``now``; the next period starts."""
         out = self.health(now, board_losses)
         self.counter.end_period(now, board_losses)
+        self.slow.expected.end_period()
         return out

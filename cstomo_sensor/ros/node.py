@@ -31,7 +31,6 @@ from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.driver import set_os_thread_name
-from ..errors import ConfigError
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..loop import connect, run, step
@@ -77,7 +76,7 @@ class CstomoSensorNode(LifecycleNode):
         self._source = self._pubs = None
         self._subs: list = []  # a controller's inputs: ~/joint_free, ~/expected_wrench
         self._diag_pub = self._diag_timer = self._tare_srv = self._tare_forced_srv = None
-        self._tare_group = MutuallyExclusiveCallbackGroup()
+        self._tare_group, self._expected_group = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         self._sim_time = False  # use_sim_time, for the frames' clock (_configure): asking the clock costs 25 us
         self._log_handler = ros_log.attach(self.get_logger(), self.context.ok)  # library records reach /rosout
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
@@ -169,7 +168,8 @@ class CstomoSensorNode(LifecycleNode):
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
         self._subs = [self.create_subscription(Empty, "~/joint_free", self._on_joint_free, 10),
-                      self.create_subscription(WrenchStamped, "~/expected_wrench", self._on_expected, 10)]
+                      self.create_subscription(WrenchStamped, "~/expected_wrench", self._on_expected, 1,  # the newest counts
+                                               callback_group=self._expected_group)]
         self._tare_forced_srv = self.create_service(Trigger, "~/tare_forced", self._on_tare_forced,
                                                     callback_group=self._tare_group)
         self._stop.clear()
@@ -251,13 +251,12 @@ class CstomoSensorNode(LifecycleNode):
             self.get_logger().info("~/joint_free: a tare is already pending")
 
     def _on_expected(self, msg: WrenchStamped) -> None:
-        """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis."""
-        f, st, stream = msg.wrench.force, msg.header.stamp, self.stream
-        try:
-            if stream is not None:  # None: released meanwhile
-                stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, st.sec * 10**9 + st.nanosec)
-        except ConfigError as err:  # a non-finite force
-            self.get_logger().warning(f"~/expected_wrench ignored: {err}", throttle_duration_sec=5.0)
+        """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis;
+        the stream checks it (force/expected.py: a refusal is counted and said once per kind)."""
+        f, h, stream = msg.wrench.force, msg.header, self.stream
+        if stream is not None:  # None: released meanwhile
+            stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, h.stamp.sec * 10**9 + h.stamp.nanosec,
+                               h.frame_id, "~/expected_wrench")
 
     def _on_tare_forced(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         return self._on_tare(request, response, forced=True)  # the load checks do not refuse (docs/node.md#tare)

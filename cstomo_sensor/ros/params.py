@@ -51,6 +51,7 @@ class NodeConfig:
     creep_per_decade: float = default("creep_per_decade")
     max_sigma_n: float = default("max_sigma_n")
     expected_wrench_sigma: float = default("expected_wrench_sigma")
+    expected_wrench_tolerance: float = default("expected_wrench_tolerance")
     qos_depth: int = default("qos_depth")
     qos_reliability: str = default("qos_reliability")
     stale_timeout: float = default("stale_timeout")
