@@ -120,7 +120,7 @@ class ExpectedLoad:
             first = kind not in self._said
             self._said.add(kind)
         if first:
-            log.warning("%s refused: %s (%s); not used. Said once per kind; every refusal is counted in the "
+            log.warning("%s refused, not used: %s: %s. Said once per kind; every refusal is counted in the "
                         "diagnostics (expected_refused)", self.name, KINDS[kind], why)
 
     def for_frame(self, t: float | None, force: np.ndarray, sigma) -> tuple | None:
