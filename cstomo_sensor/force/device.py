@@ -173,3 +173,32 @@ def write_reference(path: str | Path, reference: np.ndarray, noise: np.ndarray |
     else:
         write_frames(npath, noise, comment=f"per-channel noise (std, volts) of the tare {Path(path).name}")
     write_frames(path, reference, comment=f"{comment}\n{FRAMES_COMMENT} {int(frames)}")
+
+
+#: The time a saved tare was taken, as force/taring.py ends its comment (``time.strftime``'s ``%Y-%m-%dT%H:%M:%S%z``).
+_SAVED_AT = re.compile(r"(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d[+-]\d{4})\s*$")
+
+
+def saved_at(path: str | Path) -> float | None:
+    """The time (s since the epoch) a reference file records it was saved (the node's saved tare ends its
+    first comment with it, docs/formats.md#reference-and-noise-files), or None when it records none."""
+    from datetime import datetime
+
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for line in f:
+            m = _SAVED_AT.search(line) if line.lstrip().startswith("#") else None
+            if m:
+                return datetime.strptime(m.group(1), "%Y-%m-%dT%H:%M:%S%z").timestamp()
+    return None
+
+
+def tare_age(path: str | Path, now: float, file_time: bool = True) -> float | None:
+    """How old (s) the saved tare ``path`` is at ``now`` (s since the epoch): from the time it records
+    (:func:`saved_at`), else (``file_time``) its file's modification time, else None; None too when it
+    was saved after ``now`` (it cannot be the tare a restart at ``now`` read). The node's restart
+    (:meth:`~.stream.FrameStream.init_reference`) and ``cstomo replay`` with a tare file take their
+    age from here (:meth:`~.drift.DriftTracker.widen`)."""
+    t = saved_at(path)
+    if t is None and file_time:
+        t = Path(path).stat().st_mtime
+    return None if t is None or t > now + 1.0 else max(now - t, 0.0)

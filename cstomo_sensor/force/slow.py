@@ -66,6 +66,7 @@ class SlowStates:
         # a controller's expected load, checked (force/expected.py); the latest frame's per-axis 1-sigma for its check
         self.expected = ExpectedLoad(max_force, config.expected_wrench_tolerance, config.frame_id)
         self._frame_sigma: tuple | None = None
+        self.age_s: float | None = None  # the reference is a saved tare this old (reset)
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -79,6 +80,7 @@ class SlowStates:
         """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
         ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states."""
         self.drift = self.creep = None
+        self.age_s = age_s  # the reference's age (a restart), for the diagnostics and the tests
         if pipe.reference is not None:
             if self.tracking:
                 if self._gradients is None:  # the contacts' change, then the resistivity's gradient
@@ -206,6 +208,8 @@ class SlowStates:
             kv = dict(drift_change="not tracked (drift_tracking false)" if not self.tracking
                       else "not tracked yet: no reference (tracking starts with the tare)")
         kv.update(creep=self.creep_text(calibration))
+        if self.age_s is not None:
+            kv.update(reference_age=f"{self.age_s:.0f} s: a saved tare (a restart), the states widened for it")
         e_level, e_msgs, e_kv = self.expected.status()
         kv.update(e_kv)
         return max(level if msgs else 0, e_level), msgs + e_msgs, kv

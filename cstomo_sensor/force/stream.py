@@ -28,6 +28,7 @@ from ..errors import ConfigError
 from ..frames_io import check_frame
 from ..outputs import FrameOutput, output_set
 from .config import StreamConfig
+from .device import tare_age
 from .filter import LowPass
 from .health import Health
 from .mask import ChannelMask
@@ -113,9 +114,8 @@ class FrameStream:
         saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
         if saved is not None:
             try:
-                # the device moved since the tare was saved: its age (the file's time) widens the slow states
-                age = max(time.time() - Path(self.tare_file).stat().st_mtime, 0.0)
-                self.set_reference(*saved, source=f"saved tare {self.tare_file}", age_s=age)
+                # the device moved since the tare was saved: its age (force/device.py tare_age) widens the slow states
+                self.set_reference(*saved, source=f"saved tare {self.tare_file}", age_s=tare_age(self.tare_file, time.time()) or 0.0)
                 return ""
             except ConfigError as err:
                 why = str(err)
@@ -255,8 +255,7 @@ class FrameStream:
         slow.observe(pipe, result, t, self.channels.frozen)
         return result
 
-    def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,
-                    source: str | None = None) -> str:
+    def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None, source=None) -> str:
         """A controller's expected load now (its dynamics model: the link's weight): checked, then a measurement
         of the device's states; '' or why refused (:meth:`.slow.SlowStates.expect_load`, force/expected.py)."""
         return self.slow.expect_load(force, sigma, stamp_ns, frame_id, source)

@@ -111,8 +111,19 @@ class BagSource(FrameSource):
         self._cls = Image if inputs[0].msgtype == TOPIC_TYPES[RAW_TOPIC] else Float32MultiArray
         self._messages = self._reader.messages(connections=inputs)
         self.messages = 0
+        self._peeked: StampedFrame | None = None
+
+    def peek(self) -> StampedFrame | None:
+        """The next frame (None: none left), kept for :meth:`recv` (replay's restart: the first frame's stamp)."""
+        if self._peeked is None and not self.exhausted:
+            self._peeked = self._next()
+        return self._peeked
 
     def recv(self, timeout: float | None = None) -> StampedFrame | None:
+        frame, self._peeked = self._peeked, None
+        return frame if frame is not None else None if self.exhausted else self._next()
+
+    def _next(self) -> StampedFrame | None:
         from rclpy._rclpy_pybind11 import RMWError
 
         for _conn, t_ns, raw in self._messages:

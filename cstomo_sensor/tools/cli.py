@@ -98,6 +98,8 @@ def cmd_estimate(a) -> int:
     cfg = pipeline_config(a)
     if not a.rate > 0:
         raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
+    if a.reference_age is not None and not 0.0 <= a.reference_age < float("inf"):
+        raise ConfigError.bad_value("--reference-age", a.reference_age, "seconds >= 0 (how old the saved tare is)")
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
     frames = read_frames(a.frames)
@@ -112,7 +114,7 @@ def cmd_estimate(a) -> int:
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
                                             drift_tracking=a.drift_tracking, creep_per_decade=creep))
-    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}")
+    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}", age_s=a.reference_age)  # the node's restart
     noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)
@@ -192,6 +194,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--reference", required=True,
                    help="frames file of unloaded frames (several: mean and noise; one without its .noise.csv: "
                         "the noise is estimated from the --frames file, a time series of the board)")
+    e.add_argument("--reference-age", type=float, metavar="SECONDS",
+                   help="the reference is a saved tare this old: the node's restart (default: a tare just taken)")
     e.add_argument("--frames", required=True, help=FRAMES_HELP)
     e.add_argument("--out", required=True, help="forces file to write (CSV, docs/formats.md#forces-file)")
     e.add_argument("--rate", type=float, default=100.0, metavar="HZ",

@@ -14,7 +14,9 @@ settings given (``wrench_filtered`` with a filter, the stress fields with ``--st
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
 (the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise; without
 either, the noise is estimated from the bag's frames as they come, as the node does: force/noise.py) is the
-reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); without it,
+reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); a file that records
+when it was saved (the node's saved tare), before the bag's first frame, is a restart: its age at that frame
+widens the slow states as the node's restart does (force/device.py ``tare_age``); without it,
 the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
 exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
 frame's own stamp (the time it was measured), as the node stamps it; a legacy frame without one, the
@@ -39,7 +41,7 @@ import numpy as np
 
 from ..errors import ConfigError, CstomoError
 from ..force.config import PipelineConfig, StreamConfig
-from ..force.device import read_reference
+from ..force.device import read_reference, tare_age
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..loop import Results, run
@@ -50,6 +52,7 @@ from ..settings import default
 from .common import add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config
 
 STORAGES = ("sqlite3", "mcap")
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -124,8 +127,12 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
         pipe.set_bad_channels(np.zeros(pipe.n_meas, bool))
         stream = FrameStream(pipe, stream_cfg)
-        if reference is not None:
-            stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}")
+        if reference is not None:  # a saved tare: the node's restart, its age taken at the bag's first frame
+            first = source.peek()
+            age = None if first is None else tare_age(reference, first.stamp_ns * 1e-9, file_time=False)
+            stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}", age_s=age)
+            log.info("reference %s: %s", reference, "a tare just taken (it records no time before the bag's first frame)"
+                     if age is None else f"a saved tare {age:.0f} s old at the bag's first frame: the node's restart")
         else:
             stream.start_tare()
         prefix = source.topic[: -len(RAW_TOPIC)]
@@ -168,7 +175,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output bag directory (must not exist)")
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
     add_pipeline_args(p)
-    p.add_argument("--reference", help="frames file used as the reference (else: tare on the first frames)")
+    p.add_argument("--reference", help="frames file used as the reference; a saved tare older than the bag: the "
+                                       "node's restart at its age (default: tare on the first frames)")
     add_setting_arg(p, "tare_frames")
     add_setting_arg(p, "stress_field_every", default=0,
                     note=f"here no stress fields unless asked (the node's default: {default('stress_field_every')})")
