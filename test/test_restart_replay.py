@@ -52,8 +52,8 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     from sensor_msgs.msg import Image
     from test_replay import BAG, _write_raw_bag, read_bag
 
-    from cstomo_sensor.frames_io import write_frames
     from cstomo_sensor.force.device import saved_at
+    from cstomo_sensor.frames_io import write_frames
     from cstomo_sensor.ros.messages import raw_voltages_msg
     from cstomo_sensor.tools.cli import main as cli
     from cstomo_sensor.tools.replay import replay
