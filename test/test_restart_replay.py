@@ -2,7 +2,8 @@
 the tare's age widens the slow states, force/drift.py ``widen``), fed the committed bag's frames in topic
 mode, publishes the forces and sigmas that ``cstomo replay`` with that tare file (its age from the file's
 stamp against the bag's first frame) writes, and that ``cstomo estimate --reference-age`` (the node's age)
-reads from the same frames. Without the age, estimate reads other sigmas: the test tells them apart."""
+reads from the same frames; every topic equal. Without the age, estimate reads other sigmas: the test tells
+them apart."""
 from __future__ import annotations
 
 import time
@@ -35,6 +36,17 @@ def _saved_tare(path, frames, saved: float) -> None:
                     comment=f"cstomo_sensor tare of 'cuboid_joint': mean of {len(frames)} frames, {stamp}")
 
 
+#: The node's topics but the stress fields (replay writes none unless asked; test_replay.py compares them).
+TOPICS = ("wrench", "wrench_sigma", "wrench_filtered", "force_magnitude", "force_elevation", "force_azimuth", "consistency")
+
+
+def _numbers(m) -> list[float]:
+    if hasattr(m, "wrench"):
+        return [m.wrench.force.x, m.wrench.force.y, m.wrench.force.z, m.wrench.torque.x, m.wrench.torque.y,
+                m.wrench.torque.z]
+    return [m.vector.x, m.vector.y, m.vector.z] if hasattr(m, "vector") else [m.data]
+
+
 def _forces(path) -> dict:
     """The forces file's (docs/formats.md#forces-file) forces (n, 3) and sigma_n (n,)."""
     import csv
@@ -50,10 +62,12 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     from geometry_msgs.msg import Vector3Stamped, WrenchStamped
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
+    from std_msgs.msg import Float64
     from test_replay import BAG, _write_raw_bag, read_bag
 
     from cstomo_sensor.force.device import saved_at
     from cstomo_sensor.frames_io import write_frames
+    from cstomo_sensor.outputs import FLOAT64, OUTPUTS, VECTOR, WRENCH
     from cstomo_sensor.ros.messages import raw_voltages_msg
     from cstomo_sensor.tools.cli import main as cli
     from cstomo_sensor.tools.replay import replay
@@ -70,9 +84,10 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     params = dict(PIPE, estimator="model", input="topic", tare_on_start=False, tare_file=str(tare), creep_per_decade=0.0,
                   qos_reliability="reliable", qos_depth=1000, stale_timeout=2.0)
     h = Harness(ctx, params, name="cstomo_restart")
+    types = {WRENCH: WrenchStamped, VECTOR: Vector3Stamped, FLOAT64: Float64}
     try:
-        wr = h.record("/cstomo_restart/wrench", WrenchStamped)
-        sg = h.record("/cstomo_restart/wrench_sigma", Vector3Stamped)
+        got = {t: h.record(f"/cstomo_restart/{t}", types[OUTPUTS[t].type]) for t in TOPICS}
+        wr, sg = got["wrench"], got["wrench_sigma"]
         pub = h.probe.create_publisher(Image, "/cstomo_restart/raw_voltages_in",
                                        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
         assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1
@@ -100,11 +115,17 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     replay(tmp_path / "in", tmp_path / "out", config, reference=tare, creep_per_decade=0.0)
     out = read_bag(tmp_path / "out")
     rep_f = np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z] for _, m in out["/cstomo_sensor/wrench"]])
-    rep_s = np.array([[m.vector.x, m.vector.y, m.vector.z] for _, m in out["/cstomo_sensor/wrench_sigma"]])
-    # the forces to a thousandth of their 1-sigma (the ages differ by the clock's rounding: nanoseconds)
+    # the forces to a thousandth of their 1-sigma (the ages differ by the clock's rounding: nanoseconds); every
+    # topic equal to a millionth, stamps exactly
     tol = 1e-3 * node_sn[:, None]
     assert rep_f.shape == node_f.shape and np.all(np.abs(rep_f - node_f) <= tol)
-    np.testing.assert_allclose(rep_s, node_s, rtol=1e-6)
+    for t in TOPICS:
+        n, r = got[t], out[f"/cstomo_sensor/{t}"]
+        assert len(n) == len(r) == len(inputs), t
+        np.testing.assert_allclose([_numbers(m) for _, m in r], [_numbers(m) for _, m in n], rtol=1e-6, atol=1e-9,
+                                   err_msg=t)
+        if hasattr(n[0][1], "header"):
+            assert [m.header.stamp for _, m in n] == [m.header.stamp for _, m in r], t
     # estimate --reference-age: the node's age, the frames in a file at the bag's rate
     write_frames(tmp_path / "frames.csv", frames.astype(float))
     common = ["estimate", "--reference", str(tare), "--frames", str(tmp_path / "frames.csv"), "--rate", "50",
