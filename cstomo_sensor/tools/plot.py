@@ -297,9 +297,14 @@ def _check(a: argparse.Namespace) -> None:
         raise ConfigError(f"{a.input}: not found; expected a forces file (CSV) or a rosbag2 directory")
     if a.truth_topic and not (a.input and Path(a.input).is_dir()):
         raise ConfigError("--truth-topic reads a bag: give a rosbag2 directory")
-    if not a.out.lower().endswith(".png"):
-        raise ConfigError(f"--out {a.out}: expected a file name ending in .png")
-    check_out_file(a.out)
+    check_picture(a.out)
+
+
+def check_picture(path: str) -> None:
+    """Refuse a picture's path that is no PNG file name or cannot be written (:class:`ConfigError`)."""
+    if not str(path).lower().endswith(".png"):
+        raise ConfigError(f"{path}: expected a picture file name ending in .png")
+    check_out_file(path)
 
 
 def run(a: argparse.Namespace, say=print):

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ConfigError, CstomoError
-from ..outputs import OUTPUTS, RAW_TOPIC, TOPIC_TYPES
+from ..outputs import OUTPUTS, TOPIC_TYPES
 from .common import help_text
 
 STORAGES = ("sqlite3", "mcap")
