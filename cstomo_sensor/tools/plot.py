@@ -99,17 +99,15 @@ def _typestore():
 
 def wrench_topic_of(topics: dict[str, str], given: str | None, path) -> str:
     """The estimated wrench's topic of a bag (``topics``: name -> type): ``given``, else the one
-    WrenchStamped topic ending in ``/wrench`` (of several, the one ending in ``cstomo_sensor/wrench``)."""
+    WrenchStamped topic ending in ``cstomo_sensor/wrench`` (the node's, in any namespace)."""
     if given is not None:
         if topics.get(given) != WRENCH_TYPE:
             raise ConfigError(f"bag {path}: no {WRENCH_TYPE} topic {given!r}; it holds {sorted(topics)}")
         return given
-    found = [n for n, ty in topics.items() if ty == WRENCH_TYPE and n.endswith("/wrench")]
-    if len(found) > 1:
-        found = [n for n in found if n.endswith("cstomo_sensor/wrench")] or found
+    found = [n for n, ty in topics.items() if ty == WRENCH_TYPE and n.endswith("cstomo_sensor/wrench")]
     if len(found) != 1:
-        raise ConfigError(f"bag {path}: {len(found)} wrench topics ({', '.join(sorted(found)) or 'none'}) among "
-                          f"{sorted(topics)}; expected the node's */wrench (name it with --wrench-topic)")
+        raise ConfigError(f"bag {path}: {len(found)} topics of the node's wrench ({', '.join(sorted(found)) or 'none'}) "
+                          f"among {sorted(topics)}; expected one */cstomo_sensor/wrench (or name it with --wrench-topic)")
     return found[0]
 
 
@@ -205,6 +203,17 @@ def _columns(f: Forces) -> list[np.ndarray]:
     return [f.force[:, 0], f.force[:, 1], f.force[:, 2], np.linalg.norm(f.force, axis=1), el, az]
 
 
+def same_branch(az: np.ndarray, t: np.ndarray, true_az: np.ndarray, true_t: np.ndarray) -> np.ndarray:
+    """Azimuths ``az`` (deg) at times ``t``, each moved by whole turns to lie within 180 deg of the true
+    azimuth in force at its time (the true sample at or before it; unchanged where there is none)."""
+    order = np.argsort(true_t, kind="stable")
+    tt, ta = true_t[order], true_az[order]
+    i = np.clip(np.searchsorted(tt, t, side="right") - 1, 0, len(tt) - 1)
+    ref = ta[i] if len(tt) else np.full(len(t), np.nan)
+    turns = np.where(np.isfinite(ref) & np.isfinite(az), np.round((ref - az) / 360.0), 0.0)
+    return az + 360.0 * turns
+
+
 def figure(est: Forces, truth: Forces | None = None, title: str = "", size: tuple[int, int] = (1200, 800)):
     """The picture (a matplotlib ``Figure`` on the off-screen Agg canvas, ``size`` pixels at 100 dpi):
     a panel per quantity of :data:`PANELS` (fx, fy, fz, |F| on the left column's and the right
@@ -219,6 +228,8 @@ def figure(est: Forces, truth: Forces | None = None, title: str = "", size: tupl
     band = est.band()
     band = None if band is None or np.isnan(band).all() else band
     columns, true_cols = _columns(est), _columns(truth) if truth is not None else None
+    if true_cols is not None:  # the azimuth on the branch of the true one (179 deg beside 180, not -181)
+        columns[5] = same_branch(columns[5], est.t, true_cols[5], truth.t)
     for k, (ax, (name, unit)) in enumerate(zip(axes, PANELS)):
         if true_cols is not None:
             ax.plot(truth.t, true_cols[k], color="black", lw=1.2, label="true")
@@ -273,7 +284,7 @@ def parser() -> argparse.ArgumentParser:
                    help="frames per second of a forces file without a time column: its frames on a time axis "
                         "(default: none, the axis counts frames)")
     p.add_argument("--wrench-topic", metavar="TOPIC",
-                   help=f"the node's wrench topic (default: a bag's one */wrench topic; live: {NODE_WRENCH})")
+                   help=f"the node's wrench topic (default: a bag's one */cstomo_sensor/wrench; live: {NODE_WRENCH})")
     p.add_argument("--seconds", type=float, default=10.0, metavar="S",
                    help="with --live: how long to listen (default %(default)g)")
     p.add_argument("--size", type=_size, default=(1200, 800), metavar="WxH",
