@@ -198,7 +198,8 @@ def test_plot_of_a_bag_without_the_nodes_wrench_says_one_line(tmp_path, capsys):
 def test_record_writes_the_live_nodes_topics_to_a_bag(ros, tmp_path, source, warm_model):
     """A node on a simulated board (the committed bag's frames), ``cstomo record`` in a process of its
     own for 4 s: every wrench it wrote is one the node published (same stamp, same force), the raw
-    frames are there for replay, one summary line; then ``cstomo plot`` draws the recording."""
+    frames are there for replay, one summary line; then ``cstomo plot`` draws the recording, and
+    ``cstomo plot --live`` the node itself for 2 s."""
     pytest.importorskip("rosbags")
     from geometry_msgs.msg import WrenchStamped
 
@@ -211,6 +212,9 @@ def test_record_writes_the_live_nodes_topics_to_a_bag(ros, tmp_path, source, war
         assert wait_for(lambda: len(published) > 10, 20.0)
         rec = subprocess.run([EXE, "record", "--out", str(bag), "--seconds", "4"], capture_output=True, text=True,
                              timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+        live = subprocess.run([EXE, "plot", "--live", "--seconds", "2", "--size", "640x480", "--out",
+                               str(tmp_path / "live.png")], capture_output=True, text=True, timeout=60,
+                              env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     finally:
         if board is not None:
             board.close()
@@ -234,6 +238,8 @@ def test_record_writes_the_live_nodes_topics_to_a_bag(ros, tmp_path, source, war
     assert topics["/cstomo_sensor/wrench_sigma"] == "geometry_msgs/msg/Vector3Stamped"
     assert not any("stress_field" in t for t in topics)  # left out unless asked
     pytest.importorskip("matplotlib")
+    assert live.returncode == 0 and "wrote " in live.stdout, live.stdout + live.stderr  # --live: the node's topics
+    assert png_size(tmp_path / "live.png") == (640, 480)
     fig = plot([str(bag), "--out", str(tmp_path / "rec.png")])
     _, y = line(panel(fig, "fx"), "estimated")
     np.testing.assert_array_equal(y, f[:, 0])
