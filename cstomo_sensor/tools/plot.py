@@ -154,13 +154,14 @@ def _stamped(values: dict[int, tuple], sigmas: dict[int, tuple] | None, start_ns
     return Forces((stamps - start_ns) * 1e-9, force, sigma)
 
 
-def from_live(wrench_topic: str, seconds: float, say=print) -> Forces:
-    """The running node's wrenches (``wrench_topic`` and its ``_sigma``) for ``seconds`` s, on the
-    seconds since the first one's stamp. Ctrl-C ends the listening early."""
+def from_live(wrench_topic: str, seconds: float, say=print, wait: float = 10.0) -> Forces:
+    """The running node's wrenches (``wrench_topic`` and its ``_sigma``) for ``seconds`` s from the
+    first one (waiting at most ``wait`` s for it), on the seconds since the first one's stamp. Ctrl-C
+    ends the listening early."""
     import rclpy
     from geometry_msgs.msg import Vector3Stamped, WrenchStamped
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import qos_profile_sensor_data
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
 
     values: dict[int, tuple] = {}
@@ -175,14 +176,19 @@ def from_live(wrench_topic: str, seconds: float, say=print) -> Forces:
         node = rclpy.create_node("cstomo_plot", context=ctx)
         executor = SingleThreadedExecutor(context=ctx)
         executor.add_node(node)
-        qos = qos_profile_sensor_data  # best effort: matches a reliable and a best-effort publisher
+        qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)  # matches either kind of publisher
         node.create_subscription(WrenchStamped, wrench_topic, lambda m: keep(values, m, m.wrench.force), qos)
         node.create_subscription(Vector3Stamped, wrench_topic + "_sigma", lambda m: keep(sigmas, m, m.vector), qos)
-        say(f"listening to {wrench_topic} for {seconds:g} s (Ctrl-C ends it early)")
-        end = time.monotonic() + seconds
+        say(f"listening to {wrench_topic} for {seconds:g} s from its first message (Ctrl-C ends it early)")
+        started, first = time.monotonic(), None
         try:
-            while time.monotonic() < end:
-                executor.spin_once(timeout_sec=min(0.1, max(end - time.monotonic(), 0.0)))
+            while True:  # discovery takes a few seconds: the seconds count from the first message
+                now = time.monotonic()
+                if first is None and values:
+                    first = now
+                if (first is None and now - started >= wait) or (first is not None and now - first >= seconds):
+                    break
+                executor.spin_once(timeout_sec=0.1)
         except KeyboardInterrupt:
             pass
         executor.shutdown(timeout_sec=1.0)
@@ -190,7 +196,7 @@ def from_live(wrench_topic: str, seconds: float, say=print) -> Forces:
     finally:
         rclpy.try_shutdown(context=ctx)
     if not values:
-        raise ConfigError(f"no message on {wrench_topic} in {seconds:g} s: is the node running and active, on "
+        raise ConfigError(f"no message on {wrench_topic} in {wait:g} s: is the node running and active, on "
                           "this ROS_DOMAIN_ID?")
     return _stamped(values, sigmas, min(values))
 
@@ -286,7 +292,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--wrench-topic", metavar="TOPIC",
                    help=f"the node's wrench topic (default: a bag's one */cstomo_sensor/wrench; live: {NODE_WRENCH})")
     p.add_argument("--seconds", type=float, default=10.0, metavar="S",
-                   help="with --live: how long to listen (default %(default)g)")
+                   help="with --live: how long to listen, from the first message (default %(default)g)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="with --live: how long to wait for the first message (finding a node takes a few "
+                        "seconds) (default %(default)g)")
     p.add_argument("--size", type=_size, default=(1200, 800), metavar="WxH",
                    help="picture size in pixels (default 1200x800)")
     p.add_argument("--title", help="the picture's title (default: the input's name)")
@@ -300,6 +309,8 @@ def _check(a: argparse.Namespace) -> None:
         raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
     if a.live and not 0 < a.seconds < float("inf"):
         raise ConfigError.bad_value("--seconds", a.seconds, "seconds > 0")
+    if a.live and not 0 < a.wait < float("inf"):
+        raise ConfigError.bad_value("--wait", a.wait, "seconds > 0")
     if not np.isfinite(a.truth_shift):
         raise ConfigError.bad_value("--truth-shift", a.truth_shift, "a finite number of seconds")
     if a.truth and a.truth_topic:
@@ -323,7 +334,7 @@ def run(a: argparse.Namespace, say=print):
     _check(a)
     truth = from_csv(a.truth, a.rate) if a.truth else None  # read before anything slow
     if a.live:
-        est = from_live(a.wrench_topic or NODE_WRENCH, a.seconds, say)
+        est = from_live(a.wrench_topic or NODE_WRENCH, a.seconds, say, a.wait)
         what = f"live {a.wrench_topic or NODE_WRENCH}"
     elif Path(a.input).is_dir():
         est, bag_truth, topic = from_bag(a.input, a.wrench_topic, a.truth_topic)

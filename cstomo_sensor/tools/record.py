@@ -40,9 +40,10 @@ class RecordSummary:
 
     def line(self, out: str | Path) -> str:
         total = sum(self.counts.values())
-        parts = ", ".join(f"{t} {n}" for t, n in self.counts.items())
-        none = f"; nothing on {', '.join(self.missing)}" if self.missing else ""
-        return f"recorded {total} messages in {self.seconds:.1f} s to {out}: {parts}{none}"
+        prefix = next(iter(self.counts)).rsplit("/", 1)[0] if self.counts else ""
+        parts = ", ".join(f"{t.rsplit('/', 1)[1]} {n}" for t, n in self.counts.items())
+        none = f"; nothing on {', '.join(t.rsplit('/', 1)[1] for t in self.missing)}" if self.missing else ""
+        return f"recorded {total} messages of {prefix} in {self.seconds:.1f} s to {out}: {parts}{none}"
 
 
 def _qos_of(node, topic: str):
@@ -58,10 +59,11 @@ def _qos_of(node, topic: str):
 
 
 def record(out: str | Path, node_name: str = "/cstomo_sensor", topics: tuple[str, ...] = DEFAULT_TOPICS,
-           seconds: float = 0.0, storage: str = "sqlite3", status=None, stop=None) -> RecordSummary:
+           seconds: float = 0.0, storage: str = "sqlite3", status=None, stop=None, wait: float = 10.0) -> RecordSummary:
     """Record the topics ``node_name/<topic>`` of the running node into a new rosbag2 ``out`` for
-    ``seconds`` (0: until Ctrl-C, SIGTERM, or ``stop()`` returns True); ``status(text)`` is told the
-    progress about once a second. Raises :class:`ConfigError` when nothing was received (no bag kept)."""
+    ``seconds`` from the first message (0: until Ctrl-C, SIGTERM, or ``stop()`` returns True), waiting
+    at most ``wait`` s for that first message (0: without end); ``status(text)`` is told the progress
+    about once a second. Raises :class:`ConfigError` when nothing was received (no bag kept)."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -94,15 +96,27 @@ def record(out: str | Path, node_name: str = "/cstomo_sensor", topics: tuple[str
         with Writer(partial, version=9, storage_plugin=plugin) as writer:
             conns = {}
 
+            first: list[float] = []  # time.monotonic() of the first message: the recording's clock starts
+
             def on_msg(topic: str, data: bytes) -> None:
                 writer.write(conns[topic], clock.now().nanoseconds, data)
                 counts[topic] += 1
+                if not first:
+                    first.append(time.monotonic())
 
             pending = dict.fromkeys(counts)  # topics not yet subscribed: each once its publisher shows
             started = time.monotonic()
             next_look = next_say = started
+
+            def going(now: float) -> bool:
+                if stop and stop():
+                    return False
+                if not first:  # discovery takes a few seconds: the --seconds count from the first message
+                    return not wait or now - started < wait
+                return not seconds or now - first[0] < seconds
+
             try:
-                while (not seconds or time.monotonic() - started < seconds) and not (stop and stop()):
+                while going(time.monotonic()):
                     now = time.monotonic()
                     if pending and now >= next_look:
                         for topic in list(pending):
@@ -115,17 +129,18 @@ def record(out: str | Path, node_name: str = "/cstomo_sensor", topics: tuple[str
                                 del pending[topic]
                         next_look = now + 0.5
                     if status is not None and now >= next_say:
-                        status(f"recording {now - started:5.1f} s: {sum(counts.values())} messages on "
-                               f"{sum(1 for n in counts.values() if n)} of {len(counts)} topics")
+                        status(f"recording {now - first[0]:5.1f} s: {sum(counts.values())} messages on "
+                               f"{sum(1 for n in counts.values() if n)} of {len(counts)} topics" if first else
+                               f"waiting for the node's topics ({now - started:.0f} s)")
                         next_say = now + 1.0
                     executor.spin_once(timeout_sec=0.05)
             except KeyboardInterrupt:
                 pass
-            elapsed = time.monotonic() - started
+            elapsed = time.monotonic() - (first[0] if first else started)
             executor.shutdown(timeout_sec=1.0)
             node.destroy_node()
         if not any(counts.values()):
-            raise ConfigError(f"no message on {prefix}* in {elapsed:.1f} s: is the node running and active, on this "
+            raise ConfigError(f"no message on {prefix}* in {elapsed:.0f} s: is the node running and active, on this "
                               "ROS_DOMAIN_ID (and ROS_AUTOMATIC_DISCOVERY_RANGE)? nothing written")
         partial.rename(out)
     finally:
@@ -154,7 +169,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--node", default="/cstomo_sensor", metavar="NAME",
                    help="the node's full name, namespace included: its topics are NAME/<topic> (default %(default)s)")
     p.add_argument("--seconds", type=float, default=0.0, metavar="S",
-                   help="how long to record (default %(default)g: until Ctrl-C)")
+                   help="how long to record, from the first message (default %(default)g: until Ctrl-C)")
+    p.add_argument("--wait", type=float, default=10.0, metavar="S",
+                   help="how long to wait for the node's first message (finding a node takes a few seconds) "
+                        "before giving up; 0: without end (default %(default)g)")
     p.add_argument("--topics", nargs="+", default=list(DEFAULT_TOPICS), metavar="TOPIC",
                    help=f"the node's topics to record, of {', '.join(TOPIC_TYPES)} (default: all but the stress "
                         "fields)")
@@ -172,9 +190,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not (0 <= a.seconds < float("inf")):
             raise ConfigError.bad_value("--seconds", a.seconds, "seconds >= 0 (0: until Ctrl-C)")
+        if not (0 <= a.wait < float("inf")):
+            raise ConfigError.bad_value("--wait", a.wait, "seconds >= 0 (0: without end)")
         print(f"recording {a.node.rstrip('/')}/* to {a.out} " + (f"for {a.seconds:g} s" if a.seconds else "")
               + ("; " if a.seconds else "") + "Ctrl-C stops", file=sys.stderr, flush=True)
-        s = record(a.out, a.node, tuple(dict.fromkeys(a.topics)), a.seconds, a.storage, status if tty else None)
+        s = record(a.out, a.node, tuple(dict.fromkeys(a.topics)), a.seconds, a.storage, status if tty else None,
+                   wait=a.wait)
     except ImportError as err:
         from ..errors import install_hint
 
