@@ -26,7 +26,11 @@ def png_size(path: Path) -> tuple[int, int]:
     """(width, height) of a PNG file from its signature and IHDR chunk (fails on anything else)."""
     head = Path(path).read_bytes()[:24]
     assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR", head
-    return struct.unpack(">II", head[16:24])
+    w, h = struct.unpack(">II", head[16:24])
+    from matplotlib.image import imread  # decodes the whole picture: a truncated file fails
+
+    assert imread(path).shape[:2] == (h, w)
+    return w, h
 
 
 def panel(fig, name: str):
@@ -177,6 +181,12 @@ def test_plot_of_a_replayed_bag_draws_its_wrenches_and_their_sigma(tmp_path, rep
         # aligned: the estimate follows the truth of its own frame (the coarse test model, 60 dB)
         true_at = ty[np.round((x + 0.2) * 50).astype(int)]
         assert np.median(np.abs(y - true_at)) < 1.0
+    # --truth-topic: another WrenchStamped topic of the bag drawn as the truth (here the filtered wrench)
+    f_stamps, filtered, _ = read_topic(bag, "/cstomo_sensor/wrench_filtered", WrenchStamped)
+    fig3 = plot([str(bag), "--truth-topic", "/cstomo_sensor/wrench_filtered", "--out", str(tmp_path / "t.png")])
+    tx, ty = line(panel(fig3, "fy"), "true")
+    np.testing.assert_allclose(tx, (f_stamps - start) * 1e-9, atol=1e-9)
+    np.testing.assert_array_equal(ty, filtered[:, 1])
     # the same results through the forces file: the same numbers on the same frames
     fig2 = plot([str(forces), "--rate", "50", "--out", str(tmp_path / "csv.png")])
     x2, y2 = line(panel(fig2, "fz"), "estimated")
