@@ -238,15 +238,19 @@ def read_forces_table(path: str | os.PathLike, optional: tuple[str, ...] = ("fra
     """(forces (n, 3), NaN on a row with ``valid`` 0; {name: (n,) values} of the ``optional`` columns the
     file has, NaN where a cell is empty) of a forces file; the angle columns are not read (the force
     components say it all). A malformed file raises :class:`FrameError` naming the file and the line."""
-    forces, valid = read_forces(path, with_valid=True)
-    forces[~valid] = np.nan
     names, rows = _table(path, FrameError, f"forces file ({FORCES_HEADER})", ("fx", "fy", "fz"))
-    columns = {}
-    for name in optional:
-        if name in names:
-            i = names.index(name)
-            columns[name] = np.array([_cell(path, lineno, name, cells[i], FrameError, empty_ok=True)
-                                      for lineno, cells in rows])
+    cols = [names.index(c) for c in ("fx", "fy", "fz")]
+    iv = names.index("valid") if "valid" in names else None
+    extra = {name: names.index(name) for name in optional if name in names}
+    forces = np.empty((len(rows), 3))
+    columns = {name: np.empty(len(rows)) for name in extra}
+    for k, (lineno, cells) in enumerate(rows):
+        rejected = iv is not None and cells[iv].strip() in ("0", "0.0")
+        forces[k] = [_cell(path, lineno, names[i], cells[i], FrameError, empty_ok=rejected) for i in cols]
+        if rejected:
+            forces[k] = np.nan
+        for name, i in extra.items():
+            columns[name][k] = _cell(path, lineno, name, cells[i], FrameError, empty_ok=True)
     return forces, columns
 
 

@@ -31,6 +31,7 @@ from .common import help_text
 #: ``sigma_n`` (the rms of its error's norm): its direction is then the noise's.
 DIRECTION_SIGMAS = 2.0
 NODE_WRENCH = "/cstomo_sensor/wrench"
+BIG_FILE, BIG_SERIES = 2_000_000, 20_000  # bytes, forces: said before reading, before drawing
 WRENCH_TYPE, VECTOR_TYPE = "geometry_msgs/msg/WrenchStamped", "geometry_msgs/msg/Vector3Stamped"
 
 
@@ -341,6 +342,9 @@ def run(a: argparse.Namespace, say=print):
         truth = bag_truth or truth
         what = f"{Path(a.input).name} {topic}"
     else:
+        size = Path(a.input).stat().st_size
+        if size > BIG_FILE:  # a long recording: reading and drawing take seconds
+            say(f"reading {a.input} ({size / 1e6:.0f} MB)")
         est = from_csv(a.input, a.rate)
         what = Path(a.input).name
     if truth is not None:
@@ -349,6 +353,8 @@ def run(a: argparse.Namespace, say=print):
                               "it on the time axis of the estimates")
         if a.truth and a.truth_shift:
             truth.t = truth.t + a.truth_shift
+    if len(est.t) > BIG_SERIES:
+        say(f"drawing {len(est.t)} forces")
     fig = figure(est, truth, a.title if a.title is not None else what, a.size)
     save_png(fig, a.out)
     n = int((~np.isnan(est.force).any(axis=1)).sum())
