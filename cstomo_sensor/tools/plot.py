@@ -277,7 +277,7 @@ def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = argparse.ArgumentParser(prog="cstomo plot", description=help_text(__doc__.split("\n\n")[0]),
                                 epilog=help_text(__doc__.split("\n\n", 1)[1]))
-    p.add_argument("input", nargs="?", metavar="FORCES_OR_BAG",
+    p.add_argument("forces_or_bag", nargs="?", metavar="FORCES_OR_BAG",
                    help="a forces file (CSV, docs/formats.md#forces-file) or a rosbag2 directory; none with --live")
     p.add_argument("--live", action="store_true", help="listen to the running node instead (default: off)")
     p.add_argument("--out", required=True, metavar="PNG", help="picture to write (PNG)")
@@ -304,7 +304,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def _check(a: argparse.Namespace) -> None:
-    if a.live == bool(a.input):
+    if a.live == bool(a.forces_or_bag):
         raise ConfigError("give a forces file or a bag, or --live (one of them)")
     if a.rate is not None and not 0 < a.rate < float("inf"):
         raise ConfigError.bad_value("--rate", a.rate, "frames per second > 0")
@@ -316,9 +316,9 @@ def _check(a: argparse.Namespace) -> None:
         raise ConfigError.bad_value("--truth-shift", a.truth_shift, "a finite number of seconds")
     if a.truth and a.truth_topic:
         raise ConfigError("give --truth or --truth-topic, not both")
-    if a.input and not Path(a.input).exists():
-        raise ConfigError(f"{a.input}: not found; expected a forces file (CSV) or a rosbag2 directory")
-    if a.truth_topic and not (a.input and Path(a.input).is_dir()):
+    if a.forces_or_bag and not Path(a.forces_or_bag).exists():
+        raise ConfigError(f"{a.forces_or_bag}: not found; expected a forces file (CSV) or a rosbag2 directory")
+    if a.truth_topic and not (a.forces_or_bag and Path(a.forces_or_bag).is_dir()):
         raise ConfigError("--truth-topic reads a bag: give a rosbag2 directory")
     check_picture(a.out)
 
@@ -337,16 +337,16 @@ def run(a: argparse.Namespace, say=print):
     if a.live:
         est = from_live(a.wrench_topic or NODE_WRENCH, a.seconds, say, a.wait)
         what = f"live {a.wrench_topic or NODE_WRENCH}"
-    elif Path(a.input).is_dir():
-        est, bag_truth, topic = from_bag(a.input, a.wrench_topic, a.truth_topic)
+    elif Path(a.forces_or_bag).is_dir():
+        est, bag_truth, topic = from_bag(a.forces_or_bag, a.wrench_topic, a.truth_topic)
         truth = bag_truth or truth
-        what = f"{Path(a.input).name} {topic}"
+        what = f"{Path(a.forces_or_bag).name} {topic}"
     else:
-        size = Path(a.input).stat().st_size
+        size = Path(a.forces_or_bag).stat().st_size
         if size > BIG_FILE:  # a long recording: reading and drawing take seconds
-            say(f"reading {a.input} ({size / 1e6:.0f} MB)")
-        est = from_csv(a.input, a.rate)
-        what = Path(a.input).name
+            say(f"reading {a.forces_or_bag} ({size / 1e6:.0f} MB)")
+        est = from_csv(a.forces_or_bag, a.rate)
+        what = Path(a.forces_or_bag).name
     if truth is not None:
         if truth.unit != est.unit:
             raise ConfigError(f"--truth {a.truth}: has no time column; give --rate, its frames per second, to put "
