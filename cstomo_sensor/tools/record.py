@@ -192,8 +192,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError.bad_value("--seconds", a.seconds, "seconds >= 0 (0: until Ctrl-C)")
         if not (0 <= a.wait < float("inf")):
             raise ConfigError.bad_value("--wait", a.wait, "seconds >= 0 (0: without end)")
-        print(f"recording {a.node.rstrip('/')}/* to {a.out} " + (f"for {a.seconds:g} s" if a.seconds else "")
-              + ("; " if a.seconds else "") + "Ctrl-C stops", file=sys.stderr, flush=True)
+        print(f"recording {a.node.rstrip('/')}/* to {a.out}" + (f" for {a.seconds:g} s from the first message"
+              if a.seconds else "") + "; Ctrl-C stops", file=sys.stderr, flush=True)
         s = record(a.out, a.node, tuple(dict.fromkeys(a.topics)), a.seconds, a.storage, status if tty else None,
                    wait=a.wait)
     except ImportError as err:
