@@ -19,6 +19,9 @@ setup(
         ("share/" + package_name + "/config/sensors", glob("config/sensors/*.yaml")),
         ("share/" + package_name + "/scenes", glob("scenes/*.yaml")),
         ("share/" + package_name + "/scenes/devices", glob("scenes/devices/*.yaml")),  # the scenes' own sensors
+        # the calibration example of docs/calibration.md: a bag and a frames/forces pair of a simulated device
+        ("share/" + package_name + "/examples/calibration", glob("examples/calibration/*.csv")),
+        ("share/" + package_name + "/examples/calibration/bag", glob("examples/calibration/bag/*")),
     ],
     python_requires=">=3.10",
     install_requires=["setuptools", "numpy", "scipy", "PyYAML", "pyserial"],

@@ -233,6 +233,27 @@ def read_force_rows(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return np.array(frame, dtype=int), np.array(forces, dtype=float).reshape(-1, 3)
 
 
+def read_forces_table(path: str | os.PathLike, optional: tuple[str, ...] = ("frame", "time", "sigma_n")
+                      ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(forces (n, 3), NaN on a row with ``valid`` 0; {name: (n,) values} of the ``optional`` columns the
+    file has, NaN where a cell is empty) of a forces file; the angle columns are not read (the force
+    components say it all). A malformed file raises :class:`FrameError` naming the file and the line."""
+    names, rows = _table(path, FrameError, f"forces file ({FORCES_HEADER})", ("fx", "fy", "fz"))
+    cols = [names.index(c) for c in ("fx", "fy", "fz")]
+    iv = names.index("valid") if "valid" in names else None
+    extra = {name: names.index(name) for name in optional if name in names}
+    forces = np.empty((len(rows), 3))
+    columns = {name: np.empty(len(rows)) for name in extra}
+    for k, (lineno, cells) in enumerate(rows):
+        rejected = iv is not None and cells[iv].strip() in ("0", "0.0")
+        forces[k] = [_cell(path, lineno, names[i], cells[i], FrameError, empty_ok=rejected) for i in cols]
+        if rejected:
+            forces[k] = np.nan
+        for name, i in extra.items():
+            columns[name][k] = _cell(path, lineno, name, cells[i], FrameError, empty_ok=True)
+    return forces, columns
+
+
 def read_load_script(path: str | os.PathLike, max_force: float = math.inf) -> tuple[np.ndarray, np.ndarray]:
     """Read a load script ``time,fx,fy,fz`` (header line first): (times (n,), forces (n, 3)); times
     finite and not decreasing, every force's magnitude at most ``max_force`` N. A malformed file

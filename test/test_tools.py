@@ -61,7 +61,8 @@ def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
     exe = Path(sys.executable).parent / "cstomo"
     out, err = tmp_path / "out.txt", tmp_path / "err.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
-        p = subprocess.Popen([str(exe), "demo", "--load-script", str(script), "--hold", "120", "--rate", "100"],
+        p = subprocess.Popen([str(exe), "demo", "--load-script", str(script), "--hold", "120", "--rate", "100",
+                              "--plot", str(tmp_path / "demo.png")],
                              stdout=fo, stderr=fe, text=True,
                              env=dict(os.environ, OPENBLAS_NUM_THREADS="1", TMPDIR=str(tmp_path)))
         try:
@@ -83,6 +84,11 @@ def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
     opens = [ln for ln in text.splitlines() if "open failed" in ln]
     assert len(opens) <= 1, opens
     assert not list(tmp_path.glob("cstomo_demo_*"))  # its temporary files are removed
+    # --plot: the run's picture, written after the summary, a PNG of the default size
+    assert f"wrote {tmp_path / 'demo.png'}" in text, text
+    head = (tmp_path / "demo.png").read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and int.from_bytes(head[16:20], "big") == 1200
+    assert int.from_bytes(head[20:24], "big") == 800
 
 
 def _rows(path: Path) -> list[dict]:

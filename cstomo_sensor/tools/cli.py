@@ -1,7 +1,7 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``calibrate``, ``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``.
+``calibrate``, ``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``, ``plot``, ``record``.
 """
 from __future__ import annotations
 
@@ -34,7 +34,8 @@ from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
-               "bench-node": ".bench.node", "bench": ".bench.main", "render": ".render"}
+               "bench-node": ".bench.node", "bench": ".bench.main", "render": ".render",
+               "plot": ".plot", "record": ".record"}
 
 
 def _peak_mb() -> float:
@@ -221,6 +222,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(see cstomo bench-node -h)")
     sub.add_parser("bench", help="speed and accuracy of every knob on honest scenes (see cstomo bench -h)")
     sub.add_parser("render", help="off-screen pictures of mesh, stress and image (see cstomo render -h)")
+    sub.add_parser("plot", help="forces over time, estimated beside true, as a PNG (see cstomo plot -h)")
+    sub.add_parser("record", help="the live node's topics to a rosbag2 (see cstomo record -h)")
     return p
 
 

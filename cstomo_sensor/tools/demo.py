@@ -41,6 +41,7 @@ from ..frames_io import force_at, load_index, read_load_script
 from ..settings import MAX_LOAD
 from .board_sim import COMPUTING
 from .common import NodeWithBoard, add_setting_arg, help_text, local_ros_env
+from .plot import DIRECTION_SIGMAS, Forces, check_picture, figure, save_png
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -56,11 +57,6 @@ def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.nd
     steps.append(("released", np.zeros(3)))
     times = np.array([0.0] + [lead + hold * i for i in range(len(steps) - 1)])
     return times, np.array([f for _, f in steps]), [s for s, _ in steps]
-
-
-#: An estimated force is shown without a direction (``el - az -``) when its magnitude is below this many
-#: times its own 1-sigma ``sigma_n`` (the rms of its error's norm): its direction is then the noise's.
-DIRECTION_SIGMAS = 2.0
 
 
 def _fmt(f: np.ndarray, sigma_n: float = math.nan) -> str:
@@ -80,6 +76,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
     p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held (the last one, with --load-script)")
     p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")
+    p.add_argument("--plot", metavar="PNG", help="at the end, draw the run's true and estimated forces over time into "
+                   "this picture, as `cstomo plot` does (default: none)")
     return p
 
 
@@ -103,6 +101,8 @@ def _interrupt(*_: object) -> None:
 
 def _run(a: argparse.Namespace) -> int:
     started = time.monotonic()  # the summary's times count from here
+    if a.plot:  # a picture that cannot be written is said before anything slow
+        check_picture(a.plot)
     if a.load_script:  # read before the (slow) model build: a bad file is reported at once
         times, forces = read_load_script(a.load_script, MAX_LOAD)
         labels = [f"script row {i + 1}" for i in range(len(times))]
@@ -145,6 +145,8 @@ def _run(a: argparse.Namespace) -> int:
             code, summary = _watch(a, t0, duration, times, forces, labels, run.board, view, script_t0)
         # the node and then the board have stopped: the board's final counts are in its log
         _print_summary(a, summary, marks, started, _lines(board_log))
+        if a.plot:
+            _plot(a.plot, view, times, forces, script_t0)
         return code
     except BaseException:
         for line in _lines(board_log):  # why the board failed, say: never lost
@@ -154,6 +156,28 @@ def _run(a: argparse.Namespace) -> int:
         if view is not None:
             view.close()
         shutil.rmtree(work, ignore_errors=True)  # the load script, the link, the board's log and the demo's own tare
+
+
+def _plot(path: str, view: _View, times: np.ndarray, forces: np.ndarray, script_t0: float | None) -> None:
+    """The run's picture (:mod:`.plot`): every wrench received, on the load script's clock, beside the
+    scripted force of its frame, with its 1-sigma (~/wrench_sigma of the same stamp)."""
+    if not view.stamps:
+        print(f"no picture: no wrench received ({path} not written)")
+        return
+    n = len(view.stamps)  # the node has stopped: nothing more comes (a snapshot all the same)
+    stamps = np.array(view.stamps[:n], dtype=np.int64)
+    t = (stamps - stamps[0]) * 1e-9 + (stamps[0] * 1e-9 - script_t0 if script_t0 is not None else 0.0)
+    sigma = np.array([view.sigmas.get(int(s), (np.nan,) * 3) for s in stamps], float)
+    est = Forces(t, np.array(view.forces[:n], float), sigma)
+    # the script's steps, drawn as steps: each row's force from its time to the next row's (the last
+    # to the end), zero before the first
+    xs = np.column_stack([times, np.append(times[1:], max(t[-1], times[-1]))]).ravel()
+    fs = np.repeat(forces, 2, axis=0)
+    if t[0] < times[0]:
+        xs, fs = np.concatenate([[t[0], times[0]], xs]), np.vstack([np.zeros((2, 3)), fs])
+    truth = Forces(xs, fs)
+    save_png(figure(est, truth, f"cstomo demo: {len(t)} wrenches of the node, the scripted load as truth"), path)
+    print(f"wrote {path}: the true and the estimated forces over time")
 
 
 def _lines(path: Path) -> list[str]:
@@ -204,6 +228,9 @@ class _View:
         self.stamp: float | None = None  # the latest wrench's header.stamp, s (system clock)
         self.sigma_n = math.nan  # the latest ~/wrench_sigma's norm: the 1-sigma sigma_n of its wrench, N
         self.count = 0
+        self.stamps: list[int] = []  # every wrench's stamp (ns), force and sigma by stamp: the picture
+        self.forces: list[tuple[float, float, float]] = []
+        self.sigmas: dict[int, tuple[float, float, float]] = {}
         self.first: float | None = None  # time.monotonic() of the first wrench
         self.wake = threading.Event()  # set by the first wrench with its sigma (and by the watch's signal handlers)
         self.node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", self._on_wrench, 10)
@@ -215,6 +242,8 @@ class _View:
         f = msg.wrench.force
         self.stamp = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         self.latest = np.array([f.x, f.y, f.z])
+        self.stamps.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        self.forces.append((f.x, f.y, f.z))
         self.count += 1
         if self.first is None:
             self.first = time.monotonic()
@@ -230,6 +259,7 @@ class _View:
         """The per-axis 1-sigma of a wrench (published with it, under its stamp): sigma_n = its norm,
         sqrt(trace(cov)); the sigma of the latest wrench or of one a frame away, which differ little."""
         v = msg.vector
+        self.sigmas[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = (v.x, v.y, v.z)
         first = math.isnan(self.sigma_n)
         self.sigma_n = math.sqrt(v.x * v.x + v.y * v.y + v.z * v.z)
         if first:
