@@ -149,7 +149,7 @@ def main() -> None:
         for name, (ref, fr) in data.items():
             for k, d in enumerate(DIRECTIONS):
                 caught = []
-                for j, m in enumerate(MAGNITUDES):
+                for j in range(len(MAGNITUDES)):
                     frames = np.vstack([noisy(fr[k * len(MAGNITUDES) + j], ref, TARE_FRAMES + 100), noisy(ref, ref, 200)])
                     dropped, _ = run_stream(pipe, frames, tare_file)
                     caught.append(dropped is not None)
