@@ -4,11 +4,12 @@ A tare that replaces a reference is judged against it (force/tare.py: a load lea
 that a uniform scale does not explain). The first tare of a device (no saved tare, or ``tare_on_start``)
 has only the model's predicted frame to compare with, and against it a load held during the tare cannot
 be told from the device's own mismatch with the model: measured on honest frames (the table in
-docs/node.md#tare, ``python test/first_tare_table.py``), a device within the real-device ranges reads as
-25-170 N of "load" against the model's reference after its uniform scale, its contacts' and its gradient's
-states are fitted out, and a 20 N load moves that figure by 0.5-25 N; the part of the change that lies
-along the loads (the estimator's calibration set) is larger for an unloaded corner device than for a
-nominal one under 20 N. No limit refuses a 5-20 N load there without refusing unloaded devices.
+docs/node.md#tare, ``python test/first_tare_table.py``), an unloaded device within the real-device ranges
+reads as 25-160 N of "load" against the model's reference once its uniform scale, its contacts' and its
+gradient's states are fitted out (the rule between two tares, force/tare.py), and a 20 N load moves that
+figure by 0.4-21 N; the part of the change along the loads the estimator knows is larger for an unloaded
+corner device than for a nominal one under 20 N. No limit refuses a 5-20 N load there without refusing
+unloaded devices.
 
 What does tell, once the first tare is taken: the socket carries only forces that push into it
 (elevation above 0 deg: ``Fz < 0`` in the wrench frame, docs/physics.md#socket-contact). A tare taken
@@ -22,9 +23,10 @@ reference (and its file) and tares again on the next frames, as at a start: the 
 unloaded then, and a tare that still carried a part of the load is caught the same way when the rest
 goes.
 
-It sees the vertical part of the load that was held during the tare: ``|F| sin(elevation)``, so 2-3 N
-pressing straight down, 10 N at 15 deg elevation (the measured table: docs/node.md#tare). It sees it only
-when the load goes: while the load the first tare was taken under is held, the forces read from it.
+It sees the vertical part of the load that was held during the tare, ``|F| sin(elevation)``: 5 N straight
+down or at 45 deg, 10-20 N at 15 deg elevation on the nominal device and device_a (device_b, uncalibrated,
+reads loads at a third of their size: 10 N down, 20 N at 45 deg; the table: docs/node.md#tare). It sees
+it only when the load goes: while the load the first tare was taken under is held, the forces read from it.
 """
 from __future__ import annotations
 
