@@ -18,7 +18,8 @@ which no load can cause. :class:`FirstTareWatch` follows the frames after a firs
 estimator's linear map (the one the drift tracker's rest test uses: linear in the change, so the
 unloading reads as ``-F`` exactly, where the ``model`` estimator's fit stays on the pushing loads it was
 trained on) and reports a pull of more than :data:`PULL_MIN_N` newtons (or :data:`PULL_SIGMAS` x its
-noise, when that is more) held for :data:`PULL_FRAMES` frames in a row. The frame stream then drops that
+noise, when that is more, and more than :data:`PULL_REL` x the largest push read since the tare) held for
+:data:`PULL_FRAMES` frames in a row. The frame stream then drops that
 reference (and its file) and tares again on the next frames, as at a start: the joint is at least partly
 unloaded then, and a tare that still carried a part of the load is caught the same way when the rest
 goes.
