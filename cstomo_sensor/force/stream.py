@@ -30,6 +30,7 @@ from ..outputs import FrameOutput, output_set
 from .config import StreamConfig
 from .device import tare_age
 from .filter import LowPass
+from .first_tare import FirstTareWatch
 from .health import Health
 from .mask import ChannelMask
 from .noise_state import NoiseState
@@ -62,6 +63,7 @@ class FrameStream:
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
         self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them)
+        self.first_tare: FirstTareWatch | None = None  # the frames after a first tare (force/first_tare.py)
 
     def with_config(self, **changes) -> None:
         """Change settings that may change while running (``stale_timeout``)."""
@@ -103,6 +105,7 @@ class FrameStream:
 
     def _new_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, age_s: float | None = None):
         report = self.pipe.set_reference(ref, noise, n_frames)
+        self.first_tare = None  # a first tare's watch is set by _end_tare (force/first_tare.py)
         self._use_noise(self.noise_state.kept(self.pipe))  # an estimated noise stays in use
         self.slow.reset(self.pipe, age_s)
         return report
@@ -176,9 +179,11 @@ class FrameStream:
         reported once the lock is released: :meth:`~.taring.Taring.finish`)."""
         report = None
         if outcome.ok:
+            first = self.pipe.reference is None and not outcome.forced  # nothing to judge it against: watched
             report = self._new_reference(outcome.reference, outcome.noise, outcome.frames)
             if self.filter is not None:
                 self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
+            self.first_tare = FirstTareWatch.of(self.pipe) if first else None
         self.tares.end(outcome, self.pipe.reference is not None, self.noise_text, report)
         if self.taring:  # refused without a reference: it starts over
             self.noise_state.restart()
@@ -253,6 +258,13 @@ class FrameStream:
         if self.noise_state.estimate is not None and not pipe.noise_measured:
             self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
         slow.observe(pipe, result, t, self.channels.frozen)
+        if self.first_tare is not None and result.valid and self.first_tare.observe(pipe.last_y):
+            # the first tare carried a load (force/first_tare.py): dropped, nothing published until a tare
+            self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tare_file))
+            self.first_tare, pipe.reference = None, None
+            slow.reset(pipe)
+            self.start_tare()
+            return None  # measured against the dropped reference
         return result
 
     def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None, source=None) -> str:

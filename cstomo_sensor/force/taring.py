@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from .device import read_reference, write_reference
+from .device import noise_path, read_reference, write_reference
 from .tare import TARE_RECONNECTED, TareOutcome, judge_tare
 
 log = logging.getLogger(__name__)
@@ -153,6 +153,31 @@ class Taring:
             self._outcome = outcome
         self._over.set()
         self._ended.append((outcome, self._saves if outcome.ok else 0))
+
+    def discard(self, why: str) -> None:
+        """The reference in use, a first tare, carried a load (``why``, force/first_tare.py): said once (WARN,
+        and ``tare_refused`` in the diagnostics); its file is removed by a thread of its own (frames never
+        wait for the disk), unless a later tare is saved first. The caller starts the next tare."""
+        self.taken, self.refused = "", f"{time.strftime('%H:%M:%S')}: {why}"
+        self.source = "tare pending (the first tare carried a load)"
+        log.warning("%s", why)
+        if self.tare_file is not None:
+            self._saves += 1  # a write of the dropped tare not begun yet is not made
+            writer = threading.Thread(target=self._remove, args=(self._saves,), name="cstomo_tare_drop", daemon=True)
+            self._writers = [w for w in self._writers if w.is_alive()] + [writer]
+            writer.start()
+
+    def _remove(self, seq: int) -> None:
+        with self._save_lock:
+            if seq == self._saves:  # no later tare saved meanwhile
+                try:
+                    self.tare_file.unlink(missing_ok=True)
+                    noise_path(self.tare_file).unlink(missing_ok=True)
+                except OSError as err:
+                    log.error("the loaded first tare %s not removed (%s): remove it before the next start",
+                              self.tare_file, err)
+                else:
+                    log.info("loaded first tare removed: %s", self.tare_file)
 
     def reference_from(self, source: str) -> None:
         """The reference in use now comes from ``source`` (a file, or a tare pending)."""
