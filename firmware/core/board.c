@@ -197,12 +197,12 @@ static void measure(uint64_t now, float *values) {
 static size_t text_line(const float *values) {
     text_t t = {out.text, 0, TEXT_LINE_MAX};
     for (unsigned i = 0; i < CSTOMO_N_VALUES; i++) {
-        float nv = values[i] * 1e9f;
-        if (nv > 9.0e18f)
-            nv = 9.0e18f;
-        if (nv < -9.0e18f)
-            nv = -9.0e18f;
-        int64_t q = (int64_t)(nv < 0 ? nv - 0.5f : nv + 0.5f);
+        double nv = (double)values[i] * 1e9; /* exact to the nanovolt (soft double on an M4F: text mode only) */
+        if (nv > 9.0e18)
+            nv = 9.0e18;
+        if (nv < -9.0e18)
+            nv = -9.0e18;
+        int64_t q = (int64_t)(nv < 0 ? nv - 0.5 : nv + 0.5);
         if (i)
             t_str(&t, ",");
         t_int(&t, q);

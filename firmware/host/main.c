@@ -21,6 +21,7 @@
 #include "../core/board.h"
 #include "../core/cstomo_protocol.h"
 #include "../core/hal.h"
+#include "../core/wire.h"
 #include "host.h"
 
 #define FIRMWARE_HOST "cstomo-fw 1.0 (host)"
@@ -132,7 +133,38 @@ static int open_pty(const char *link, char *name, size_t cap) {
     return m;
 }
 
+static void hex(const char *label, const uint8_t *p, size_t n) {
+    printf("%s", label);
+    for (size_t i = 0; i < n; i++)
+        printf(" %02x", p[i]);
+    printf("\n");
+}
+
+/* --selftest: the framing's results for the examples of docs/protocol.md (a test compares them). */
+static int selftest(void) {
+    static uint8_t pkt[CSTOMO_MAX_PACKET], wire[CSTOMO_MAX_ENCODED];
+    printf("crc32 123456789 %08x\n", crc32_update(0, (const uint8_t *)"123456789", 9));
+    static const uint8_t zero[] = {0x00}, ex[] = {0x11, 0x22, 0x00, 0x33};
+    hex("cobs 00", wire, cobs_encode(zero, sizeof zero, wire));
+    hex("cobs 11 22 00 33", wire, cobs_encode(ex, sizeof ex, wire));
+    uint8_t run[600];
+    for (size_t i = 0; i < sizeof run; i++)
+        run[i] = (uint8_t)(i % 255 + 1);
+    size_t n = cobs_encode(run, sizeof run, wire);
+    long back = cobs_decode(wire, n, pkt);
+    printf("cobs 600 non-zero bytes: %zu encoded, round trip %s\n", n,
+           back == (long)sizeof run && !memcmp(pkt, run, sizeof run) ? "ok" : "FAILED");
+    hex("IDENTIFY", wire, packet_to_wire(pkt, packet_finish(pkt, CSTOMO_MSG_IDENTIFY, 0), wire));
+    put_u32(pkt + CSTOMO_HEADER_LEN, f32_bits(200.0f));
+    hex("START 200 Hz", wire, packet_to_wire(pkt, packet_finish(pkt, CSTOMO_MSG_START, 4), wire));
+    pkt[CSTOMO_HEADER_LEN] = CSTOMO_MSG_START;
+    hex("ACK of START", wire, packet_to_wire(pkt, packet_finish(pkt, CSTOMO_MSG_ACK, 1), wire));
+    return 0;
+}
+
 int main(int argc, char **argv) {
+    if (argc == 2 && !strcmp(argv[1], "--selftest"))
+        return selftest();
     const char *frames_path = NULL, *link = NULL;
     double duration = 0;
     frontend_config_t fe = {.file_layers = 2, .full_scale_v = 2.5, .garbage_bytes = 48, .dead_electrode = -1,
