@@ -89,12 +89,20 @@ void usart1_handler(void) {
 }
 
 uint64_t hal_micros(void) {
-    uint32_t ms, val;
+    static uint64_t last;
+    uint32_t ms, val, pending;
     do {
         ms = millis;
         val = SYST_CVR;
+        pending = SCB_ICSR & ICSR_PENDSTSET;
     } while (ms != millis);
-    return (uint64_t)ms * 1000u + (SYST_RVR - val) / TICKS_PER_US;
+    if (pending && val > SYST_RVR / 2u) /* the counter wrapped, its interrupt not taken yet */
+        ms++;
+    uint64_t now = (uint64_t)ms * 1000u + (SYST_RVR - val) / TICKS_PER_US;
+    if (now < last) /* monotonic whatever the interrupt's latency */
+        now = last;
+    last = now;
+    return now;
 }
 
 __attribute__((unused)) static void busy_wait_us(uint32_t us) {
