@@ -215,6 +215,7 @@ static size_t text_line(const float *values) {
 static void frame(uint64_t now) {
     static float values[CSTOMO_N_VALUES];
     measure(now, values);
+    uint64_t measured = hal_micros();
     size_t w;
     if (cfg.text_mode) {
         w = text_line(values);
@@ -228,7 +229,9 @@ static void frame(uint64_t now) {
     } else {
         st.no_room++;
     }
-    uint64_t took = hal_micros() - now;
+    uint64_t done = hal_micros(), took = done - now;
+    if (done - measured > st.max_encode_us)
+        st.max_encode_us = (uint32_t)(done - measured);
     if (took > st.max_frame_us)
         st.max_frame_us = took > 0xFFFFFFFFu ? 0xFFFFFFFFu : (uint32_t)took;
 }
@@ -399,8 +402,8 @@ void board_poll(void) {
         rx_skip = false;
         hal_current_on(false);
     }
-    while ((n = hal_link_read(buf, sizeof buf)) > 0)
-        board_feed(buf, n);
+    for (int i = 0; i < 4 && (n = hal_link_read(buf, sizeof buf)) > 0; i++) /* a flood of input never */
+        board_feed(buf, n);                                                 /* starves the schedule */
     hal_link_poll();
     if (!streaming)
         return;

@@ -28,6 +28,7 @@ typedef struct {
     uint32_t dropped;       /* packets ignored: bad COBS, length or CRC, or too long */
     uint32_t answers_lost;  /* answers not queued: no room on the link */
     uint32_t max_frame_us;  /* the longest measurement + encoding of one frame */
+    uint32_t max_encode_us; /* the longest encoding of one frame (packing, CRC, COBS, queueing) */
 } board_stats_t;
 
 void board_init(const board_config_t *cfg);

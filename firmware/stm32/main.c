@@ -83,11 +83,11 @@ int main(void) {
     };
     board_init(&cfg);
     debug_write("cstomo-fw stm32: up\r\n");
-    uint64_t next_report = hal_micros() + 1000000u;
+    uint64_t next_report = hal_micros() + 100000u;
     for (;;) {
         board_poll();
-        if (hal_micros() >= next_report) { /* once a second on the debug console */
-            next_report += 1000000u;
+        if (hal_micros() >= next_report) { /* ten times a second on the debug console */
+            next_report += 100000u;
             const board_stats_t *st = board_get_stats();
             char line[160], *p = line;
             p = fmt_u32(p, "measured ", st->measured);
@@ -97,6 +97,7 @@ int main(void) {
             p = fmt_u32(p, " commands ", st->commands);
             p = fmt_u32(p, " ignored ", st->dropped);
             p = fmt_u32(p, " max_frame_us ", st->max_frame_us);
+            p = fmt_u32(p, " max_encode_us ", st->max_encode_us);
             *p++ = '\r';
             *p++ = '\n';
             *p = 0;
