@@ -16,10 +16,22 @@ from firmware_harness import FIRMWARE, ROOT, Process, build_host, write_frames
 
 from cstomo_sensor.board import wire
 from cstomo_sensor.board.driver import BoardDriver
-from cstomo_sensor.board.wire import (Ack, DataFrame, Decoder, Error, ErrorCode, Identify, Identity, MsgType,
-                                      SetCurrent, SetPattern, Start, Stop, encode)
+from cstomo_sensor.board.wire import (
+    Ack,
+    DataFrame,
+    Decoder,
+    Error,
+    ErrorCode,
+    Identify,
+    Identity,
+    MsgType,
+    SetCurrent,
+    SetPattern,
+    Start,
+    Stop,
+    encode,
+)
 from cstomo_sensor.model.pattern import MeasurementPattern
-
 
 # --- the constants ----------------------------------------------------------------------------
 
@@ -267,3 +279,21 @@ def test_faults_show_as_the_driver_counts_them(fw, rows):
     np.testing.assert_array_equal(f.values[~dead & (np.arange(208) != 17)],
                                   np.float32(r[f.seq % 5])[~dead & (np.arange(208) != 17)])
     assert np.abs(f.values[dead]).max() < 0.01  # the open electrode's rows read noise (1 mV)
+
+
+def test_board_check_identifies_the_firmware_and_reports_rate_gaps_and_noise(fw, tmp_path, capsys):
+    """`cstomo board-check` on the host firmware: a held frame (one row) with 100 uV of noise."""
+    from cstomo_sensor.tools.cli import main
+
+    path = write_frames(tmp_path / "held.csv", np.random.default_rng(5).normal(0.0, 0.1, 208))
+    with Process([str(fw), "--frames", str(path), "--noise", "1e-4", "--seed", "2"]) as board:
+        code = main(["board-check", "--port", board.device, "--rate", "100", "--seconds", "2"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "'cstomo-fw 1.0 (host)', protocol 1, 16 electrodes, 208 values per frame" in out
+    rate = float(re.search(r"rate: ([\d.]+) frames/s on the board's clock", out).group(1))
+    assert rate == pytest.approx(100.0, rel=0.01)
+    assert "lost: 0 (0 sequence gaps, 0 corrupt)" in out
+    noise = float(re.search(r"noise: median ([\d.]+) uV", out).group(1))
+    assert noise == pytest.approx(100.0, rel=0.15)  # the front-end's 100 uV rms
+    assert "contact check failed on electrodes none" in out

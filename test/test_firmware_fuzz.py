@@ -7,6 +7,7 @@ still answers afterwards. ~10 s here; longer by hand:
 from __future__ import annotations
 
 import os
+import re
 import select
 import struct
 import threading
@@ -98,10 +99,16 @@ def test_hostile_input_never_crashes_the_firmware_nor_stops_its_stream(tmp_path)
     assert "AddressSanitizer" not in said and "runtime error" not in said, said
     data = [(at, m) for at, m in got if isinstance(m, DataFrame)]
     assert any(isinstance(m, Identity) and a > asked for a, m in got)  # still answering
-    # the stream never stopped: frames in every second of the run, their seq consecutive
-    at = np.array([a for a, _ in data])
-    per_second = np.histogram(at, bins=np.arange(at[0], at[-1], 1.0))[0]
-    assert len(per_second) >= int(SECONDS) - 1 and per_second.min() > 0.3 * RATE, per_second
+    # the stream never stopped: on the board's clock, frame seq was measured at t0 + seq / rate, late by
+    # the host's scheduling at most (frames the reader was too slow for were measured, not sent; slots
+    # the board skipped after falling 0.1 s behind, under a loaded host, shift the rest by their time)
+    t = np.array([m.board_time_us for _, m in data], float) * 1e-6
     seqs = np.array([m.seq for _, m in data])
-    assert (np.diff(seqs) == 1).mean() > 0.95, np.unique(np.diff(seqs), return_counts=True)
+    assert t[-1] - t[0] > SECONDS - 1 and len(data) > 0.5 * RATE * SECONDS, (len(data), t[-1] - t[0])
+    m = re.search(r"measured (\d+) frames, sent (\d+), not sent for want of room (\d+), slots skipped (\d+)", said)
+    measured, skipped = int(m.group(1)), int(m.group(4))
+    assert skipped <= 0.02 * measured, said
+    late = t - t[0] - (seqs - seqs[0]) / RATE
+    assert late.max() - late.min() < 0.15 + skipped / RATE, late.max() - late.min()
+    print(f"fuzz {SECONDS:g} s: {sent} bytes sent, {said.strip()}")
     assert sent > 10_000

@@ -6,11 +6,13 @@ the cross tools or QEMU are missing."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 import time
 
 import numpy as np
 import pytest
-from firmware_harness import Process, build_stm32, elf_size, qemu_argv, write_frames
+from firmware_harness import FIRMWARE, Process, build_stm32, elf_size, qemu_argv, write_frames
 
 from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.wire import Identity
@@ -30,10 +32,6 @@ def test_qemu_runs_the_image_and_the_driver_reads_it(tmp_path):
     rows = np.random.default_rng(4).normal(0.0, 0.1, (3, 208))
     path = write_frames(tmp_path / "frames.csv", rows)
     rows = np.loadtxt(path, delimiter=",")
-    from firmware_harness import FIRMWARE  # the image's table written as docs/firmware.md says
-    import subprocess
-    import sys
-
     subprocess.run([sys.executable, str(FIRMWARE / "tools" / "frames_to_c.py"), str(path), str(tmp_path / "t.c"),
                     "--rows", "3"], check=True)
     elf = build_stm32(tmp_path, tmp_path / "t.c")
@@ -63,7 +61,7 @@ def test_qemu_runs_the_image_and_the_driver_reads_it(tmp_path):
     # each measured frame plays the table's next row; after a restart (a reopen's START) the rows go
     # on where they were, so match the first frame's row and follow
     k = next(k for k in range(3) if np.array_equal(frames[0].values, np.float32(rows[k])))
-    for i, f in enumerate(frames):
+    for f in frames:
         np.testing.assert_array_equal(f.values, np.float32(rows[(k + f.seq - seqs[0]) % 3]))
     report = debug.read_text()
     assert re.search(r"measured \d+ sent \d+ no_room 0", report), report
