@@ -78,3 +78,32 @@ def test_a_held_load_reads_within_board_sims_error(tmp_path, source, warm_model)
     assert err_fw.mean() == pytest.approx(err_sim.mean(), rel=0.01, abs=0.01)
     assert np.sqrt((err_fw ** 2).mean()) == pytest.approx(np.sqrt((err_sim ** 2).mean()), rel=0.01, abs=0.01)
     assert err_fw.mean() < 0.25 * 20.0  # and the load is read: the force, not noise
+
+
+@pytest.mark.slow
+def test_the_node_reads_the_firmware(ros, tmp_path, source, warm_model):
+    """The node (its parameters pointing its port at the host firmware's pty) tares on the first 10
+    frames (unloaded rows) and publishes the held load's 20 N for the loaded rows, with no frame lost."""
+    from conftest import PIPE, Harness, wait_for
+    from geometry_msgs.msg import WrenchStamped
+
+    path = write_frames(tmp_path / "held.csv", np.vstack([source.frames[:20], source.frames[22:68]]))
+    with Process([str(build_host(tmp_path)), "--frames", str(path), "--rate", str(RATE)]) as board:
+        p = dict(PIPE, port=board.device, tare_file=str(tmp_path / "tare.csv"), tare_on_start=True, tare_frames=10,
+                 creep_per_decade=0.0, rate_hz=RATE)
+        h = Harness(ros, p, name="cstomo_fw")
+        try:
+            assert wait_for(lambda: h.state() == "active", 30.0), h.state()
+            wrenches = h.record("/cstomo_fw/wrench", WrenchStamped)
+            assert wait_for(lambda: len(wrenches) >= 300, 20.0), len(wrenches)
+            st = h.node._driver.stats()
+            identity = h.node._driver.identity
+        finally:
+            h.close()
+    assert identity.firmware == "cstomo-fw 1.0 (host)"
+    assert (st.seq_gaps, st.corrupt) == (0, 0), st
+    f = np.array([(m.wrench.force.x, m.wrench.force.y, m.wrench.force.z) for _, m in wrenches])
+    loaded = np.linalg.norm(f - TRUE_FORCE, axis=1) < 3.0
+    unloaded = np.linalg.norm(f, axis=1) < 3.0
+    assert (loaded | unloaded).mean() > 0.95
+    assert loaded.mean() == pytest.approx(46 / 66, abs=0.08)  # the rows' share of the held load
