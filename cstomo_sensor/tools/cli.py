@@ -1,7 +1,8 @@
 """The ``cstomo`` command line: every thing the node does, without ROS.
 
 Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``, ``estimate``,
-``calibrate``, ``board-sim``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``, ``plot``, ``record``.
+``calibrate``, ``board-sim``, ``board-check``, ``replay``, ``demo``, ``bench``, ``bench-node``, ``render``,
+``plot``, ``record``.
 """
 from __future__ import annotations
 
@@ -33,9 +34,9 @@ from ..sources import ArraySource
 from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
-OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
-               "bench-node": ".bench.node", "bench": ".bench.main", "render": ".render",
-               "plot": ".plot", "record": ".record"}
+OWN_PARSERS = {"board-sim": ".board_sim", "board-check": ".board_check", "replay": ".replay",
+               "calibrate": ".calibrate", "demo": ".demo", "bench-node": ".bench.node", "bench": ".bench.main",
+               "render": ".render", "plot": ".plot", "record": ".record"}
 
 
 def _peak_mb() -> float:
@@ -215,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output directory, created if missing: reference.csv, frames.csv, truth.csv")
     add_setting_arg(s, "cache_dir")
     sub.add_parser("board-sim", help="simulated board on a pseudo-terminal (see cstomo board-sim -h)")
+    sub.add_parser("board-check", help="identify a board, report its rate, gaps and noise (see cstomo board-check -h)")
     sub.add_parser("replay", help="rosbag2 raw_voltages -> node outputs (see cstomo replay -h)")
     sub.add_parser("calibrate", help="device calibration from known loads (see cstomo calibrate -h)")
     sub.add_parser("demo", help="the simulated board and the node together, live force estimates")
