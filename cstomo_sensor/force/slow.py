@@ -22,7 +22,7 @@ from .creep import CreepCompensator
 from .drift import DriftTracker
 from .joint import JointScale, gradient_directions
 from .scene_field import change_noise
-from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
+from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, misfit, relative_error
 
 #: A controller's expected load (:meth:`SlowStates.expect_load`) holds for frames up to this many
 #: seconds after its stamp (a dynamics model's output at its own rate, tens of Hz or more).
@@ -131,9 +131,10 @@ class SlowStates:
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
-        if sig is not None:  # the tracker's covariance after this frame's predict and update
+        if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
-                                               drift.change if drift is not None else 0.0)
+                                               drift.change if drift is not None else 0.0,
+                                               misfit(result.consistency, pipe.consistency.expected))
 
     def _joint_scale(self, pipe, t: float | None):
         """The latest frame's joint measurement of the scale (force/joint.py JointScale), None for an
