@@ -80,8 +80,8 @@ class Pipeline:
         self.estimator = estimator
         self.scene_field = scene_field
         self._allowance = mismatch_allowance(model)
-        self.reference_frames = 1  # frames averaged into the reference (set_reference)
-        self.noise_measured = False  # True: the estimators use the tare's noise (of reference_frames frames)
+        # frames averaged into the reference (set_reference); True: the estimators use the tare's noise (of those frames)
+        self.reference_frames, self.noise_measured = 1, False
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None
@@ -216,11 +216,9 @@ class Pipeline:
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the
         device: measured noise at a tare, corrected set with a calibration) and the current mask. Its
-        noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``); a noise
-        the tare measured from its frames sets the statistic's mean for noise alone (force/sigma.py)."""
-        noise = change_noise(self.estimator.noise, self.reference_frames)
-        expected = noise_expectation(self.reference_frames if self.noise_measured else None)
-        self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep, expected)
+        noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``: if measured, of their spread)."""
+        noise, measured = change_noise(self.estimator.noise, self.reference_frames), self.reference_frames if self.noise_measured else None
+        self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep, noise_expectation(measured))
 
     def _update_gate(self) -> None:
         ref = self.reference if self.reference is not None else self.model_reference
