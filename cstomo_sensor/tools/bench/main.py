@@ -1,8 +1,8 @@
-"""``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-the sigma's nominal error by direction (:mod:`.heldout`), GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
-the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`), the scene field with the
-foreign-load flag (:mod:`.scene`), the zero over time and the per-frame cost through the stream
-(:mod:`.drift`), what a robot does to them on devices outside the model (:mod:`.robot`)."""
+"""``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces and the sigma's nominal error
+by direction (:mod:`.heldout`), GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT
+comparison (:mod:`.pyeit`), the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`), the
+scene field with the foreign-load flag (:mod:`.scene`), the zero over time and the per-frame cost through the
+stream (:mod:`.drift`), what a robot does to them on devices outside the model (:mod:`.robot`)."""
 from __future__ import annotations
 
 import argparse
