@@ -1,4 +1,4 @@
-"""Every force with its error bar: the 1-sigma uncertainty of a frame's force (issue 26, item 3).
+"""Every force with its error bar: the 1-sigma uncertainty of a frame's force (issue 26, item 3; issue 34, item 3).
 
 The force's error covariance of one frame, from the same estimate that gave the force::
 
@@ -32,7 +32,7 @@ The force's error covariance of one frame, from the same estimate that gave the 
   through the estimator's map, are ``m`` times wider at once (a least-squares fit's covariance scaled
   by its reduced chi-square). A restart 8 h after the tare of a device warmed +2.4 % with a 30 %
   gradient and its contacts -3 %: the first frame reads 4.1 N at rest (its c 21.8, its sigma_n
-  1.1 -> 4.5 N); on a device the model describes m stays within a few % of 1;
+  1.1 -> 4.9 N); on a device the model describes m stays within a few % of 1;
 - ``k``: the calibration's residual, a relative 1-sigma of the force error's norm: from a device
   calibration's cross-validated 90th percentiles of the magnitude and angle errors over its n loads,
   taken at their 90 % upper bound (:func:`relative_error`; isotropic), else the nominal model's error
