@@ -96,11 +96,13 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     return True
 
 
-def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | None, offset: np.ndarray | None, change: float):
+def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | None, offset: np.ndarray | None, change: float,
+                misfit: float = 1.0):
     """``ForceSigma``'s ((sigma fx, fy, fz), sigma_n) with the ``model`` estimator's own map, plainly:
     the map ``k (J^T J)^-1 J^T B w`` of the estimator's latest fit through ``np.linalg.solve``, the
     covariance of the module docstring as one 3 x 3 matrix (``D``: the tracker's directions) (issue 26: the per-frame form solved the
-    normal equations by LAPACK with the states' directions as right-hand sides)."""
+    normal equations by LAPACK with the states' directions as right-hand sides; issue 34: the frame's
+    ``misfit`` times the noise's and the states' terms, the calibration residual by the load's elevation)."""
     from cstomo_sensor.force.sigma import UNDESCRIBED
 
     est = sig.est
@@ -108,7 +110,7 @@ def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | No
     Jt = fit.out[1:]
     A = Jt @ Jt.T
     local = k * np.linalg.solve(A, Jt @ sig._Bw)  # (3, n_keep): a change's force near the frame's load
-    cov = k * k * sig._noise_w2 * np.linalg.inv(A) + sig.k2 * float(force @ force) * np.eye(3)
+    cov = k * k * sig._noise_w2 * np.linalg.inv(A)
     if P is not None:
         kept = np.asarray(est.keep, bool)
         D = D[:, kept]  # the states' directions on the kept channels
@@ -118,6 +120,9 @@ def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | No
         cov += WD @ P @ WD.T
         wr = local @ D[0]
         cov += (UNDESCRIBED * change) ** 2 * float(wr @ wr) / 3.0 * np.eye(3)
+    cov *= max(misfit, 1.0)
+    # k^2 = k_v^2 + k_l^2 cos^2(el): per axis a third of k_v^2 |F|^2 + k_l^2 |F_lateral|^2 (k2, kl2: the thirds)
+    cov += (sig.k2 * float(force @ force) + sig.kl2 * float(force[:2] @ force[:2])) * np.eye(3)
     if offset is not None:
         c = sig.creep_rel * local @ offset[np.asarray(est.keep, bool)]
         cov += np.outer(c, c)

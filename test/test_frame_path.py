@@ -177,7 +177,7 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
     if masked:
         flags = np.zeros(pipe.n_meas, bool)
         flags[[7, 8, 100]] = True
-    checked = []
+    checked, misfits = [], []
 
     class Checked:
         """The stream's sigma of one frame, checked against the plain form."""
@@ -189,9 +189,10 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
             self.offset = offset.copy()  # the offset the frame was corrected by
             return self.sig.creep_force(offset)
 
-        def __call__(self, force, P, creep_f=None, change=0.0):
-            out = self.sig(force, P, creep_f, change)
-            plain = model_sigma(self.sig, stream.drift._D, force, P, self.offset, change)
+        def __call__(self, force, P, creep_f=None, change=0.0, misfit=1.0):
+            out = self.sig(force, P, creep_f, change, misfit)
+            plain = model_sigma(self.sig, stream.drift._D, force, P, self.offset, change, misfit)
+            misfits.append(misfit)
             np.testing.assert_allclose(out[0], plain[0], rtol=1e-9)
             assert out[1] == pytest.approx(plain[1], rel=1e-9)
             checked.append(out[1])
@@ -204,6 +205,7 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
         v = (1 + 0.02 * k / 400) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale if (k // 50) % 2 else 0.0))
         stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
     assert len(checked) == 400 and stream.drift.rest_frames > 0 and stream.slow._sigma.est is pipe.estimator
+    assert max(misfits) > 1.0  # frames whose misfit widened their sigma were checked too
 
 
 @pytest.mark.parametrize("rate", [100.0, 30.0])

@@ -107,6 +107,22 @@ def test_bench_heldout_on_three_forces(tmp_path):
 
 
 @pytest.mark.slow
+def test_bench_sigma_table_on_a_few_forces(tmp_path):
+    """``cstomo bench --sigma-table N``: the nominal model's error by elevation on the training side's device
+    and the held-out one, both estimators; each row's rms error is a relative error of a few % (the
+    estimators' stated accuracy, docs/benchmark.md), and the one in use grows toward lateral loads."""
+    assert cstomo(["bench", "--sigma-table", "3", "--out", str(tmp_path)]) == 0
+    rows = _rows(tmp_path / "sigma_table.csv")
+    assert {(r["device"], r["estimator"]) for r in rows} == {(d, e) for d in ("training", "held-out")
+                                                             for e in ("model", "linear")}
+    assert sum(int(r["n"]) for r in rows) == 4 * 3
+    for r in rows:
+        assert 0.0 < float(r["rms_pct"]) < 15.0 and 0.5 < float(r["in_use_pct"]) < 10.0, r
+    used = {r["elevation"]: float(r["in_use_pct"]) for r in rows if r["estimator"] == "model"}
+    assert list(used.values()) == sorted(used.values(), reverse=True)  # bins from 20 deg up: falls toward 90
+
+
+@pytest.mark.slow
 def test_bench_frame_cost_times_both_estimators_with_and_without_tracking(tmp_path):
     """``cstomo bench --frame-cost`` (one round here): a row per estimator and tracking, every frame of
     the stream timed, the host's load stated. No timing assertions."""

@@ -25,7 +25,7 @@ from .config import PipelineConfig
 from .device import DEFAULT_NOISE_DB, ScaleReport, check_noise
 from .estimate import build_estimator
 from .gate import PlausibilityGate
-from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance
+from .scene_field import Consistency, SceneField, change_noise, mismatch_allowance, noise_expectation
 
 #: :attr:`Pipeline.noise_source` of the assumed noise, and of a noise measured by a tare of several frames.
 NOISE_ASSUMED = f"assumed {DEFAULT_NOISE_DB:g} dB"
@@ -80,7 +80,8 @@ class Pipeline:
         self.estimator = estimator
         self.scene_field = scene_field
         self._allowance = mismatch_allowance(model)
-        self.reference_frames = 1  # frames averaged into the reference (set_reference)
+        # frames averaged into the reference (set_reference); True: the estimators use the tare's noise (of those frames)
+        self.reference_frames, self.noise_measured = 1, False
         self.n_meas = model.n_meas
         self.centers = (model.centers - geometry.socket_center).astype(np.float32)  # wrench frame
         self.reference: np.ndarray | None = None
@@ -103,7 +104,6 @@ class Pipeline:
         self.scale_report: ScaleReport | None = None
         self.calibration: DeviceCalibration | None = None
         self._base_set = (np.asarray(estimator.forces), np.asarray(estimator.y))  # the model's own
-        self.noise_measured = False  # True: the estimators use the tare's noise
         self.noise_source = NOISE_ASSUMED  # what noise the estimators use, in words (set_reference, set_noise)
 
     @classmethod
@@ -216,9 +216,9 @@ class Pipeline:
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the
         device: measured noise at a tare, corrected set with a calibration) and the current mask. Its
-        noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``)."""
-        noise = change_noise(self.estimator.noise, self.reference_frames)
-        self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep)
+        noise is the change's: the frame's plus the reference's (the mean of ``reference_frames``: if measured, of their spread)."""
+        noise, measured = change_noise(self.estimator.noise, self.reference_frames), self.reference_frames if self.noise_measured else None
+        self.consistency = Consistency(np.asarray(self.estimator.y), noise, self._allowance, self._keep, noise_expectation(measured))
 
     def _update_gate(self) -> None:
         ref = self.reference if self.reference is not None else self.model_reference

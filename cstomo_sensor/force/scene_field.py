@@ -167,6 +167,18 @@ def change_noise(noise: np.ndarray, reference_frames: int) -> np.ndarray:
     return np.asarray(noise, dtype=float) * np.sqrt(1.0 + 1.0 / reference_frames)
 
 
+def noise_expectation(measured_frames: int | None) -> float:
+    """The consistency statistic's mean for noise alone when the per-channel noise it whitens by was
+    measured as the std of ``measured_frames`` frames (None: given or estimated from many frames: 1).
+    Whitening by an estimated variance ``s^2`` of ``n - 1`` degrees of freedom inflates each channel's
+    term by ``E[sigma^2 / s^2] = (n - 1) / (n - 3)`` (a tare of 10 frames: 1.29; 20: 1.12; 50: 1.04);
+    below 5 frames it is taken at 5's (2.0)."""
+    if not measured_frames or measured_frames < 2:
+        return 1.0
+    n = max(int(measured_frames), 5)
+    return (n - 1.0) / (n - 3.0)
+
+
 class Consistency:
     """The consistency statistic of a frame against the socket load model (module docstring).
 
@@ -180,6 +192,9 @@ class Consistency:
         The model mismatch allowed for (:func:`mismatch_allowance`); None: none.
     keep : (n_meas,) bool ndarray or None
         Channels in use.
+    expected : float
+        ``c``'s mean for noise alone (:func:`noise_expectation`: above 1 when ``noise`` was measured
+        from few frames).
 
     Attributes
     ----------
@@ -188,7 +203,8 @@ class Consistency:
     """
 
     def __init__(self, y: np.ndarray, noise: np.ndarray, allowance: np.ndarray | None = None,
-                 keep: np.ndarray | None = None) -> None:
+                 keep: np.ndarray | None = None, expected: float = 1.0) -> None:
+        self.expected = float(expected)
         self.y, self.noise = np.asarray(y), np.asarray(noise, dtype=float)
         self.allowance = np.zeros_like(self.noise) if allowance is None else np.asarray(allowance, dtype=float)
         self.keep = np.ones(self.y.shape[1], bool) if keep is None else np.asarray(keep, bool)
@@ -210,4 +226,4 @@ class Consistency:
         return float((z.dot(z) - p.dot(p)) / self.dof)
 
     def masked(self, keep: np.ndarray) -> Consistency:
-        return Consistency(self.y, self.noise, self.allowance, keep)
+        return Consistency(self.y, self.noise, self.allowance, keep, self.expected)

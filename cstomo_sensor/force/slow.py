@@ -22,7 +22,7 @@ from .drift import DriftTracker
 from .expected import ExpectedLoad, bounded
 from .joint import JointScale, gradient_directions
 from .scene_field import change_noise
-from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, relative_error
+from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, misfit, relative_error
 
 #: The drift tracker's change (``|s - 1|``) beyond which a re-tare is advised, and beyond which it is
 #: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
@@ -135,9 +135,10 @@ class SlowStates:
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
-        if sig is not None:  # the tracker's covariance after this frame's predict and update
+        if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
-                                               drift.change if drift is not None else 0.0)
+                                               drift.change if drift is not None else 0.0,
+                                               misfit(result.consistency, pipe.consistency.expected))
             self._frame_sigma = result.sigma
 
     def _joint_scale(self, pipe, t: float | None, result):

@@ -126,3 +126,50 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
     say(f"{HOLD_FRAMES} frames per load at {RATE_HZ:g} frames/s; foreign_pct: frames flagged as a foreign load "
         f"(all loads are on the socket); the noise estimate: {_observe_us(frames):.1f} us per measured frame pair")
     return write_rows(Path(out) / "heldout_one_frame.csv", rows, say)
+
+
+#: The elevation bins (deg) of :func:`sigma_table`'s rows.
+SIGMA_BINS = (20, 30, 40, 50, 60, 70, 80, 90.01)
+
+
+def sigma_table(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+    """``cstomo bench --sigma-table N``: the nominal model's error by the load's direction, which the force's
+    sigma takes as its calibration residual without a calibration (force/sigma.py ``NOMINAL_ERROR``): both
+    estimators on ``n`` random socket loads of the training side's simulated device (truth seed
+    :data:`~.scenes.TRAIN_TRUTH_SEED`, forces :data:`~.scenes.TRAIN_FORCE_SEED`), noise-free frames against
+    the noise-free reference (the estimators weighted by a 50-frame tare's noise at 60 dB): the relative
+    error of the force's norm ``|F_err| / |F|``, its rms by elevation, and ``k(el)^2 = k_v^2 + k_l^2 cos^2(el)``
+    fitted (``k_v^2`` the mean square over 80..90 deg, ``k_l^2`` least squares of the rest). Then the same
+    loads' errors on the held-out device (truth seed :data:`~.scenes.TRUTH_SEED`), judged against the fit
+    in use: ``over3sigma_pct`` of its errors beyond 3 k(el). Writes sigma_table.csv."""
+    from ...force.sigma import NOMINAL_ERROR
+    from .scenes import TRAIN_FORCE_SEED, TRAIN_TRUTH_SEED, TRUTH_SEED
+
+    builder = Builder(cache_dir, say)
+    rows = []
+    for side, truth_seed in (("training", TRAIN_TRUTH_SEED), ("held-out", TRUTH_SEED)):
+        scenes = SceneSet(n, cache_dir, say, truth_seed=truth_seed, force_seed=TRAIN_FORCE_SEED)
+        _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, 60.0, NOISE_SEED + 1060)
+        noise = reference_of(tare)[1]
+        f = scenes.forces
+        el = np.degrees(force_angles(f)[1])
+        cos2 = np.cos(np.radians(el)) ** 2
+        for name in ("model", "linear"):
+            pipe, *_ = builder.pipeline(Setting(name, "estimator", estimator=name))
+            est, *_ = run_frames(pipe, scenes.ref_clean, scenes.clean, with_field=False, noise=noise, n_frames=TARE_FRAMES)
+            rel2 = (np.linalg.norm(est - f, axis=1) / np.linalg.norm(f, axis=1)) ** 2
+            kv2 = float(np.mean(rel2[el >= 80.0]))
+            kl2 = max(float(np.sum((rel2 - kv2) * cos2) / np.sum(cos2 * cos2)), 0.0)
+            kv, kl = NOMINAL_ERROR[name]
+            used = kv * kv + kl * kl * cos2
+            for lo, hi in zip(SIGMA_BINS[:-1], SIGMA_BINS[1:]):
+                sel = (el >= lo) & (el < hi)
+                if sel.any():
+                    rows.append({"device": side, "estimator": name, "elevation": f"{lo:g}-{min(hi, 90):g}", "n": int(sel.sum()),
+                                 "rms_pct": 100 * float(np.sqrt(np.mean(rel2[sel]))),
+                                 "fit_pct": 100 * float(np.sqrt(np.mean(kv2 + kl2 * cos2[sel]))),
+                                 "in_use_pct": 100 * float(np.sqrt(np.mean(used[sel]))),
+                                 "over3sigma_pct": 100 * float(np.mean(rel2[sel] > 9 * used[sel]))})
+            say(f"sigma table: {side} device, {name}: k_v {np.sqrt(kv2):.4f}, k_l {np.sqrt(kl2):.4f} (in use {kv}, {kl}); "
+                f"beyond 3 k(el) with the one in use: {100 * float(np.mean(rel2 > 9 * used)):.1f} %")
+    return write_rows(Path(out) / "sigma_table.csv", rows, say)

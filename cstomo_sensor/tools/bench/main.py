@@ -1,8 +1,8 @@
-"""``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces (:mod:`.heldout`),
-GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT comparison (:mod:`.pyeit`),
-the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`), the scene field with the
-foreign-load flag (:mod:`.scene`), the zero over time and the per-frame cost through the stream
-(:mod:`.drift`), what a robot does to them on devices outside the model (:mod:`.robot`)."""
+"""``cstomo bench``: the speed/accuracy table (:mod:`.table`), held-out forces and the sigma's nominal error
+by direction (:mod:`.heldout`), GREIT figures (:mod:`.greit`), the filtered wrench (:mod:`.filter`), the pyEIT
+comparison (:mod:`.pyeit`), the weight rule (:mod:`.weight`), the calibration effort (:mod:`.effort`), the
+scene field with the foreign-load flag (:mod:`.scene`), the zero over time and the per-frame cost through the
+stream (:mod:`.drift`), what a robot does to them on devices outside the model (:mod:`.robot`)."""
 from __future__ import annotations
 
 import argparse
@@ -15,7 +15,7 @@ from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
 from .greit import greit
-from .heldout import heldout, one_frame_reference
+from .heldout import heldout, one_frame_reference, sigma_table
 from .pyeit import run as run_pyeit
 from .robot import robot_bench
 from .scene import run_scene
@@ -43,6 +43,8 @@ def parser() -> argparse.ArgumentParser:
                    help="the zero and the accuracy when the device changes after its tare, with and without tracking")
     g.add_argument("--frame-cost", action="store_true",
                    help="time per frame through the stream, both estimators, drift tracking off and on, side by side")
+    g.add_argument("--sigma-table", type=int, metavar="N",
+                   help="the nominal model's error by the load's direction (the sigma's calibration residual) on N loads")
     g.add_argument("--scene", action="store_true", help="scene stress field and foreign-load flag (accuracy, rates, cost)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--calibration", default="", metavar="FILE",
@@ -83,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.calibration_effort:
         Path(a.out).mkdir(parents=True, exist_ok=True)
         calibration_effort(a.out, cache_dir=a.cache_dir or None)
+        return 0
+    if a.sigma_table:
+        Path(a.out).mkdir(parents=True, exist_ok=True)
+        sigma_table(a.sigma_table, a.out, a.cache_dir or None)
         return 0
     if a.scene:
         run_scene(a.out, a.cache_dir or None)
