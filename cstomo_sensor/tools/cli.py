@@ -30,7 +30,7 @@ from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..sources import ArraySource
-from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -176,9 +176,9 @@ FRAMES_HELP = "frames file: 208 comma-separated volts a line (docs/formats.md#fr
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
-    p = argparse.ArgumentParser(prog="cstomo", description="The force sensor's tools without ROS; to see it work, start "
+    p = ToolParser(prog="cstomo", description="The force sensor's tools without ROS; to see it work, start "
                                 "with `cstomo demo` (README.md, docs/). Each command's --help says what it reads and writes.")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what the library does (INFO)")
     sub = p.add_subparsers(dest="cmd", required=True)
     model = sub.add_parser("model", help="forward model").add_subparsers(dest="what", required=True)
     b = model.add_parser("build", help="build (or load) the forward model and print a summary")
@@ -202,8 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
-    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP)
     s.add_argument("--scene", required=True, metavar="FILE",
                    help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
     s.add_argument("--out", required=True, metavar="DIR",

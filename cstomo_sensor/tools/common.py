@@ -9,6 +9,7 @@ in the node's parameters and the files.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shutil
 import signal
@@ -24,6 +25,64 @@ from ..force.config import PipelineConfig
 from ..settings import SETTING, text_of
 
 _SAME = object()
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """The ``--help`` of every ``cstomo`` command: descriptions as written, and every option's help
+    ending with its default (``(default: X)``) unless the help says its default itself; options
+    without a value (``--flag``), required ones and those whose default is None show none."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text.lower() or action.required or any(action.default is v for v in (None, False, argparse.SUPPRESS))
+                or not action.option_strings or action.nargs == 0 and not isinstance(action, argparse.BooleanOptionalAction)):
+            return text
+        return f"{text} (default: {_shown(action.default)})".lstrip()
+
+
+def _shown(value: object) -> str:
+    """A default as a person types it: ``8 8 4`` for a list, ``''`` for the empty string."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(map(str, value))
+    if isinstance(value, bool):
+        return str(value).lower()
+    return "''" if value == "" else str(value).replace("%", "%%")
+
+
+class ToolParser(argparse.ArgumentParser):
+    """The argument parser of a ``cstomo`` command: :class:`HelpFormatter`, and :meth:`fail`, the one
+    error line of every command, ``PROG: error: ...`` as argparse's own (its subparsers are ToolParsers too)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def fail(self, err: object, code: int = 2) -> int:
+        """Print ``PROG: error: ERR`` on stderr; ``code``."""
+        print(f"{self.prog}: error: {err}", file=sys.stderr, flush=True)
+        return code
+
+
+def positive(what: str = "a number > 0", *, zero: bool = False, kind: type = float):
+    """An argparse ``type`` for a finite number > 0 (>= 0 with ``zero``), refused at parsing as
+    ``argument --flag: VALUE: expected WHAT``."""
+
+    def parse(word: str):
+        try:
+            v = kind(word)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{word!r}: expected {what}") from None
+        if not (v >= 0 if zero else v > 0) or not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{word}: expected {what}")
+        return v
+
+    parse.__name__ = what
+    return parse
+
+
+#: The short value name (metavar) of a setting's flag that takes a string.
+_METAVARS = {"sensor": "NAME", "cache_dir": "DIR", "calibration_file": "FILE", "tare_file": "FILE", "port": "URL",
+             "frame_id": "FRAME"}
 
 
 def help_text(doc: str) -> str:
@@ -52,7 +111,8 @@ def add_setting_arg(p: argparse.ArgumentParser, name: str, *, flag: str | None =
 
     parse.__name__ = name  # argparse's message names it
     kind = {"nargs": len(s.default), "default": list(value)} if isinstance(s.default, tuple) else {"default": value}
-    metavar = ("NX", "NY", "NZ") if name == "grid" else None
+    metavar = ("NX", "NY", "NZ") if name == "grid" else None if s.choices else _METAVARS.get(name) or (
+        "N" if isinstance(s.default, int) else "X" if isinstance(s.default, float) else "VALUE")
     return p.add_argument(flag, dest=name, type=None if s.choices else parse, choices=s.choices or None, help=text,
                           metavar=metavar, **kind)
 

@@ -30,7 +30,7 @@ from ..model.geometry import load_sensor
 from ..model.material import pressure_of_theta
 from ..model.mesh import MeshSpec, build_mesh, electrode_patches
 from ..model.simulate import Scene, add_noise
-from .common import add_setting_arg, help_text
+from .common import ToolParser, add_setting_arg, help_text
 
 WINDOW = (1200, 600)
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "cuboid_planar_60db.yaml"
@@ -222,7 +222,7 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo render", description=help_text(__doc__.splitlines()[0]))
+    p = ToolParser(prog="cstomo render", description=help_text(__doc__.splitlines()[0]))
     add_setting_arg(p, "sensor")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
     p.add_argument("--scene", default=None, help=f"scene file (default {DEFAULT_SCENE.name})")

@@ -10,7 +10,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..common import add_setting_arg
+from ..common import ToolParser, add_setting_arg
 from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
@@ -25,7 +25,7 @@ from .weight import choose_weight
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo bench", description=(
+    p = ToolParser(prog="cstomo bench", description=(
         "Speed and accuracy on honest simulations (docs/benchmark.md): by default the table of every knob; "
         "one of the options below runs one other benchmark instead."))
     g = p.add_mutually_exclusive_group()

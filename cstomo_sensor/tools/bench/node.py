@@ -77,7 +77,7 @@ from geometry_msgs.msg import WrenchStamped
 from ...errors import CstomoError
 from ...force.config import PipelineConfig
 from ...force.pipeline import Pipeline
-from ..common import NodeWithBoard, add_setting_arg, executable, help_text, local_ros_env
+from ..common import ToolParser, NodeWithBoard, add_setting_arg, executable, help_text, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
@@ -525,7 +525,7 @@ def sensors_markdown(rows: list[dict]) -> str:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo bench-node", description=help_text(__doc__.splitlines()[0]))
+    p = ToolParser(prog="cstomo bench-node", description=help_text(__doc__.splitlines()[0]))
     p.add_argument("--rates", type=float, nargs="+", default=[100.0, 1000.0], help="board frame rates, Hz")
     p.add_argument("--stress", type=int, nargs="+", default=[0, 1], help="stress_field_every values (0 = off)")
     p.add_argument("--sensors", type=int, nargs="+", default=[1], metavar="N",
