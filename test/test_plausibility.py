@@ -94,7 +94,7 @@ def test_cli_estimate_marks_an_all_zero_frame_invalid(tmp_path, bag_frames):
             "--grid", *map(str, PIPE["grid"])]
     assert main(args) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,sigma_n"
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,valid,consistency,foreign_load,sigma_n"
     assert lines[2] == "1,,,,,,,0,,,"  # frame, six empty force fields, valid, no statistic, no sigma
     assert lines[1].split(",")[7] == "1" and lines[3].split(",")[7] == "1"
     forces, valid = read_forces(tmp_path / "forces.csv", with_valid=True)
@@ -110,10 +110,10 @@ def test_forces_file_round_trip_and_unknown_columns(tmp_path):
     write_forces(tmp_path / "a.csv", f, valid=[True, False])
     got, valid = read_forces(tmp_path / "a.csv", with_valid=True)
     np.testing.assert_array_equal(got[0], f[0]) and np.testing.assert_array_equal(valid, [True, False])
-    (tmp_path / "b.csv").write_text("frame,fx,fy,fz,magnitude,elevation,azimuth,consistency,valid,extra\n"
+    (tmp_path / "b.csv").write_text("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,consistency,valid,extra\n"
                                     "0,1,2,3,3.7,0.1,0.2,0.5,1,x\n1,,,,,,,,0,\n")
     got, valid = read_forces(tmp_path / "b.csv", with_valid=True)
     np.testing.assert_array_equal(got[0], [1, 2, 3]) and np.isnan(got[1]).all()
     assert valid.tolist() == [True, False]
     write_forces(tmp_path / "c.csv", f[:1])  # no valid given: the plain seven columns
-    assert (tmp_path / "c.csv").read_text().splitlines()[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth"
+    assert (tmp_path / "c.csv").read_text().splitlines()[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg"

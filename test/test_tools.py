@@ -199,7 +199,7 @@ def test_simulate_and_board_sim_refuse_a_scene_socket_load_beyond_the_range_befo
     exe = str(Path(sys.executable).parent / "cstomo")
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     for cmd, args, prefix in (("simulate", ["--out", str(tmp_path / "out")], "cstomo simulate: error: "),
-                              ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: ")):
+                              ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: error: ")):
         r = subprocess.run([exe, cmd, "--scene", str(f), *args], capture_output=True, text=True, timeout=120, env=env)
         assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
         (line,) = r.stderr.strip().splitlines()
@@ -223,11 +223,33 @@ def test_every_shipped_scene_loads_and_a_60_n_socket_load_is_accepted(tmp_path):
 
 
 def test_the_demo_prints_no_angles_for_no_force():
-    from cstomo_sensor.tools.demo import _fmt
+    """Columns |F| N, elevation and azimuth in degrees (their units in the header): no angles for no
+    force; a force straight down has an elevation (90) and no azimuth (before: 'az 0.0' for the true
+    force, 'az -52.9' for its estimate)."""
+    from cstomo_sensor.tools.demo import FORCE_COLUMNS, _fmt
 
-    assert _fmt(np.zeros(3)).split() == ["0.00", "N", "el", "-", "az", "-"]
-    assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0])))  # the columns stay aligned
-    assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "N", "el", "90.0", "az", "0.0"]
+    assert FORCE_COLUMNS.split() == ["|F|", "[N]", "elev", "[deg]", "azim", "[deg]"]
+    assert _fmt(np.zeros(3)).split() == ["0.00", "-", "-"]
+    assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0]))) == len(FORCE_COLUMNS)  # aligned
+    assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "90.0", "-"]
+    # the estimate of a vertical load: 0.4 deg off vertical is a horizontal part of 0.14 N, below 2 x 0.3 N
+    tilted = 20.0 * np.array([np.sin(np.radians(0.4)) * np.cos(np.radians(-52.9)),
+                              np.sin(np.radians(0.4)) * np.sin(np.radians(-52.9)), -np.cos(np.radians(0.4))])
+    assert _fmt(tilted, sigma_n=0.3).split() == ["20.00", "89.6", "-"]
+
+
+def test_the_demo_shows_azimuths_0_to_360_as_its_labels_say():
+    """'sweep azimuth 225°' shows 225.0 (before: -135.0 beside the label 225); the paper's 120° in the
+    x-z plane is elevation 60 at azimuth 180, as its label and the legend say."""
+    from cstomo_sensor.angles import force_from_angles
+    from cstomo_sensor.tools.demo import LEGEND, _fmt, load_script
+
+    times, forces, labels = load_script()
+    sweep = forces[labels.index("sweep azimuth 225°")]
+    assert _fmt(sweep).split() == ["20.00", "60.0", "225.0"]
+    assert _fmt(forces[labels.index("paper 120° in x-z")]).split() == ["20.00", "60.0", "180.0"]
+    assert "x-z" in LEGEND and "0..360" in LEGEND
+    assert _fmt(force_from_angles(20.0, np.radians(60.0), np.radians(-0.01))).split()[-1] == "0.0"  # not 360.0
 
 
 def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
@@ -237,18 +259,20 @@ def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
     from cstomo_sensor.tools.demo import _fmt, judge
 
     noise = force_from_angles(0.02, np.radians(-15.8), np.radians(-76.3))
-    assert _fmt(noise, sigma_n=0.3).split() == ["0.02", "N", "el", "-", "az", "-"]
-    assert _fmt(noise).split() == ["0.02", "N", "el", "-15.8", "az", "-76.3"]  # sigma unknown: as before
-    small = force_from_angles(0.61, np.radians(60.0), np.radians(45.0))  # just above 2 x 0.3 N: shown
-    assert _fmt(small, sigma_n=0.3).split() == ["0.61", "N", "el", "60.0", "az", "45.0"]
-    assert _fmt(force_from_angles(0.59, np.radians(60.0), 0.0), sigma_n=0.3).split()[2:] == ["el", "-", "az", "-"]
+    assert _fmt(noise, sigma_n=0.3).split() == ["0.02", "-", "-"]
+    assert _fmt(noise).split() == ["0.02", "-15.8", "283.7"]  # sigma unknown: shown (azimuth 0..360)
+    small = force_from_angles(0.61, 0.0, np.radians(45.0))  # just above 2 x 0.3 N, horizontal: shown
+    assert _fmt(small, sigma_n=0.3).split() == ["0.61", "0.0", "45.0"]
+    steep = force_from_angles(0.61, np.radians(30.0), np.radians(45.0))  # its horizontal part 0.53 N: no azimuth
+    assert _fmt(steep, sigma_n=0.3).split() == ["0.61", "30.0", "-"]
+    assert _fmt(force_from_angles(0.59, np.radians(60.0), 0.0), sigma_n=0.3).split()[1:] == ["-", "-"]
     assert len({len(_fmt(f, sigma_n=0.3)) for f in (noise, small, np.zeros(3), np.array([0.0, 0.0, -20.0]))}) == 1
     # a demo line of the unloaded sensor: the estimate's columns say no direction, aligned with a loaded line
     times, forces = np.array([0.0, 3.0]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -20.0]])
     unloaded, counted = judge(times, forces, ["unloaded (tare)", "down"], 1.0, noise, 0.3)
     loaded, _ = judge(times, forces, ["unloaded (tare)", "down"], 4.0, np.array([0.3, 0.0, -20.1]), 0.3)
-    assert counted is None and unloaded.split()[-7:] == ["0.02", "N", "el", "-", "az", "-", "-"], unloaded
-    assert len(unloaded) == len(loaded) and loaded.split()[-7:-1] == ["20.10", "N", "el", "89.1", "az", "0.0"], loaded
+    assert counted is None and unloaded.split()[-4:] == ["0.02", "-", "-", "-"], unloaded
+    assert len(unloaded) == len(loaded) and loaded.split()[-4:-1] == ["20.10", "89.1", "-"], loaded
 
 
 @pytest.mark.slow

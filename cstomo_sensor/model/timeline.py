@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..angles import force_angles, force_from_angles
+from ..angles import force_angles_deg, force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
@@ -801,8 +801,7 @@ def is_timeline_scene(path) -> bool:
 def write_truth(path, times: np.ndarray, forces: np.ndarray, state: TimelineState) -> None:
     """A forces file (docs/formats.md#forces-file) with the time and the state columns after the
     standard ones (docs/formats.md#timeline)."""
-    mag, el, az = force_angles(forces)
-    el, az = el + 0.0, az + 0.0  # no -0 in the file
+    mag, el, az = force_angles_deg(forces)
     cols = {"time": times, **state.columns()}
     lines = [FORCES_HEADER + "," + ",".join(cols)]
     table = np.column_stack([forces, mag, el, az, *cols.values()])

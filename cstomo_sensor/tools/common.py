@@ -57,6 +57,10 @@ class ToolParser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message: str):
+        """A bad command line: one line, ``PROG: error: MESSAGE``, exit 2 (argparse's own adds the usage)."""
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
     def fail(self, err: object, code: int = 2) -> int:
         """Print ``PROG: error: ERR`` on stderr; ``code``."""
         print(f"{self.prog}: error: {err}", file=sys.stderr, flush=True)

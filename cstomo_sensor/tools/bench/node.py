@@ -77,7 +77,7 @@ from geometry_msgs.msg import WrenchStamped
 from ...errors import CstomoError
 from ...force.config import PipelineConfig
 from ...force.pipeline import Pipeline
-from ..common import ToolParser, NodeWithBoard, add_setting_arg, executable, help_text, local_ros_env
+from ..common import NodeWithBoard, ToolParser, add_setting_arg, executable, help_text, local_ros_env
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
