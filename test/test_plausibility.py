@@ -117,3 +117,27 @@ def test_forces_file_round_trip_and_unknown_columns(tmp_path):
     assert valid.tolist() == [True, False]
     write_forces(tmp_path / "c.csv", f[:1])  # no valid given: the plain seven columns
     assert (tmp_path / "c.csv").read_text().splitlines()[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg"
+
+
+def test_a_flapping_gate_logs_a_run_of_implausible_frames_at_most_every_few_seconds(caplog):
+    """Frames that alternate between plausible and implausible used to log two lines per flip; runs that
+    start within LOG_EVERY s of a logged one are counted, not logged, and said with the next logged run."""
+    import logging
+    from types import SimpleNamespace
+
+    from cstomo_sensor.force import health as health_mod
+
+    h = health_mod.Health(0.0)
+    bad, good = SimpleNamespace(valid=False, reason="too large"), SimpleNamespace(valid=True, reason="")
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+        for _ in range(200):
+            h.plausible(bad)
+            h.plausible(good)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and lines[0].startswith("implausible frames") and "again after 1" in lines[1], lines
+    assert h.counts.implausible == 200  # every frame counted (the diagnostics)
+    h._run_said_at -= health_mod.LOG_EVERY  # LOG_EVERY s later: the next run is said, with the unsaid ones
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+        h.plausible(bad)
+    assert "199 shorter runs before it not logged" in caplog.records[0].getMessage(), caplog.records

@@ -298,3 +298,30 @@ def test_board_sim_says_it_computes_only_when_it_does(tmp_path):
         assert p.returncode == 0, err
         said.append("20-60 s" in err)
     assert said == [True, False], said
+
+
+def test_a_command_prints_one_log_message_at_most_three_times(capsys):
+    """Before: `cstomo bench --drift` printed about 800 lines of 'implausible frames ...' and 'plausible
+    frames again ...' (one pair per stream it ran). A command's log lets a message template through 3
+    times, then counts it and says so once at the end."""
+    import logging
+
+    from cstomo_sensor.tools.common import MAX_REPEATS, setup_logging
+
+    repeats = setup_logging()
+    log = logging.getLogger("cstomo_sensor.force.health")
+    for i in range(400):
+        log.warning("implausible frames (no force output): %s", f"reason {i}")
+        log.warning("plausible frames again after %d implausible ones", i)
+    logging.getLogger("cstomo_sensor.other").warning("something else")
+    err = capsys.readouterr().err.splitlines()
+    assert MAX_REPEATS == 3
+    assert sum("implausible frames" in ln for ln in err) == 3 and sum("plausible frames again" in ln for ln in err) == 3
+    assert any("something else" in ln for ln in err)
+    summary = repeats.summary()
+    assert len(summary) == 2 and "came 400 times; the 397 after the first 3 not shown" in summary[0], summary
+    import atexit
+
+    atexit.unregister(repeats.say)
+    for h in [h for h in logging.getLogger().handlers if getattr(h, "_cstomo", False)]:
+        logging.getLogger().removeHandler(h)

@@ -6,7 +6,6 @@ Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``,
 from __future__ import annotations
 
 import argparse
-import logging
 import resource
 import signal
 import sys
@@ -30,7 +29,7 @@ from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..sources import ArraySource
-from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -249,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
         return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
     a = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(a.verbose)
     handlers = {("model", "build"): cmd_model_build, ("model", "voltages"): cmd_model_voltages}
     fn = handlers.get((a.cmd, getattr(a, "what", None))) or {
         "reconstruct": cmd_reconstruct, "estimate": cmd_estimate, "simulate": cmd_simulate}[a.cmd]

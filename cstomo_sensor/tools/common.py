@@ -9,6 +9,8 @@ in the node's parameters and the files.
 from __future__ import annotations
 
 import argparse
+import atexit
+import logging
 import math
 import os
 import shutil
@@ -82,6 +84,54 @@ def positive(what: str = "a number > 0", *, zero: bool = False, kind: type = flo
 
     parse.__name__ = what
     return parse
+
+
+#: A command prints one log message (one template of one logger) at most this many times; then it
+#: counts the rest and says how many at its end (:class:`RepeatFilter`).
+MAX_REPEATS = 3
+
+
+class RepeatFilter(logging.Filter):
+    """Lets at most :data:`MAX_REPEATS` records of each message template (logger and format string,
+    whatever its arguments) through; :meth:`summary` says what was held back. A benchmark that runs
+    hundreds of streams would otherwise print each stream's own once-per-run message hundreds of times."""
+
+    def __init__(self, limit: int = MAX_REPEATS) -> None:
+        super().__init__()
+        self.limit = limit
+        self.seen: dict[tuple[str, str], int] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, str(record.msg))
+        self.seen[key] = self.seen.get(key, 0) + 1
+        return self.seen[key] <= self.limit
+
+    def say(self) -> None:
+        """Print :meth:`summary` on stderr (at the command's end)."""
+        for line in self.summary():
+            print(f"(log) {line}", file=sys.stderr)
+
+    def summary(self) -> list[str]:
+        """One line per message held back: its template and how often it came."""
+        return [f"{name.partition('.')[2] or name}: {msg!r} came {n} times; the {n - self.limit} after the first "
+                f"{self.limit} not shown" for (name, msg), n in self.seen.items() if n > self.limit]
+
+
+def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> RepeatFilter:
+    """The log of a ``cstomo`` command on stderr: WARNING and above (INFO with ``verbose``), each
+    message at most :data:`MAX_REPEATS` times, what was held back said once at the process's end."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter(fmt))
+    repeats = RepeatFilter()
+    handler.addFilter(repeats)
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if isinstance(h, logging.StreamHandler) and getattr(h, "_cstomo", False)]:
+        root.removeHandler(old)
+    handler._cstomo = True
+    root.addHandler(handler)
+    root.setLevel(logging.INFO if verbose else logging.WARNING)
+    atexit.register(repeats.say)
+    return repeats
 
 
 #: The short value name (metavar) of a setting's flag that takes a string.

@@ -49,6 +49,11 @@ def _grid(points: np.ndarray, tets: np.ndarray, **cell_data):
 def _plotter(shape=(1, 2)):
     import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
 
+    from vtkmodules.vtkCommonCore import vtkLogger
+
+    # off screen, VTK's logger warns once per window that it has no X display ('bad X server
+    # connection. DISPLAY=', ANSI-coloured): nothing a user can act on; its errors still show
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
     pv.OFF_SCREEN = True
     size = [WINDOW[0] + 600 * max(0, shape[1] - 2), WINDOW[1]]
     p = pv.Plotter(off_screen=True, window_size=size, shape=shape, border=False)

@@ -27,7 +27,6 @@ complete.
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import shutil
 import sys
@@ -47,7 +46,7 @@ from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
-from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config, setup_logging
 
 STORAGES = ("sqlite3", "mcap")
 
@@ -195,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     from rosbags.rosbag2 import ReaderError, WriterError  # optional: the [full] extra
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    setup_logging(verbose=True, fmt="%(message)s")
     try:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,

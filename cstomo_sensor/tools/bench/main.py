@@ -10,7 +10,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..common import ToolParser, add_setting_arg
+from ..common import ToolParser, add_setting_arg, setup_logging
 from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
@@ -60,6 +60,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     p = parser()
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    setup_logging()
     if a.robot and not a.drift:
         p.error("--robot goes with --drift")
     if a.one_frame_reference and not a.heldout:
