@@ -325,3 +325,18 @@ def test_a_command_prints_one_log_message_at_most_three_times(capsys):
     atexit.unregister(repeats.say)
     for h in [h for h in logging.getLogger().handlers if getattr(h, "_cstomo", False)]:
         logging.getLogger().removeHandler(h)
+
+
+def test_the_robot_bench_says_a_window_without_forces_in_words():
+    """Before: 'err nan N, angle nan deg' for a window whose every frame was refused, and 'sigma_n
+    45.306 N (50.66 x the error)' without saying whether that is good."""
+    from cstomo_sensor.tools.bench.robot import describe
+
+    assert describe({"err_n": math.nan, "implausible": 300, "frames": 300}) == \
+        "no force published (300 of 300 frames implausible)"
+    row = {"err_n": 0.894, "implausible": 0, "frames": 300, "angle_deg": 1.2, "magnitude_pct": 3.1, "wrong_pct": 2.0,
+           "sigma_n": 45.306, "sigma_ratio": 50.66, "over3sigma_pct": 0.0}
+    text = describe(row)
+    assert "nan" not in text and "50.7 x the median error (over-cautious" in text, text
+    assert "(covers the error)" in describe({**row, "sigma_n": 1.2, "sigma_ratio": 1.34})
+    assert "(smaller than the error)" in describe({**row, "sigma_n": 0.4, "sigma_ratio": 0.45})
