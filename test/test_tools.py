@@ -340,3 +340,46 @@ def test_the_robot_bench_says_a_window_without_forces_in_words():
     assert "nan" not in text and "50.7 x the median error (over-cautious" in text, text
     assert "(covers the error)" in describe({**row, "sigma_n": 1.2, "sigma_ratio": 1.34})
     assert "(smaller than the error)" in describe({**row, "sigma_n": 0.4, "sigma_ratio": 0.45})
+
+
+def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monkeypatch, tmp_path):
+    """A long step of the core (a timeline's knots, a simulation's loads) logs its progress
+    (cstomo_sensor.progress.steps); a command shows it as one line updated in place on a terminal
+    (a real pseudo-terminal here) and leaves it out of a file, while its warnings reach both."""
+    import logging
+    import time as _time
+
+    from cstomo_sensor import progress
+    from cstomo_sensor.tools.common import setup_logging
+
+    log = logging.getLogger("cstomo_sensor.model.timeline")
+    clock = iter(np.arange(0.0, 100.0, 0.6))  # each item takes 0.6 s: a record every other item
+    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+
+    def run_on(stream):
+        monkeypatch.setattr(sys, "stderr", stream)
+        repeats = setup_logging()
+        try:
+            assert list(progress.steps(range(10), log, "timeline: the truth at its knots")) == list(range(10))
+            log.warning("a warning after it")
+        finally:
+            import atexit
+
+            atexit.unregister(repeats.say)
+            for h in [h for h in logging.getLogger().handlers if getattr(h, "_cstomo", False)]:
+                logging.getLogger().removeHandler(h)
+        stream.flush()
+
+    master, slave = os.openpty()
+    with open(slave, "w", closefd=True) as tty:
+        assert tty.isatty()
+        run_on(tty)
+        _time.sleep(0.1)
+        text = os.read(master, 65536).decode()
+    os.close(master)
+    assert text.count("\rtimeline") == 5 and "timeline: the truth at its knots: 10/10" in text, repr(text)
+    assert "\n" not in text.split("10/10")[0], repr(text)  # one line, updated in place, until the last item
+    assert text.rstrip().splitlines()[-1].endswith("a warning after it"), repr(text)
+    with open(tmp_path / "log.txt", "w") as f:  # a file (CI, a pipe): no progress, the warning stays
+        run_on(f)
+    assert (tmp_path / "log.txt").read_text().splitlines() == ["WARNING cstomo_sensor.model.timeline: a warning after it"]

@@ -43,6 +43,7 @@ from ..angles import force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
+from ..progress import steps
 from ..settings import MAX_LOAD
 from . import elasticity
 from .cem import ForwardModel
@@ -253,7 +254,8 @@ class Truth:
         if hit is not None and hit["frames"].shape[0] == len(loads):
             return hit["reference"], hit["frames"]
         t0 = time.perf_counter()
-        frames = np.array([self.voltages(ld) for ld in loads]).reshape(len(loads), -1)
+        frames = np.array([self.voltages(ld) for ld in steps(loads, log, "simulated device: its loads")]
+                          ).reshape(len(loads), -1)
         if mechanical:
             elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
         reference = self.reference

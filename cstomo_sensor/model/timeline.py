@@ -60,6 +60,7 @@ from ..angles import force_angles_deg, force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
+from ..progress import steps
 from ..settings import MAX_LOAD
 from . import elasticity
 from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
@@ -608,7 +609,8 @@ class Timeline:
                 index[tuple(f)] = len(index)
         t0 = time.perf_counter()
         tr = self.truth_model
-        th = np.array([tr.theta(Load("socket", force=k)) for k in index]).reshape(len(index), -1)
+        th = np.array([tr.theta(Load("socket", force=k)) for k in steps(index, log, "timeline: the mechanics of its "
+                                                                        "loads")]).reshape(len(index), -1)
         self.seconds["mechanics"] = time.perf_counter() - t0
         return index, th
 
@@ -676,7 +678,8 @@ class Timeline:
             self.seconds["cache_hit"] = 1.0
             return hit["t"], hit["n"], hit["v"]
         log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
-        v = np.array([self._solve(t, n) for t, n in zip(kt, kn)])
+        v = np.array([self._solve(t, n) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
+                                                          len(kt))])
         if "mechanics" in self.seconds:
             elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
         cache_save(path, key, t=kt, n=kn, v=v)

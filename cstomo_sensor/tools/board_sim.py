@@ -26,7 +26,7 @@ from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
 from ..settings import MAX_LOAD, RATED_FORCE
-from .common import ToolParser, add_setting_arg, positive
+from .common import ToolParser, add_setting_arg, positive, setup_logging
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -85,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     p = parser()
     args = p.parse_args(argv)
+    setup_logging()  # warnings, and the progress of a first run's solves on a terminal
     if is_virtual(args.link):
         p.error(f"--link {args.link}: a virtual link lives in one process, no other could open it; give a path")
     # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent

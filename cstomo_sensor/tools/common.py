@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import logging
 import math
 import os
@@ -17,6 +18,8 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import IO
 
@@ -102,6 +105,8 @@ class RepeatFilter(logging.Filter):
         self.seen: dict[tuple[str, str], int] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "progress", None) is not None:  # a progress line updates itself
+            return True
         key = (record.name, str(record.msg))
         self.seen[key] = self.seen.get(key, 0) + 1
         return self.seen[key] <= self.limit
@@ -117,21 +122,82 @@ class RepeatFilter(logging.Filter):
                 f"{self.limit} not shown" for (name, msg), n in self.seen.items() if n > self.limit]
 
 
+class _ToolHandler(logging.StreamHandler):
+    """stderr for a command: records at ``level`` and above; progress records (``extra={"progress":
+    (i, n)}``, :mod:`cstomo_sensor.progress`) as one line updated in place on a terminal, none
+    elsewhere (a log file, CI)."""
+
+    def __init__(self, level: int) -> None:
+        super().__init__(sys.stderr)
+        self.threshold = level
+        self.tty = sys.stderr.isatty()
+        self.open_line = False  # a progress line is on the terminal, not yet ended
+
+    def emit(self, record: logging.LogRecord) -> None:
+        progress = getattr(record, "progress", None)
+        if progress is None and record.levelno < self.threshold:
+            return
+        if progress is not None and not self.tty:
+            return
+        try:
+            if progress is not None:
+                i, n = progress
+                self.stream.write(f"\r{record.getMessage()}\x1b[K" + ("\n" if i >= n else ""))
+                self.open_line = i < n
+            else:
+                if self.open_line:
+                    self.stream.write("\n")
+                    self.open_line = False
+                self.stream.write(self.format(record) + "\n")
+            self.flush()
+        except Exception:  # noqa: BLE001 - logging must never raise into the code that logs
+            self.handleError(record)
+
+
 def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> RepeatFilter:
     """The log of a ``cstomo`` command on stderr: WARNING and above (INFO with ``verbose``), each
-    message at most :data:`MAX_REPEATS` times, what was held back said once at the process's end."""
-    handler = logging.StreamHandler(sys.stderr)
+    message at most :data:`MAX_REPEATS` times, what was held back said once at the process's end;
+    progress of long steps as one updating line on a terminal (:class:`_ToolHandler`)."""
+    handler = _ToolHandler(logging.INFO if verbose else logging.WARNING)
     handler.setFormatter(logging.Formatter(fmt))
     repeats = RepeatFilter()
     handler.addFilter(repeats)
     root = logging.getLogger()
-    for old in [h for h in root.handlers if isinstance(h, logging.StreamHandler) and getattr(h, "_cstomo", False)]:
+    for old in [h for h in root.handlers if getattr(h, "_cstomo", False)]:
         root.removeHandler(old)
     handler._cstomo = True
     root.addHandler(handler)
-    root.setLevel(logging.INFO if verbose else logging.WARNING)
+    root.setLevel(logging.INFO)  # the handler decides: progress records are INFO
     atexit.register(repeats.say)
     return repeats
+
+
+@contextlib.contextmanager
+def ticking(what: str, stream: IO | None = None, every: float = 1.0):
+    """While the block runs, ``WHAT: N s`` updated in place every ``every`` s on a terminal (nothing
+    when ``stream``, default stdout, is not one): a wait on another process that says nothing itself."""
+    stream = stream or sys.stdout
+    if not stream.isatty():
+        yield
+        return
+    done = threading.Event()
+    t0 = time.monotonic()
+
+    def tick() -> None:
+        while not done.wait(every):
+            stream.write(f"\r{what}: {time.monotonic() - t0:.0f} s\x1b[K")
+            stream.flush()
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        if time.monotonic() - t0 >= every:
+            stream.write(f"\r{what}: done in {time.monotonic() - t0:.0f} s\x1b[K\n")
+            stream.flush()
 
 
 #: The short value name (metavar) of a setting's flag that takes a string.

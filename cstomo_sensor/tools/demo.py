@@ -40,7 +40,7 @@ from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
 from ..settings import MAX_LOAD
 from .board_sim import COMPUTING
-from .common import NodeWithBoard, ToolParser, add_setting_arg, help_text, local_ros_env, positive
+from .common import NodeWithBoard, ToolParser, add_setting_arg, help_text, local_ros_env, positive, ticking
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -153,7 +153,8 @@ def _run(a: argparse.Namespace) -> int:
             Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator),
                            progress=lambda m: print("      " + m, flush=True))
             print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
-            device = run.start()
+            with ticking("      the simulated board computes its loads (once; cached)"):
+                device = run.start()
             marks["board ready"] = time.monotonic() - started
             print(f"[3/3] board on {device}; waiting for the node to connect", flush=True)
             script_t0 = run.wait_streaming()  # the script's t = 0 on the wrenches' clock (None: unknown)

@@ -48,7 +48,6 @@ def _grid(points: np.ndarray, tets: np.ndarray, **cell_data):
 
 def _plotter(shape=(1, 2)):
     import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
-
     from vtkmodules.vtkCommonCore import vtkLogger
 
     # off screen, VTK's logger warns once per window that it has no X display ('bad X server
