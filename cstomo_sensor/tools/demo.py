@@ -315,7 +315,8 @@ def _watch(a, t0, duration, times, forces, labels, board, view: _View,
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     print(LEGEND)
     width = len(FORCE_COLUMNS)
-    print(f"\n{'':6}  {'':22} {'true force':^{width}}   {'estimated (the node ~/wrench)':^{width}}")
+    estimated = "estimated (the node's ~/wrench)"
+    print(f"\n{'':6}  {'':22} {'true force':^{width}}   {estimated:^{width}}")
     print(f"{'t [s]':>6}  {'load':<22} {FORCE_COLUMNS}   {FORCE_COLUMNS}   {'angle err [deg]':>15} "
           f"{'rate [1/s]':>10}")
     errors = []
