@@ -324,7 +324,6 @@ def test_the_readme_commands_run_as_printed_in_order_on_a_fresh_copy(tmp_path):
     env.update(OPENBLAS_NUM_THREADS="1", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     assert shutil.which("cstomo", path=env["PATH"]) is None  # not on PATH before the activation
     lines = [ln for block in readme_blocks(clone / "README.md") for ln in block if not _not_run(ln)]
-    times = []
     shell = ["bash", "-euo", "pipefail", "-c"]
     script = "\n".join(f'echo "@@ $EPOCHREALTIME"\n{ln}' for ln in lines) + '\necho "@@ $EPOCHREALTIME"'
     t0 = time.monotonic()
