@@ -30,7 +30,7 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     text = out.stdout + out.stderr
     assert out.returncode == 0, text
     assert "Traceback" not in text
-    lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and " N " in ln]
+    lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and "20.00" in ln]
     assert lines, text
     summary = next(ln for ln in out.stdout.splitlines() if "median angle error" in ln)
     angle = float(summary.split("median angle error")[1].split("deg")[0])
@@ -67,7 +67,7 @@ def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
         try:
             deadline = time.monotonic() + 200
             # settled under the 20 N load (two lines of it), then Ctrl-C
-            while sum("script row 2" in ln and " N " in ln for ln in out.read_text().splitlines()) < 4:
+            while sum("script row 2" in ln and "20.00" in ln for ln in out.read_text().splitlines()) < 4:
                 assert p.poll() is None and time.monotonic() < deadline, out.read_text() + err.read_text()
                 time.sleep(0.2)
             p.send_signal(signal.SIGINT)
