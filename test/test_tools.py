@@ -417,3 +417,23 @@ def test_every_flag_of_every_command_has_help_and_shows_its_default():
     p = subcommand_parser(["demo"])[0]
     p.add_argument("--reference-age", type=float, default=3600.0, help="seconds")
     assert "--reference-age REFERENCE_AGE" in p.format_help() and "(default: 3600.0)" in p.format_help()
+
+
+@pytest.mark.parametrize("words, flag, value, expected", [
+    (["demo"], "--hold", "0", "seconds > 0"), (["demo"], "--rate", "-5", "frames per second > 0"),
+    (["board-sim", "--load-script", "x.csv"], "--duration", "0", "seconds > 0"),
+    (["estimate", "--reference", "r", "--frames", "f", "--out", "o"], "--rate", "0", "frames per second > 0"),
+    (["calibrate", "--out", "d.yaml"], "--stamp-tolerance", "0", "seconds > 0"),
+    (["calibrate", "--out", "d.yaml"], "--creep-rate", "nan", "frames per second > 0"),
+    (["bench", "--out", "o"], "--heldout", "0", "a whole number >= 1"),
+    (["bench-node"], "--seconds", "-1", "seconds > 0"), (["bench-node"], "--rates", "inf", "frames per second > 0")])
+def test_a_bad_number_is_refused_at_parsing_in_one_line(capsys, words, flag, value, expected):
+    """Before: `cstomo demo --hold 0` exited 0 showing no load, `--hold -3` failed after the model
+    loaded naming a temporary file the user never wrote."""
+    from cstomo_sensor.tools.cli import subcommand_parser
+
+    parser, rest = subcommand_parser(words)
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args([*rest, flag, value])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [f"{parser.prog}: error: argument {flag}: {value}: expected {expected}"]

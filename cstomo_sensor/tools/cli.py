@@ -29,7 +29,7 @@ from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..sources import ArraySource
-from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, setup_logging
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -193,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the noise is estimated from the --frames file, a time series of the board)")
     e.add_argument("--frames", required=True, help=FRAMES_HELP)
     e.add_argument("--out", required=True, help="forces file to write (CSV, docs/formats.md#forces-file)")
-    e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+    e.add_argument("--rate", type=positive("frames per second > 0"), default=100.0, metavar="HZ",
                    help="frames per second of the frames file, in file order: the clock of the drift tracking "
                         "(default %(default)g)")
     add_setting_arg(e, "drift_tracking")
