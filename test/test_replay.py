@@ -447,3 +447,27 @@ def test_the_documented_replay_example_runs_as_written(tmp_path):
     assert np.median(mag) == pytest.approx(20.0, rel=0.015), mag
     cos = est[held] @ truth[30] / (mag * 20.0)
     assert np.degrees(np.arccos(np.clip(np.median(cos), -1, 1))) < 3.0, est[held]
+
+
+def test_replay_force_replaces_an_earlier_bag_and_nothing_else(tmp_path, config, pipe, capsys):
+    """Before: a second run of the documented replay failed on its own earlier output. ``overwrite``
+    (``--force``) replaces an existing rosbag2 once the replay is complete; a directory that is not a
+    bag, or the input bag itself, is never replaced."""
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.tools.replay import replay
+
+    out = tmp_path / "out"
+    replay(BAG, out, config, tare_frames=TARE, pipeline=pipe)
+    with pytest.raises(ConfigError, match="exists; expected a new directory \\(--force replaces it\\)"):
+        replay(BAG, out, config, tare_frames=TARE, pipeline=pipe)
+    (out / "marker").write_text("from the first run")
+    s = replay(BAG, out, config, tare_frames=TARE, pipeline=pipe, overwrite=True)
+    assert s.results == 190 and not (out / "marker").exists() and (out / "metadata.yaml").is_file()
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "keep.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="not a rosbag2 directory"):
+        replay(BAG, plain, config, tare_frames=TARE, pipeline=pipe, overwrite=True)
+    assert (plain / "keep.txt").read_text() == "mine"
+    with pytest.raises(ConfigError, match="is the input bag"):
+        replay(BAG, BAG, config, tare_frames=TARE, pipeline=pipe, overwrite=True)
