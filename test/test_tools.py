@@ -308,7 +308,7 @@ def test_a_command_prints_one_log_message_at_most_three_times(capsys):
 
     from cstomo_sensor.tools.common import MAX_REPEATS, setup_logging
 
-    repeats = setup_logging()
+    repeats = setup_logging(force=True)
     log = logging.getLogger("cstomo_sensor.force.health")
     for i in range(400):
         log.warning("implausible frames (no force output): %s", f"reason {i}")
@@ -358,7 +358,7 @@ def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monke
 
     def run_on(stream):
         monkeypatch.setattr(sys, "stderr", stream)
-        repeats = setup_logging()
+        repeats = setup_logging(force=True)
         try:
             assert list(progress.steps(range(10), log, "timeline: the truth at its knots")) == list(range(10))
             log.warning("a warning after it")

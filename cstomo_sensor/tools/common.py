@@ -154,15 +154,20 @@ class _ToolHandler(logging.StreamHandler):
             self.handleError(record)
 
 
-def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> RepeatFilter:
+def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s",
+                  force: bool = False) -> RepeatFilter:
     """The log of a ``cstomo`` command on stderr: WARNING and above (INFO with ``verbose``), each
     message at most :data:`MAX_REPEATS` times, what was held back said once at the process's end;
-    progress of long steps as one updating line on a terminal (:class:`_ToolHandler`)."""
+    progress of long steps as one updating line on a terminal (:class:`_ToolHandler`). As
+    :func:`logging.basicConfig`, nothing is changed when the root logger has handlers of another's
+    (a program or a test harness that calls the command's ``main``), unless ``force``."""
     handler = _ToolHandler(logging.INFO if verbose else logging.WARNING)
     handler.setFormatter(logging.Formatter(fmt))
     repeats = RepeatFilter()
     handler.addFilter(repeats)
     root = logging.getLogger()
+    if not force and any(not getattr(h, "_cstomo", False) for h in root.handlers):
+        return repeats
     for old in [h for h in root.handlers if getattr(h, "_cstomo", False)]:
         root.removeHandler(old)
     handler._cstomo = True
