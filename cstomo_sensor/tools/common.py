@@ -99,14 +99,17 @@ class RepeatFilter(logging.Filter):
     whatever its arguments) through; :meth:`summary` says what was held back. A benchmark that runs
     hundreds of streams would otherwise print each stream's own once-per-run message hundreds of times."""
 
-    def __init__(self, limit: int = MAX_REPEATS) -> None:
+    def __init__(self, limit: int = MAX_REPEATS, level: int = logging.NOTSET) -> None:
         super().__init__()
         self.limit = limit
+        self.level = level  # records below it are not shown, so not counted either
         self.seen: dict[tuple[str, str], int] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
         if getattr(record, "progress", None) is not None:  # a progress line updates itself
             return True
+        if record.levelno < self.level:
+            return False
         key = (record.name, str(record.msg))
         self.seen[key] = self.seen.get(key, 0) + 1
         return self.seen[key] <= self.limit
@@ -161,9 +164,10 @@ def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(m
     progress of long steps as one updating line on a terminal (:class:`_ToolHandler`). As
     :func:`logging.basicConfig`, nothing is changed when the root logger has handlers of another's
     (a program or a test harness that calls the command's ``main``), unless ``force``."""
-    handler = _ToolHandler(logging.INFO if verbose else logging.WARNING)
+    level = logging.INFO if verbose else logging.WARNING
+    handler = _ToolHandler(level)
     handler.setFormatter(logging.Formatter(fmt))
-    repeats = RepeatFilter()
+    repeats = RepeatFilter(level=level)
     handler.addFilter(repeats)
     root = logging.getLogger()
     if not force and any(not getattr(h, "_cstomo", False) for h in root.handlers):
