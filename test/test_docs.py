@@ -127,7 +127,12 @@ def _value(action: argparse.Action | None, word: str) -> str:
         return str(list(action.choices)[0])
     if action.type not in (None, str) and action.default is not None:  # a setting's flag: its default fits
         return str(action.default[0] if isinstance(action.default, list) else action.default)
-    return "1" if action.type in (int, float) else word
+    if action.type in (int, float):
+        return "1"
+    try:  # a checked number (tools.common.positive): 1 if it takes it
+        return "1" if callable(action.type) and action.type("1") is not None else word
+    except (argparse.ArgumentTypeError, ValueError, TypeError):
+        return word
 
 
 def _ros_args(words: list[str]) -> str | None:
