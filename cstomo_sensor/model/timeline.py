@@ -759,7 +759,7 @@ class Timeline:
         times = t0 + np.arange(int(np.ceil((t1 - t0) * rate - 1e-9))) / rate
         rng = rng or self.noise_rng()
         out = np.empty((len(times), len(self.reference)))
-        for i in range(0, len(times), chunk):
+        for i in steps(range(0, len(times), chunk), log, f"timeline: {len(times)} frames, in chunks of {chunk}"):
             sl = slice(i, i + chunk)
             out[sl] = add_noise(self.voltages(times[sl]), self.reference, self.snr_db, rng)
         return times, out, self.spec.force(times), self.state(times)
