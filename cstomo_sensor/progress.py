@@ -19,10 +19,12 @@ EVERY_S = 1.0
 
 
 def steps(items: Iterable[T], log: logging.Logger, what: str, total: int | None = None) -> Iterator[T]:
-    """The items of ``items``, with a progress record ``what: i/n (s elapsed)`` after item i when
-    :data:`EVERY_S` s have passed since the last one, and after the last item."""
+    """The items of ``items``, with a progress record ``what: 0/n`` before the first, and ``what: i/n
+    (s elapsed)`` after item i when :data:`EVERY_S` s have passed since the last one, and after the last."""
     n = total if total is not None else len(items)  # type: ignore[arg-type]
     t0 = last = time.monotonic()
+    if n:  # said at once: the first item may be the long one
+        log.info("%s: 0/%d", what, n, extra={"progress": (0, n)})
     for i, item in enumerate(items, 1):
         yield item
         now = time.monotonic()
