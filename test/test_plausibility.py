@@ -141,3 +141,19 @@ def test_a_flapping_gate_logs_a_run_of_implausible_frames_at_most_every_few_seco
     with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
         h.plausible(bad)
     assert "199 shorter runs before it not logged" in caplog.records[0].getMessage(), caplog.records
+
+
+def test_cli_estimate_names_a_few_implausible_frames_and_counts_the_rest(tmp_path, bag_frames, capsys):
+    """Before: one stderr line per implausible frame (a recording with a bad cable: thousands)."""
+    from cstomo_sensor.frames_io import write_frames
+    from cstomo_sensor.tools.cli import main
+
+    write_frames(tmp_path / "ref.csv", bag_frames[:10].mean(axis=0))
+    write_frames(tmp_path / "frames.csv", np.vstack([bag_frames[40], np.zeros((7, 208))]))
+    args = ["estimate", "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
+            "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(PIPE["mesh_size"]),
+            "--grid", *map(str, PIPE["grid"])]
+    assert main(args) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "implausible" in ln]
+    assert [ln.split(":")[0] for ln in err[:3]] == ["frame 1", "frame 2", "frame 3"], err
+    assert err[3] == f"... and 4 more implausible frames (valid 0 in {tmp_path / 'forces.csv'})" and len(err) == 4, err

@@ -29,7 +29,7 @@ from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..sources import ArraySource
-from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
+from .common import MAX_REPEATS, ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "replay": ".replay", "calibrate": ".calibrate", "demo": ".demo",
@@ -123,9 +123,11 @@ def cmd_estimate(a) -> int:
     rows = Results(stream, every_frame=True, path=a.out, valid_column="auto")
     run(ArraySource(frames, rate_hz=a.rate), stream, [rows])
     results, valid = rows.results, rows.valid
-    for i, r in enumerate(results):
-        if not r.valid:
-            print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)
+    bad = [i for i, r in enumerate(results) if not r.valid]
+    for i in bad[:MAX_REPEATS]:  # the first few by name, the rest counted (the file's valid column has each)
+        print(f"frame {i}: implausible ({results[i].reason}): no force", file=sys.stderr)
+    if len(bad) > MAX_REPEATS:
+        print(f"... and {len(bad) - MAX_REPEATS} more implausible frames (valid 0 in {a.out})", file=sys.stderr)
     foreign = sum(r.foreign_load for r in results)
     print(f"wrote {a.out}: {valid.sum()} forces ({a.estimator} estimator); {(~valid).sum()} implausible"
           + (f"; {foreign} with a foreign load (not on the socket)" if foreign else ""))
