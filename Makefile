@@ -19,10 +19,16 @@ venv: $(STAMP)
 # output included) still show. setuptools' default editable mode: `editable_mode=compat` is deprecated
 # (to be removed from setuptools), and the demo, the tests and the colcon install need none of it.
 $(STAMP): setup.py requirements-ros.txt
+	@echo "setting up $(VENV): the package, its dependencies and rclpy's wheels (once, or when setup.py or"
+	@echo "requirements-ros.txt change; 2-6 minutes)"
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
-	$(VPY) -m pip install -q --upgrade pip
-	$(VPY) -m pip install -qq -e '.[full,test]' -r requirements-ros.txt
+	@tick=; if [ -t 1 ]; then (t=0; while sleep 5; do t=$$((t + 5)); printf '\r  pip install: %s s' $$t; done) & \
+	    tick=$$!; fi; \
+	  $(VPY) -m pip install -q --upgrade pip && \
+	  $(VPY) -m pip install -qq -e '.[full,test]' -r requirements-ros.txt; rc=$$?; \
+	  if [ -n "$$tick" ]; then kill $$tick; printf '\n'; fi; exit $$rc
 	@touch $(STAMP)
+	@echo "$(VENV) ready; its commands: . $(VENV)/bin/activate (then cstomo --help)"
 
 test: $(STAMP)
 	$(VPY) -m pytest -q --durations=15 test

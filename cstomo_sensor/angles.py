@@ -1,4 +1,4 @@
-"""Force angles of docs/physics.md#force-angles (radians)."""
+"""Force angles of docs/physics.md#force-angles (radians; in degrees for people: :func:`force_angles_deg`)."""
 from __future__ import annotations
 
 import math
@@ -18,6 +18,14 @@ def force_angles(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     el = np.arctan2(-f[..., 2], h)
     az = np.where(h > 1e-9 * np.maximum(mag, 1e-300), np.arctan2(f[..., 1], f[..., 0]), 0.0)
     return mag, el, az
+
+
+def force_angles_deg(f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(magnitude, elevation, azimuth) of :func:`force_angles` with the angles in degrees, as files and
+    people read them: elevation -90..90, azimuth 0..360 (0 for a vertical force), no -0."""
+    mag, el, az = force_angles(f)
+    az = np.degrees(az) % 360.0
+    return mag, np.degrees(el) + 0.0, np.where(az >= 360.0, 0.0, az) + 0.0
 
 
 def force_angles3(f) -> tuple[float, float, float]:

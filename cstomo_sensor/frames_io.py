@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .angles import force_angles
+from .angles import force_angles_deg
 from .errors import ConfigError, FrameError
 
-FORCES_HEADER = "frame,fx,fy,fz,magnitude,elevation,azimuth"
+FORCES_HEADER = "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg"
 
 
 def check_frame(v: np.ndarray, n_meas: int = 208, what: str = "frame", used: np.ndarray | None = None,
@@ -159,7 +159,7 @@ def write_forces(path: str | os.PathLike, forces: np.ndarray, valid: np.ndarray 
     idx = np.arange(len(f)) if index is None else np.asarray(index, int)
     if idx.shape != (len(f),):
         raise FrameError(f"index has shape {idx.shape}, expected ({len(f)},)")
-    mag, el, az = force_angles(np.where(ok[:, None], f, 0.0))
+    mag, el, az = force_angles_deg(np.where(ok[:, None], f, 0.0))
     table = np.column_stack([f, mag, el, az])
     lines = [FORCES_HEADER + (",valid" if valid is not None else "")
              + (",consistency,foreign_load" if consistency is not None else "")

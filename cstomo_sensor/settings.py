@@ -108,7 +108,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("rate_hz", 0.0, "Frame rate asked of a binary board in START; 0 = the board's default", 0.0, 10000.0,
             "frames/s"),
     Setting("sensor", DEFAULT_SENSOR, "Sensor preset (cuboid_joint, cylinder, disc) or a sensor YAML path"),
-    Setting("cache_dir", "", "Model and tare cache directory; '' = $CSTOMO_CACHE_DIR or ~/.cache/cstomo_sensor"),
+    Setting("cache_dir", "", "Model and tare cache directory; '' = $CSTOMO_CACHE_DIR, else "
+            "$XDG_CACHE_HOME/cstomo_sensor (~/.cache/cstomo_sensor when XDG_CACHE_HOME is unset)"),
     Setting("estimator", ESTIMATORS[0], "Force estimator: model (the more accurate) or linear (the fastest)",
             choices=ESTIMATORS),
     Setting("mesh_size", ReconSpec.mesh_size, "Forward-model mesh element size (smaller: slower build, finer model)",
@@ -135,16 +136,16 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("wrench_filter_hz", 20.0, "Cutoff (-3 dB) of the first-order low-pass of ~/wrench_filtered (delay "
             "1/(2 pi f): 8 ms at 20 Hz); 0 = off (no ~/wrench_filtered)", 0.0, 10000.0, "Hz"),
     Setting("drift_tracking", True, "Follow the device's slow uniform change after the tare (warming, drive drift) "
-            "so the zero holds; the diagnostics show the tracked change (force/drift.py)"),
+            "so the zero holds; the diagnostics show the tracked change"),
     Setting("creep_per_decade", DEFAULT_CREEP, "The rubber's creep per decade of time (rubbers: 0.02..0.06), "
-            "compensated so a held load reads constant (force/creep.py); a calibration's fitted value wins; "
+            "compensated so a held load reads constant; a calibration's fitted value wins; "
             "0 = off (a calibration's too)", 0.0, MAX_CREEP),
     # above the 1-sigma of a 40 dB board's noise alone (about 1.9 N)
     Setting("max_sigma_n", 5.0, "A published force whose 1-sigma uncertainty (~/wrench_sigma, the rms of its "
             "error's norm) exceeds it is counted and said in /diagnostics (WARN); 0 = no check", 0.0, 100000.0, "N"),
     Setting("expected_wrench_sigma", 2.0, "The 1-sigma per axis of the load a controller expects on ~/expected_wrench "
-            "(geometry_msgs/WrenchStamped): a measurement of the device's change under load (force/joint.py "
-            "JointScale); checked first (force/expected.py)", 0.01, 1000.0, "N"),
+            "(geometry_msgs/WrenchStamped): a measurement of the device's change under load, checked before it is "
+            "used", 0.01, 1000.0, "N"),
     Setting("expected_wrench_tolerance", 0.5, "A ~/expected_wrench stamped further than this before or after the "
             "frames is refused; one within it is used for frames up to this long after its stamp", 0.001, 60.0,
             "seconds"),

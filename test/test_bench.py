@@ -73,7 +73,9 @@ def test_default_row_matches_cstomo_estimate(smoke, tmp_path, capsys):
     assert float(d["mag_err_med_n"]) == pytest.approx(float(np.median(mag0)), abs=1e-9)
 
 
-def test_render_pngs(tmp_path):
+def test_render_pngs(tmp_path, capfd):
+    """The pictures, and no VTK warning on stderr off screen (before: an ANSI-coloured 'bad X server
+    connection. DISPLAY=' per window, written by VTK's own logger on file descriptor 2)."""
     import matplotlib.image as mpimg
 
     from cstomo_sensor.tools import render
@@ -90,3 +92,5 @@ def test_render_pngs(tmp_path):
         panels = 3 if p.name.startswith("load") else 2  # truth, EIT image, scene field (a socket load)
         assert img.shape[:2] == (render.WINDOW[1], render.WINDOW[0] + 600 * (panels - 2)), p
         assert img[..., :3].std() > 0.01, f"{p} is blank"
+    err = capfd.readouterr().err
+    assert "bad X server" not in err and "\x1b[" not in err, err

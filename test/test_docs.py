@@ -127,7 +127,12 @@ def _value(action: argparse.Action | None, word: str) -> str:
         return str(list(action.choices)[0])
     if action.type not in (None, str) and action.default is not None:  # a setting's flag: its default fits
         return str(action.default[0] if isinstance(action.default, list) else action.default)
-    return "1" if action.type in (int, float) else word
+    if action.type in (int, float):
+        return "1"
+    try:  # a checked number (tools.common.positive): 1 if it takes it
+        return "1" if callable(action.type) and action.type("1") is not None else word
+    except (argparse.ArgumentTypeError, ValueError, TypeError):
+        return word
 
 
 def _ros_args(words: list[str]) -> str | None:
@@ -176,8 +181,8 @@ def check(command: str, inline: bool) -> str | None:
             return f"no executable {args[:1]} in the package (entry points {sorted(entry_points())})"
         tool, args = args[0], args[1:]
     if tool == "cstomo":
-        if not args or args == ["..."]:
-            return None  # the tool's name in prose
+        if not args or args == ["..."] or args[0] in ("-h", "--help"):
+            return None  # the tool's name in prose, or its help
         try:
             parser, rest = subcommand_parser(args)
         except ConfigError as err:
@@ -211,7 +216,8 @@ def test_every_command_in_the_docs_names_real_commands_and_options(doc):
 def test_the_check_finds_what_does_not_exist():
     """The test above can fail: a flag, a subcommand, a parameter, an executable or a launch argument
     that does not exist, a placeholder where a number or choice is due is fine, a bad value is not."""
-    assert len(commands(ROOT / "README.md")) > 20 and any(inline for *_, inline in commands(ROOT / "README.md"))
+    assert len(commands(ROOT / "README.md")) >= 5 and any(inline for *_, inline in commands(ROOT / "README.md"))
+    assert len(commands(ROOT / "docs" / "node.md")) > 20
     assert {Path(d).name for d in DOCS} >= {"README.md", "calibration.md", "node.md", "robot.md"}
     good = ["cstomo calibrate --reference ref.csv --frames frames.csv --forces forces.csv --out d.yaml",
             "OPENBLAS_NUM_THREADS=1 .venv/bin/cstomo bench --heldout N --out DIR",
@@ -237,3 +243,110 @@ def test_the_check_finds_what_does_not_exist():
     for c, why in bad.items():
         got = check(c, inline=False)
         assert got is not None and why in got, (c, got)
+
+
+# --- README: one page whose commands run as printed ----------------------------------------------------
+
+#: The README's commands that this test does not run, and why: the two set-up commands (the demo has its
+#: own test, test_tools.py; `make test` is this suite) and the robot's ROS install (test_colcon_install.py).
+NOT_RUN_HERE = {"make demo": "test_tools.py runs the demo", "make test": "this suite",
+                "rosdep": "a ROS install", "python3 -m pip install --user": "a ROS install",
+                "colcon build": "test_colcon_install.py", "ros2 launch": "a ROS install"}
+
+
+def readme_blocks(path: Path = ROOT / "README.md") -> list[list[str]]:
+    """The command lines of each ```bash block of ``path``, in order (``\\``-continued lines joined)."""
+    blocks = re.findall(r"^```bash\n(.*?)^```", path.read_text(), re.S | re.M)
+    out = []
+    for block in blocks:
+        lines, pending = [], ""
+        for line in block.splitlines():
+            pending += line.strip()
+            if pending.endswith("\\"):
+                pending = pending[:-1] + " "
+                continue
+            if pending:
+                lines.append(pending)
+            pending = ""
+        out.append(lines)
+    return out
+
+
+def test_the_readme_fits_on_a_page_without_history():
+    """README <= 150 lines a newcomer reads in five minutes: no commit hashes, no issue history; the line
+    `.ci/run` stands for, and the two commands."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 150, len(text.splitlines())
+    assert not re.search(r"\b[0-9a-f]{7,40}\b", text), re.search(r"\b[0-9a-f]{7,40}\b", text)
+    assert not re.search(r"\bissues? \d+", text, re.I), re.search(r"\bissues? \d+", text, re.I)
+    assert "make test   # set-up, then the whole test suite" in text and "make demo" in text
+    assert "make test" in (ROOT / ".ci" / "run").read_text()
+    # the activation comes before the first bare `cstomo` command of a block, and once
+    lines = [ln for block in readme_blocks() for ln in block]
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("cstomo "))
+    assert ". .venv/bin/activate" in lines[:first] and text.count(". .venv/bin/activate") == 1
+    for doc in DOCS:  # one way in every document: the activated venv, never .venv/bin/cstomo
+        assert ".venv/bin/cstomo" not in doc.read_text(), doc.name
+
+
+def test_readme_blocks_are_found_and_the_ones_not_run_are_named():
+    """The extraction above can fail: it finds the set-up, the activation and the replay, and every
+    command it does not run is one of NOT_RUN_HERE."""
+    lines = [ln for block in readme_blocks() for ln in block]
+    assert lines[:2] == ["make demo   # set-up, then the simulated board + the node: live true vs estimated force",
+                         "make test   # set-up, then the whole test suite"], lines[:2]
+    assert ". .venv/bin/activate" in lines and any(ln.startswith("cstomo replay ") for ln in lines)
+    assert readme_blocks(ROOT / "docs" / "protocol.md") == [] or all(readme_blocks(ROOT / "docs" / "protocol.md"))
+    skipped = [ln for ln in lines if _not_run(ln)]
+    assert len(skipped) == 6, skipped  # make demo, make test, the four robot lines
+
+
+def _not_run(line: str) -> str | None:
+    return next((why for start, why in NOT_RUN_HERE.items() if line.startswith(start)), None)
+
+
+@pytest.mark.slow
+def test_the_readme_commands_run_as_printed_in_order_on_a_fresh_copy(tmp_path):
+    """A fresh copy of the repository's tracked files with the suite's .venv: the README's commands (all
+    but NOT_RUN_HERE), run in order in one shell, as printed, no edit; then docs/faults.md's one-row run
+    of its fault table, as the venv's `python` (before: `No module named 'rclpy'` with the system's)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    files = subprocess.run(["git", "-C", str(ROOT), "ls-files"], capture_output=True, text=True, check=True)
+    clone = tmp_path / "clone"
+    for name in files.stdout.splitlines():
+        if (ROOT / name).is_file():
+            (clone / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, clone / name)
+    venv = Path(sys.executable).parent.parent
+    (clone / ".venv").symlink_to(venv)  # what `make demo` made
+    env = {k: v for k, v in os.environ.items() if k != "VIRTUAL_ENV"}  # PYTHONPATH: the code under test
+    env["PATH"] = os.pathsep.join(p for p in env.get("PATH", "").split(os.pathsep) if not p.startswith(str(venv)))
+    env.update(OPENBLAS_NUM_THREADS="1", ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    assert shutil.which("cstomo", path=env["PATH"]) is None  # not on PATH before the activation
+    lines = [ln for block in readme_blocks(clone / "README.md") for ln in block if not _not_run(ln)]
+    shell = ["bash", "-euo", "pipefail", "-c"]
+    script = "\n".join(f'echo "@@ $EPOCHREALTIME"\n{ln}' for ln in lines) + '\necho "@@ $EPOCHREALTIME"'
+    t0 = time.monotonic()
+    r = subprocess.run([*shell, script], cwd=clone, env=env, capture_output=True, text=True, timeout=600)
+    marks = [float(ln.split()[1].replace(",", ".")) for ln in r.stdout.splitlines() if ln.startswith("@@ ")]
+    assert r.returncode == 0, f"{r.stdout}\n{r.stderr}"
+    assert len(marks) == len(lines) + 1, marks
+    print(f"README's commands: {time.monotonic() - t0:.0f} s",
+          *(f"{b - a:6.1f} s  {ln}" for a, b, ln in zip(marks, marks[1:], lines)), sep="\n")
+    assert "usage: cstomo" in r.stdout  # cstomo --help, after the activation
+    assert "200 frames from /cstomo_sensor/raw_voltages: 190 results written to out/replayed_bag" in r.stdout
+    assert (clone / "out" / "planar" / "truth.csv").is_file()
+    assert re.search(r"wrote out/planar/forces.csv: \d+ forces", r.stdout), r.stdout
+    header = (clone / "out" / "planar" / "forces.csv").read_text().splitlines()[0]
+    assert header.startswith("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg"), header
+    # docs/faults.md: its one-row run, in the activated venv
+    faults = (ROOT / "docs" / "faults.md").read_text()
+    one_row = re.search(r"`(python test/fault_table.py stall)`", faults)[1]
+    r = subprocess.run([*shell, f". .venv/bin/activate\n{one_row}"], cwd=clone, env=dict(env, ROS_DOMAIN_ID="93"),
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and r.stdout.startswith("| stall"), r.stdout + r.stderr

@@ -141,7 +141,7 @@ def test_cli_simulate_then_estimate(tmp_path):
     assert main(["estimate", "--reference", str(tmp_path / "reference.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--out", str(tmp_path / "forces.csv"), "--estimator", "linear"]) == 0
     header = (tmp_path / "forces.csv").read_text().splitlines()[0]
-    assert header == "frame,fx,fy,fz,magnitude,elevation,azimuth,consistency,foreign_load,sigma_n"
+    assert header == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,consistency,foreign_load,sigma_n"
     rows = (tmp_path / "forces.csv").read_text().splitlines()[1:]
     assert [r.split(",")[-2] for r in rows] == ["0", "0", "0"]  # socket loads: no foreign load
     assert all(0 < float(r.split(",")[-1]) < 5 for r in rows), rows  # each force with its 1-sigma, N

@@ -3,6 +3,7 @@ problem is a package error naming the file and the line, never a raw ValueError 
 tools print one line, exit 2 and leave no half-written output."""
 from __future__ import annotations
 
+import csv
 import os
 import subprocess
 import sys
@@ -59,7 +60,7 @@ def test_forces_round_trip_and_optional_columns(tmp_path):
     f = np.array([[1.0, 2.0, -3.0], [0.0, 0.5, -20.0]])
     write_forces(tmp_path / "f.csv", f)
     np.testing.assert_allclose(read_forces(tmp_path / "f.csv"), f, rtol=1e-8)
-    p = _write(tmp_path, "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,extra\n"
+    p = _write(tmp_path, "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,valid,consistency,foreign_load,extra\n"
                          "0,1,2,-3,3.7,0.9,1.1,1,0.5,0,x\n"
                          "1,,,,,,,0,,,\n")
     got = read_forces(p)
@@ -68,10 +69,10 @@ def test_forces_round_trip_and_optional_columns(tmp_path):
 
 
 @pytest.mark.parametrize("data, where", [
-    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,2,3,4,5,6\n1,1,2,3\n", ":3:"),       # ragged
-    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,zz,3,4,5,6\n", ":2:"),               # bad cell
-    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,,3,4,5,6\n", ":2:"),                 # empty, no valid=0
-    ("frame,fx,fy,fz,magnitude,elevation,azimuth\n0,1,inf,3,4,5,6\n", ":2:"),              # non-finite
+    ("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg\n0,1,2,3,4,5,6\n1,1,2,3\n", ":3:"),       # ragged
+    ("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg\n0,1,zz,3,4,5,6\n", ":2:"),               # bad cell
+    ("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg\n0,1,,3,4,5,6\n", ":2:"),                 # empty, no valid=0
+    ("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg\n0,1,inf,3,4,5,6\n", ":2:"),              # non-finite
     ("0,1,2,3,4,5,6\n1,1,2,3,4,5,6\n", ":1:"),                                             # no header
     (b"frame,fx,fy,fz\n0,1,2,\xff\n", ":2:"),                                              # not UTF-8
 ])
@@ -112,7 +113,7 @@ _csv_text = st.lists(st.lists(st.one_of(st.sampled_from(["0", "1.5", "-2e-3", ""
     .map(lambda rows: "\n".join(",".join(r) for r in rows))
 _bytes = st.one_of(st.binary(max_size=300), _csv_text.map(lambda t: t.encode("utf-8", "surrogatepass")),
                    st.builds(lambda h, t: (h + "\n" + t).encode("utf-8", "surrogatepass"),
-                             st.sampled_from(["time,fx,fy,fz", "frame,fx,fy,fz,magnitude,elevation,azimuth",
+                             st.sampled_from(["time,fx,fy,fz", "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg",
                                               "frame,fx,fy,fz,valid", ROW]), _csv_text))
 
 
@@ -182,7 +183,12 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
     good = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n", "good.csv")
     r = _cstomo("board-sim", "--load-script", str(good), "--rate", "-5")  # before: refused after computing
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
-        "cstomo board-sim: --rate -5: expected a positive number of frames per second"], r.stderr
+        "cstomo board-sim: error: argument --rate: -5: expected frames per second > 0"], r.stderr
+    for flag, value, what in (("--hold", "0", "seconds > 0"), ("--hold", "-3", "seconds > 0"),
+                              ("--rate", "0", "frames per second > 0"), ("--rate", "-5", "frames per second > 0")):
+        r = _cstomo("demo", flag, value)  # before: --hold 0 exited 0 showing no load, the others failed late
+        assert r.returncode == 2 and r.stderr.strip().splitlines() == [  # on a temporary file the user never wrote
+            f"cstomo demo: error: argument {flag}: {value}: expected {what}"], r.stderr
 
 
 def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(tmp_path):
@@ -193,7 +199,7 @@ def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(
         r = _cstomo(cmd, "--load-script", str(script), *(["--link", str(tmp_path / "b")] if cmd == "board-sim" else []))
         assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
         assert r.stderr.strip().splitlines() == [
-            f"cstomo {cmd}: {script}:4: load 3 (time 6 s) is 2000 N; expected a magnitude of 0..60 N"], r.stderr
+            f"cstomo {cmd}: error: {script}:4: load 3 (time 6 s) is 2000 N; expected a magnitude of 0..60 N"], r.stderr
     assert not (tmp_path / "b").exists()
 
 
@@ -232,9 +238,23 @@ def test_forces_file_consistency_columns(tmp_path):
     write_forces(tmp_path / "f.csv", f, valid=np.array([True, False, True]),
                  consistency=np.array([1.25, np.nan, 40.0]), foreign_load=np.array([False, False, True]))
     lines = (tmp_path / "f.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load"
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,valid,consistency,foreign_load"
     assert lines[1].endswith(",1,1.25,0") and lines[2] == "1,,,,,,,0,," and lines[3].endswith(",1,40,1")
     back, valid = read_forces(tmp_path / "f.csv", with_valid=True)
     assert valid.tolist() == [True, False, True] and np.array_equal(back[[0, 2]], f[[0, 2]])
     with pytest.raises(FrameError, match="both or neither"):
         write_forces(tmp_path / "g.csv", f, consistency=np.zeros(3))
+
+
+def test_the_forces_file_gives_its_angles_in_degrees_and_says_so(tmp_path):
+    """A person reads the forces file: its header names the unit (elevation_deg, azimuth_deg), the
+    azimuth is 0..360 (a force towards -x-y at 60 deg below the horizontal reads 225, not -135), and a
+    vertical force has azimuth 0. Expected values by hand: (-cos60 cos45, -cos60 sin45, -sin60) x 20 N."""
+    f = 20.0 * np.array([[-0.5 * np.sqrt(0.5), -0.5 * np.sqrt(0.5), -np.sqrt(3) / 2], [0.0, 0.0, -20.0 / 20.0],
+                         [10.0 / 20.0, 0.0, 0.0]])
+    path = tmp_path / "f.csv"
+    write_forces(path, f)
+    rows = list(csv.DictReader(path.read_text().splitlines()))
+    assert list(rows[0]) == ["frame", "fx", "fy", "fz", "magnitude", "elevation_deg", "azimuth_deg"]
+    got = [(float(r["magnitude"]), float(r["elevation_deg"]), float(r["azimuth_deg"])) for r in rows]
+    assert np.allclose(got, [(20.0, 60.0, 225.0), (20.0, 90.0, 0.0), (10.0, 0.0, 0.0)], atol=1e-6), got

@@ -70,3 +70,32 @@ def test_a_refused_sensor_stops_the_host_and_is_named(tmp_path, warm_model):
     assert r.returncode == 1, r.stderr
     assert "/bad/cstomo_sensor refused to start" in r.stderr and "missing.yaml" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr, r.stderr
+
+
+def test_the_hosts_log_names_the_sensor_of_each_tare_line(capfd):
+    """In one process of several sensors, a library record (the tare's lines, the frame path's) logged
+    while a sensor's frames or tare service are handled names that sensor (before: 'force.taring: tare
+    taken ...' from /left and /right alike); a record outside any sensor has no prefix."""
+    import logging
+
+    import rclpy
+
+    from cstomo_sensor.ros import log as ros_log
+    from cstomo_sensor.ros.host import sensor_of
+
+    handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), label=sensor_of)
+    taring = logging.getLogger("cstomo_sensor.force.taring")
+    try:
+        with ros_log.sensor("/left"):
+            taring.info("tare taken at 12.5 s")
+            with ros_log.sensor("/right"):
+                taring.warning("not steady; the previous reference stays")
+            taring.info("tare saved")
+        taring.info("outside any sensor")
+    finally:
+        ros_log.detach(handler)
+    err = capfd.readouterr().err
+    assert "]: /left: force.taring: tare taken at 12.5 s" in err, err
+    assert "]: /right: force.taring: not steady; the previous reference stays" in err, err
+    assert "]: /left: force.taring: tare saved" in err, err  # back to /left after the inner block
+    assert "]: force.taring: outside any sensor" in err, err

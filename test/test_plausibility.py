@@ -94,7 +94,7 @@ def test_cli_estimate_marks_an_all_zero_frame_invalid(tmp_path, bag_frames):
             "--grid", *map(str, PIPE["grid"])]
     assert main(args) == 0
     lines = (tmp_path / "forces.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,sigma_n"
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,valid,consistency,foreign_load,sigma_n"
     assert lines[2] == "1,,,,,,,0,,,"  # frame, six empty force fields, valid, no statistic, no sigma
     assert lines[1].split(",")[7] == "1" and lines[3].split(",")[7] == "1"
     forces, valid = read_forces(tmp_path / "forces.csv", with_valid=True)
@@ -110,10 +110,50 @@ def test_forces_file_round_trip_and_unknown_columns(tmp_path):
     write_forces(tmp_path / "a.csv", f, valid=[True, False])
     got, valid = read_forces(tmp_path / "a.csv", with_valid=True)
     np.testing.assert_array_equal(got[0], f[0]) and np.testing.assert_array_equal(valid, [True, False])
-    (tmp_path / "b.csv").write_text("frame,fx,fy,fz,magnitude,elevation,azimuth,consistency,valid,extra\n"
+    (tmp_path / "b.csv").write_text("frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,consistency,valid,extra\n"
                                     "0,1,2,3,3.7,0.1,0.2,0.5,1,x\n1,,,,,,,,0,\n")
     got, valid = read_forces(tmp_path / "b.csv", with_valid=True)
     np.testing.assert_array_equal(got[0], [1, 2, 3]) and np.isnan(got[1]).all()
     assert valid.tolist() == [True, False]
     write_forces(tmp_path / "c.csv", f[:1])  # no valid given: the plain seven columns
-    assert (tmp_path / "c.csv").read_text().splitlines()[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth"
+    assert (tmp_path / "c.csv").read_text().splitlines()[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg"
+
+
+def test_a_flapping_gate_logs_a_run_of_implausible_frames_at_most_every_few_seconds(caplog):
+    """Frames that alternate between plausible and implausible used to log two lines per flip; runs that
+    start within LOG_EVERY s of a logged one are counted, not logged, and said with the next logged run."""
+    import logging
+    from types import SimpleNamespace
+
+    from cstomo_sensor.force import health as health_mod
+
+    h = health_mod.Health(0.0)
+    bad, good = SimpleNamespace(valid=False, reason="too large"), SimpleNamespace(valid=True, reason="")
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+        for _ in range(200):
+            h.plausible(bad)
+            h.plausible(good)
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and lines[0].startswith("implausible frames") and "again after 1" in lines[1], lines
+    assert h.counts.implausible == 200  # every frame counted (the diagnostics)
+    h._run_said_at -= health_mod.LOG_EVERY  # LOG_EVERY s later: the next run is said, with the unsaid ones
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+        h.plausible(bad)
+    assert "199 shorter runs before it not logged" in caplog.records[0].getMessage(), caplog.records
+
+
+def test_cli_estimate_names_a_few_implausible_frames_and_counts_the_rest(tmp_path, bag_frames, capsys):
+    """Before: one stderr line per implausible frame (a recording with a bad cable: thousands)."""
+    from cstomo_sensor.frames_io import write_frames
+    from cstomo_sensor.tools.cli import main
+
+    write_frames(tmp_path / "ref.csv", bag_frames[:10].mean(axis=0))
+    write_frames(tmp_path / "frames.csv", np.vstack([bag_frames[40], np.zeros((7, 208))]))
+    args = ["estimate", "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
+            "--out", str(tmp_path / "forces.csv"), "--mesh-size", str(PIPE["mesh_size"]),
+            "--grid", *map(str, PIPE["grid"])]
+    assert main(args) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "implausible" in ln]
+    assert [ln.split(":")[0] for ln in err[:3]] == ["frame 1", "frame 2", "frame 3"], err
+    assert err[3] == f"... and 4 more implausible frames (valid 0 in {tmp_path / 'forces.csv'})" and len(err) == 4, err

@@ -103,7 +103,7 @@ def test_replay_forces_file_holds_the_consistency_columns(tmp_path, replayed, co
 
     s = replay(BAG, tmp_path / "out", config, tare_frames=TARE, pipeline=pipe, forces_file=tmp_path / "f.csv")
     lines = (tmp_path / "f.csv").read_text().splitlines()
-    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation,azimuth,valid,consistency,foreign_load,sigma_n"
+    assert lines[0] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,valid,consistency,foreign_load,sigma_n"
     assert len(lines) == s.results + 1
     cons = np.array([float(r.split(",")[-3]) for r in lines[1:]])
     want = np.array([m.data for _, m in replayed[1]["/cstomo_sensor/consistency"]])
@@ -319,14 +319,14 @@ def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tm
     _bag(tmp_path / "strings", "std_msgs/msg/String", [serialize_message(String(data="hi"))] * 3)
     code, io, out = run(tmp_path / "strings")
     assert code == 2 and not out.exists() and "Traceback" not in io.err
-    assert io.err.strip().splitlines()[-1] == ("cstomo replay: topic /cstomo_sensor/raw_voltages: message type "
+    assert io.err.strip().splitlines()[-1] == ("cstomo replay: error: topic /cstomo_sensor/raw_voltages: message type "
                                                "std_msgs/msg/String, expected sensor_msgs/msg/Image (or "
                                                "std_msgs/msg/Float32MultiArray of older recordings)")
 
     _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 5)
     code, io, out = run(tmp_path / "garbage")
     assert code == 2 and not out.exists() and "Traceback" not in io.err
-    assert io.err.strip().splitlines()[-1].startswith("cstomo replay: ") and "none of the 5 messages" in io.err
+    assert io.err.strip().splitlines()[-1].startswith("cstomo replay: error: ") and "none of the 5 messages" in io.err
     assert not list(tmp_path.glob(".out_*"))  # no partial bag left behind
 
     with Reader(BAG) as r:
@@ -362,7 +362,7 @@ def test_a_missing_bag_or_a_wrong_topic_is_one_line_naming_it(tmp_path, capsys):
                    "the bag (frames from --voltages-topic, default /cstomo_sensor/raw_voltages)"], err
     assert replay([str(BAG), "--out", str(tmp_path / "o3"), "--topic", "/wrong"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("cstomo replay: topic='/wrong': not in the bag; it holds ["), err
+    assert len(err) == 1 and err[0].startswith("cstomo replay: error: topic='/wrong': not in the bag; it holds ["), err
     assert not list(tmp_path.glob("o*")) and not (tmp_path / "d.yaml").exists()
 
 
@@ -377,7 +377,7 @@ def test_a_failing_replay_writes_nothing_and_repeated_errors_are_throttled(tmp_p
         out = tmp_path / "out"
         assert main([*base, "--out", str(out), "--forces", str(forces)]) == 2
         err = capsys.readouterr().err
-        assert err.strip().splitlines()[-1].startswith("cstomo replay: ") and "Traceback" not in err, err
+        assert err.strip().splitlines()[-1].startswith("cstomo replay: error: ") and "Traceback" not in err, err
         assert sorted(p.name for p in tmp_path.iterdir()) == ["a_dir"] and not list((tmp_path / "a_dir").iterdir())
 
     _bag(tmp_path / "garbage", "std_msgs/msg/Float32MultiArray", [b"\x00\x01\x00\x00\xff\xff\xff\x7f" * 4] * 20)
@@ -400,7 +400,7 @@ def test_a_bag_that_never_tares_is_an_error_and_writes_nothing(tmp_path, capsys)
     assert main(args) == 2
     cap = capsys.readouterr()
     assert cap.out == "" and cap.err.strip().splitlines()[-1] == (
-        f"cstomo replay: {BAG}: the bag ended during the tare (200 frames, none taken as the reference: the tare "
+        f"cstomo replay: error: {BAG}: the bag ended during the tare (200 frames, none taken as the reference: the tare "
         "needs 50 steady unloaded frames); give --reference FILE (unloaded frames of this device), fewer "
         "--tare-frames (at most the unloaded frames it starts with) or a bag that starts unloaded for longer; no "
         "output written"), cap.err
@@ -478,3 +478,27 @@ def test_the_committed_bags_error_bars_cover_its_errors(tmp_path):
           f"median error {np.median(err):.3f} N ({ratio:.2f} x)")
     assert beyond.mean() <= 0.01, (beyond.sum(), frame[beyond])
     assert 0.5 <= ratio <= 2.0, ratio
+
+
+def test_replay_force_replaces_an_earlier_bag_and_nothing_else(tmp_path, config, pipe, capsys):
+    """Before: a second run of the documented replay failed on its own earlier output. ``overwrite``
+    (``--force``) replaces an existing rosbag2 once the replay is complete; a directory that is not a
+    bag, or the input bag itself, is never replaced."""
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.tools.replay import replay
+
+    out = tmp_path / "out"
+    replay(BAG, out, config, tare_frames=TARE, pipeline=pipe)
+    with pytest.raises(ConfigError, match="exists; expected a new directory \\(--force replaces it\\)"):
+        replay(BAG, out, config, tare_frames=TARE, pipeline=pipe)
+    (out / "marker").write_text("from the first run")
+    s = replay(BAG, out, config, tare_frames=TARE, pipeline=pipe, overwrite=True)
+    assert s.results == 190 and not (out / "marker").exists() and (out / "metadata.yaml").is_file()
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    (plain / "keep.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="not a rosbag2 directory"):
+        replay(BAG, plain, config, tare_frames=TARE, pipeline=pipe, overwrite=True)
+    assert (plain / "keep.txt").read_text() == "mine"
+    with pytest.raises(ConfigError, match="is the input bag"):
+        replay(BAG, BAG, config, tare_frames=TARE, pipeline=pipe, overwrite=True)

@@ -137,7 +137,7 @@ def test_cstomo_simulate_writes_a_timeline_scene_with_times_and_state(tmp_path):
     assert read_forces(tmp_path / "truth.csv").shape == (200, 3)
     head, *rows = (tmp_path / "truth.csv").read_text().splitlines()
     names = head.split(",")
-    assert names[:8] == "frame,fx,fy,fz,magnitude,elevation,azimuth,time".split(",")
+    assert names[:8] == "frame,fx,fy,fz,magnitude,elevation_deg,azimuth_deg,time".split(",")
     assert {"delta_t", "gradient", "rho_change", "drive", "fx_eff", "contact_16"} <= set(names)
     table = np.array([[float(x) for x in r.split(",")] for r in rows])
     np.testing.assert_allclose(table[:, names.index("time")], np.arange(200) / 20)

@@ -30,7 +30,7 @@ def test_demo_plays_a_short_script_and_reports_its_errors(tmp_path):
     text = out.stdout + out.stderr
     assert out.returncode == 0, text
     assert "Traceback" not in text
-    lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and " N " in ln]
+    lines = [ln for ln in out.stdout.splitlines() if "script row 2" in ln and "20.00" in ln]
     assert lines, text
     summary = next(ln for ln in out.stdout.splitlines() if "median angle error" in ln)
     angle = float(summary.split("median angle error")[1].split("deg")[0])
@@ -68,7 +68,7 @@ def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
         try:
             deadline = time.monotonic() + 200
             # settled under the 20 N load (two lines of it), then Ctrl-C
-            while sum("script row 2" in ln and " N " in ln for ln in out.read_text().splitlines()) < 4:
+            while sum("script row 2" in ln and "20.00" in ln for ln in out.read_text().splitlines()) < 4:
                 assert p.poll() is None and time.monotonic() < deadline, out.read_text() + err.read_text()
                 time.sleep(0.2)
             p.send_signal(signal.SIGINT)
@@ -221,7 +221,7 @@ def test_simulate_and_board_sim_refuse_a_scene_socket_load_beyond_the_range_befo
     exe = str(Path(sys.executable).parent / "cstomo")
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     for cmd, args, prefix in (("simulate", ["--out", str(tmp_path / "out")], "cstomo simulate: error: "),
-                              ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: ")):
+                              ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: error: ")):
         r = subprocess.run([exe, cmd, "--scene", str(f), *args], capture_output=True, text=True, timeout=120, env=env)
         assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
         (line,) = r.stderr.strip().splitlines()
@@ -245,11 +245,33 @@ def test_every_shipped_scene_loads_and_a_60_n_socket_load_is_accepted(tmp_path):
 
 
 def test_the_demo_prints_no_angles_for_no_force():
-    from cstomo_sensor.tools.demo import _fmt
+    """Columns |F| N, elevation and azimuth in degrees (their units in the header): no angles for no
+    force; a force straight down has an elevation (90) and no azimuth (before: 'az 0.0' for the true
+    force, 'az -52.9' for its estimate)."""
+    from cstomo_sensor.tools.demo import FORCE_COLUMNS, _fmt
 
-    assert _fmt(np.zeros(3)).split() == ["0.00", "N", "el", "-", "az", "-"]
-    assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0])))  # the columns stay aligned
-    assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "N", "el", "90.0", "az", "0.0"]
+    assert FORCE_COLUMNS.split() == ["|F|", "[N]", "elev", "[deg]", "azim", "[deg]"]
+    assert _fmt(np.zeros(3)).split() == ["0.00", "-", "-"]
+    assert len(_fmt(np.zeros(3))) == len(_fmt(np.array([0.0, 0.0, -20.0]))) == len(FORCE_COLUMNS)  # aligned
+    assert _fmt(np.array([0.0, 0.0, -20.0])).split() == ["20.00", "90.0", "-"]
+    # the estimate of a vertical load: 0.4 deg off vertical is a horizontal part of 0.14 N, below 2 x 0.3 N
+    tilted = 20.0 * np.array([np.sin(np.radians(0.4)) * np.cos(np.radians(-52.9)),
+                              np.sin(np.radians(0.4)) * np.sin(np.radians(-52.9)), -np.cos(np.radians(0.4))])
+    assert _fmt(tilted, sigma_n=0.3).split() == ["20.00", "89.6", "-"]
+
+
+def test_the_demo_shows_azimuths_0_to_360_as_its_labels_say():
+    """'sweep azimuth 225°' shows 225.0 (before: -135.0 beside the label 225); the paper's 120° in the
+    x-z plane is elevation 60 at azimuth 180, as its label and the legend say."""
+    from cstomo_sensor.angles import force_from_angles
+    from cstomo_sensor.tools.demo import LEGEND, _fmt, load_script
+
+    times, forces, labels = load_script()
+    sweep = forces[labels.index("sweep azimuth 225°")]
+    assert _fmt(sweep).split() == ["20.00", "60.0", "225.0"]
+    assert _fmt(forces[labels.index("paper 120° in x-z")]).split() == ["20.00", "60.0", "180.0"]
+    assert "x-z" in LEGEND and "0..360" in LEGEND
+    assert _fmt(force_from_angles(20.0, np.radians(60.0), np.radians(-0.01))).split()[-1] == "0.0"  # not 360.0
 
 
 def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
@@ -259,18 +281,20 @@ def test_the_demo_prints_no_angles_for_a_force_within_twice_its_sigma():
     from cstomo_sensor.tools.demo import _fmt, judge
 
     noise = force_from_angles(0.02, np.radians(-15.8), np.radians(-76.3))
-    assert _fmt(noise, sigma_n=0.3).split() == ["0.02", "N", "el", "-", "az", "-"]
-    assert _fmt(noise).split() == ["0.02", "N", "el", "-15.8", "az", "-76.3"]  # sigma unknown: as before
-    small = force_from_angles(0.61, np.radians(60.0), np.radians(45.0))  # just above 2 x 0.3 N: shown
-    assert _fmt(small, sigma_n=0.3).split() == ["0.61", "N", "el", "60.0", "az", "45.0"]
-    assert _fmt(force_from_angles(0.59, np.radians(60.0), 0.0), sigma_n=0.3).split()[2:] == ["el", "-", "az", "-"]
+    assert _fmt(noise, sigma_n=0.3).split() == ["0.02", "-", "-"]
+    assert _fmt(noise).split() == ["0.02", "-15.8", "283.7"]  # sigma unknown: shown (azimuth 0..360)
+    small = force_from_angles(0.61, 0.0, np.radians(45.0))  # just above 2 x 0.3 N, horizontal: shown
+    assert _fmt(small, sigma_n=0.3).split() == ["0.61", "0.0", "45.0"]
+    steep = force_from_angles(0.61, np.radians(30.0), np.radians(45.0))  # its horizontal part 0.53 N: no azimuth
+    assert _fmt(steep, sigma_n=0.3).split() == ["0.61", "30.0", "-"]
+    assert _fmt(force_from_angles(0.59, np.radians(60.0), 0.0), sigma_n=0.3).split()[1:] == ["-", "-"]
     assert len({len(_fmt(f, sigma_n=0.3)) for f in (noise, small, np.zeros(3), np.array([0.0, 0.0, -20.0]))}) == 1
     # a demo line of the unloaded sensor: the estimate's columns say no direction, aligned with a loaded line
     times, forces = np.array([0.0, 3.0]), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -20.0]])
     unloaded, counted = judge(times, forces, ["unloaded (tare)", "down"], 1.0, noise, 0.3)
     loaded, _ = judge(times, forces, ["unloaded (tare)", "down"], 4.0, np.array([0.3, 0.0, -20.1]), 0.3)
-    assert counted is None and unloaded.split()[-7:] == ["0.02", "N", "el", "-", "az", "-", "-"], unloaded
-    assert len(unloaded) == len(loaded) and loaded.split()[-7:-1] == ["20.10", "N", "el", "89.1", "az", "0.0"], loaded
+    assert counted is None and unloaded.split()[-4:] == ["0.02", "-", "-", "-"], unloaded
+    assert len(unloaded) == len(loaded) and loaded.split()[-4:-1] == ["20.10", "89.1", "-"], loaded
 
 
 @pytest.mark.slow
@@ -296,3 +320,145 @@ def test_board_sim_says_it_computes_only_when_it_does(tmp_path):
         assert p.returncode == 0, err
         said.append("20-60 s" in err)
     assert said == [True, False], said
+
+
+def test_a_command_prints_one_log_message_at_most_three_times(capsys):
+    """Before: `cstomo bench --drift` printed about 800 lines of 'implausible frames ...' and 'plausible
+    frames again ...' (one pair per stream it ran). A command's log lets a message template through 3
+    times, then counts it and says so once at the end."""
+    import logging
+
+    from cstomo_sensor.tools.common import MAX_REPEATS, setup_logging
+
+    repeats = setup_logging(force=True)
+    log = logging.getLogger("cstomo_sensor.force.health")
+    for i in range(400):
+        log.warning("implausible frames (no force output): %s", f"reason {i}")
+        log.warning("plausible frames again after %d implausible ones", i)
+    logging.getLogger("cstomo_sensor.other").warning("something else")
+    for _ in range(20):  # not shown (INFO), so neither counted nor summarised (before: scikit-fem's INFO lines)
+        logging.getLogger("skfem.assembly").info("Assembling finished.")
+    err = capsys.readouterr().err.splitlines()
+    assert MAX_REPEATS == 3
+    assert sum("implausible frames" in ln for ln in err) == 3 and sum("plausible frames again" in ln for ln in err) == 3
+    assert any("something else" in ln for ln in err)
+    summary = repeats.summary()
+    assert len(summary) == 2 and "came 400 times; the 397 after the first 3 not shown" in summary[0], summary
+    import atexit
+
+    atexit.unregister(repeats.say)
+    for h in [h for h in logging.getLogger().handlers if getattr(h, "_cstomo", False)]:
+        logging.getLogger().removeHandler(h)
+
+
+def test_the_robot_bench_says_a_window_without_forces_in_words():
+    """Before: 'err nan N, angle nan deg' for a window whose every frame was refused, and 'sigma_n
+    45.306 N (50.66 x the error)' without saying whether that is good."""
+    from cstomo_sensor.tools.bench.robot import describe
+
+    assert describe({"err_n": math.nan, "implausible": 300, "frames": 300}) == \
+        "no force published (300 of 300 frames implausible)"
+    row = {"err_n": 0.894, "implausible": 0, "frames": 300, "angle_deg": 1.2, "magnitude_pct": 3.1, "wrong_pct": 2.0,
+           "sigma_n": 45.306, "sigma_ratio": 50.66, "over3sigma_pct": 0.0}
+    text = describe(row)
+    assert "nan" not in text and "50.7 x the median error (over-cautious" in text, text
+    assert "(covers the error)" in describe({**row, "sigma_n": 1.2, "sigma_ratio": 1.34})
+    assert "(smaller than the error)" in describe({**row, "sigma_n": 0.4, "sigma_ratio": 0.45})
+
+
+def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monkeypatch, tmp_path):
+    """A long step of the core (a timeline's knots, a simulation's loads) logs its progress
+    (cstomo_sensor.progress.steps); a command shows it as one line updated in place on a terminal
+    (a real pseudo-terminal here) and leaves it out of a file, while its warnings reach both."""
+    import logging
+    import time as _time
+
+    from cstomo_sensor import progress
+    from cstomo_sensor.tools.common import setup_logging
+
+    log = logging.getLogger("cstomo_sensor.model.timeline")
+    clock = iter(np.arange(0.0, 100.0, 0.6))  # each item takes 0.6 s: a record every other item
+    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+
+    def run_on(stream):
+        monkeypatch.setattr(sys, "stderr", stream)
+        repeats = setup_logging(force=True)
+        try:
+            assert list(progress.steps(range(10), log, "timeline: the truth at its knots")) == list(range(10))
+            log.warning("a warning after it")
+        finally:
+            import atexit
+
+            atexit.unregister(repeats.say)
+            for h in [h for h in logging.getLogger().handlers if getattr(h, "_cstomo", False)]:
+                logging.getLogger().removeHandler(h)
+        stream.flush()
+
+    master, slave = os.openpty()
+    with open(slave, "w", closefd=True) as tty:
+        assert tty.isatty()
+        run_on(tty)
+        _time.sleep(0.1)
+        text = os.read(master, 65536).decode()
+    os.close(master)
+    assert text.count("\rtimeline") == 6 and "timeline: the truth at its knots: 0/10" in text, repr(text)
+    assert "timeline: the truth at its knots: 10/10" in text, repr(text)
+    assert "\n" not in text.split("10/10")[0], repr(text)  # one line, updated in place, until the last item
+    assert text.rstrip().splitlines()[-1].endswith("a warning after it"), repr(text)
+    with open(tmp_path / "log.txt", "w") as f:  # a file (CI, a pipe): no progress, the warning stays
+        run_on(f)
+    assert (tmp_path / "log.txt").read_text().splitlines() == ["WARNING cstomo_sensor.model.timeline: a warning after it"]
+
+
+def test_every_flag_of_every_command_has_help_and_shows_its_default():
+    """--help: every option with a help text, its default shown (by the shared formatter, so a flag
+    added later shows it too), no internal file paths (force/drift.py), --cache-dir naming
+    $XDG_CACHE_HOME as the cache does; calibrate's help was 99 lines, replay's 86."""
+    import argparse
+    import re
+
+    from cstomo_sensor.tools.cli import OWN_PARSERS, build_parser, subcommand_parser
+    from cstomo_sensor.tools.common import HelpFormatter
+
+    commands = [[], ["model", "build"], ["model", "voltages"], ["reconstruct"], ["estimate"], ["simulate"],
+                *[[k] for k in OWN_PARSERS]]
+    for words in commands:
+        p = subcommand_parser(words)[0] if words else build_parser()
+        text = p.format_help()
+        assert p.formatter_class is HelpFormatter, words
+        assert not re.search(r"\b\w+/\w+\.py\b", text), (words, re.search(r"\b\w+/\w+\.py\b", text))
+        assert len(text.splitlines()) <= 80, (words, len(text.splitlines()))
+        fmt = p._get_formatter()
+        for a in p._actions:
+            if not a.option_strings or isinstance(a, argparse._HelpAction):
+                continue
+            assert a.help, (words, a.option_strings)
+            shown = a.default is not None and a.default is not False and a.nargs != 0
+            if shown or isinstance(a, argparse.BooleanOptionalAction):
+                assert "default" in fmt._get_help_string(a).lower(), (words, a.option_strings, a.help)
+        if any("--cache-dir" in a.option_strings for a in p._actions):
+            assert "XDG_CACHE_HOME" in text, words
+    # a flag added without a default in its help gets it from the formatter
+    p = subcommand_parser(["demo"])[0]
+    p.add_argument("--reference-age", type=float, default=3600.0, help="seconds")
+    assert "--reference-age REFERENCE_AGE" in p.format_help() and "(default: 3600.0)" in p.format_help()
+
+
+@pytest.mark.parametrize("words, flag, value, expected", [
+    (["demo"], "--hold", "0", "seconds > 0"), (["demo"], "--rate", "-5", "frames per second > 0"),
+    (["board-sim", "--load-script", "x.csv"], "--duration", "0", "seconds > 0"),
+    (["estimate", "--reference", "r", "--frames", "f", "--out", "o"], "--rate", "0", "frames per second > 0"),
+    (["calibrate", "--out", "d.yaml"], "--stamp-tolerance", "0", "seconds > 0"),
+    (["calibrate", "--out", "d.yaml"], "--creep-rate", "nan", "frames per second > 0"),
+    (["bench", "--out", "o"], "--heldout", "0", "a whole number >= 1"),
+    (["bench-node"], "--seconds", "-1", "seconds > 0"), (["bench-node"], "--rates", "inf", "frames per second > 0")])
+def test_a_bad_number_is_refused_at_parsing_in_one_line(capsys, words, flag, value, expected):
+    """Before: `cstomo demo --hold 0` exited 0 showing no load, `--hold -3` failed after the model
+    loaded naming a temporary file the user never wrote."""
+    from cstomo_sensor.tools.cli import subcommand_parser
+
+    parser, rest = subcommand_parser(words)
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args([*rest, flag, value])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.splitlines() == [f"{parser.prog}: error: argument {flag}: {value}: expected {expected}"]

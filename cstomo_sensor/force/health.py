@@ -91,6 +91,7 @@ class Health:
         self._start = {"t": self._created, **{k: 0 for k in _TOTALS}}  # the period's start: its totals
         self._loss_history: deque = deque([(self._created, 0, {})])  # (time, frames, losses) of the periods
         self.implausible_run = 0  # implausible frames in a row so far
+        self._run_said, self._run_said_at, self._runs_unsaid = False, -math.inf, 0  # the runs' log (plausible())
         self._drop_log = _Throttle()
 
     # --- per frame -------------------------------------------------------------------------------
@@ -107,16 +108,26 @@ class Health:
 
     def plausible(self, result) -> None:
         """Under the frame lock: a result of the gate; a run of implausible ones is logged once when it
-        starts and once when it ends."""
+        starts and once when it ends, and runs that start within :data:`LOG_EVERY` s of a logged one not
+        at all (counted, said with the next logged one): a flapping gate does not flood the log."""
         c = self.counts
         if not result.valid:
             c.implausible += 1
             c.implausible_reason = result.reason
-            if not self.implausible_run:
-                log.warning("implausible frames (no force output): %s", result.reason)
+            if not self.implausible_run:  # a run starts: said at most once per LOG_EVERY s
+                now = time.monotonic()
+                self._run_said = now - self._run_said_at >= LOG_EVERY
+                if self._run_said:
+                    more = (f" ({self._runs_unsaid} shorter runs before it not logged; /diagnostics counts them)"
+                            if self._runs_unsaid else "")
+                    log.warning("implausible frames (no force output): %s%s", result.reason, more)
+                    self._run_said_at, self._runs_unsaid = now, 0
+                else:
+                    self._runs_unsaid += 1
             self.implausible_run += 1
         elif self.implausible_run:
-            log.warning("plausible frames again after %d implausible ones", self.implausible_run)
+            if self._run_said:  # its end only when its start was said
+                log.warning("plausible frames again after %d implausible ones", self.implausible_run)
             self.implausible_run = 0  # implausible frames in a row so far
 
     def passed(self, result, seconds: float) -> None:

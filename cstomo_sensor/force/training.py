@@ -4,7 +4,7 @@ Forces on a Fibonacci set of directions (elevation 15..90 deg, every azimuth) an
 (1..40 N) are pushed through the mechanics (frictionless socket contact; one solve per direction, as
 the contact problem is positively homogeneous in the force; :func:`socket_mechanics`, cached and shared
 with the scene field), the material law and the forward model on the reconstruction's mesh, giving
-normalised voltage changes y (:func:`calibration_set`; README, *Numerical choices*, and the
+normalised voltage changes y (:func:`calibration_set`; docs/design.md, *Numerical choices*, and the
 reconstruction module for the normalisation); :func:`response_set` gives how those y change on a
 warmed block's resistivity gradients (issue 26). The estimators (force/estimate.py) are fitted on
 them. The calibration never sees the honest-simulation meshes or seeds.

@@ -18,7 +18,7 @@ Two box grids over the body (voxels holding no forward cell, the socket's cavity
   (``average``, exact over the forward cells each pair of voxels shares).
 
 The precomputed ``R = average @ R_basis`` maps a frame to the image directly, so the per-frame cost
-follows the image grid, while the unknowns are not forced to be uniform over 5 mm voxels (README,
+follows the image grid, while the unknowns are not forced to be uniform over 5 mm voxels (docs/design.md,
 numerical choices: on the benchmark's scenes the image correlates better with the truth and its
 maximum lands nearer the truth's). Forward accuracy follows the fine mesh.
 """

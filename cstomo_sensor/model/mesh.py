@@ -323,7 +323,7 @@ def _shipped(geometry: SensorGeometry, inputs: dict) -> tuple[Path, str]:
 
 
 def ship_mesh(geometry: SensorGeometry, spec: MeshSpec, mesh: TetMesh) -> Path:
-    """Write ``mesh`` as the shipped mesh of (geometry, spec) (maintainers: README, "Reproducible
+    """Write ``mesh`` as the shipped mesh of (geometry, spec) (maintainers: docs/design.md, "Reproducible
     models"); int32 cells, compressed."""
     path, key = _shipped(geometry, _mesh_inputs_base(geometry, spec))
     path.parent.mkdir(parents=True, exist_ok=True)

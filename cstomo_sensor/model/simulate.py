@@ -43,6 +43,7 @@ from ..angles import force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
+from ..progress import steps
 from ..settings import MAX_LOAD
 from . import elasticity
 from .cem import ForwardModel
@@ -253,7 +254,8 @@ class Truth:
         if hit is not None and hit["frames"].shape[0] == len(loads):
             return hit["reference"], hit["frames"]
         t0 = time.perf_counter()
-        frames = np.array([self.voltages(ld) for ld in loads]).reshape(len(loads), -1)
+        frames = np.array([self.voltages(ld) for ld in steps(loads, log, "simulated device: its loads")]
+                          ).reshape(len(loads), -1)
         if mechanical:
             elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
         reference = self.reference
@@ -343,13 +345,13 @@ def simulate(scene: Scene, cache_dir=None) -> tuple[np.ndarray, np.ndarray, np.n
     """(reference (n_meas,), frames (n, n_meas), true forces (n, 3)) of a scene, noise included."""
     _no_timeline(scene)
     truth = scene.truth(cache_dir)
+    reference, volts = truth.frames(list(scene.loads))  # cached, keyed by every input: a second run reads them
     rng = np.random.default_rng(scene.seed + 1)
-    ref = add_noise(truth.reference, truth.reference, scene.snr_db, rng)
+    ref = add_noise(reference, reference, scene.snr_db, rng)
     frames, forces = [], []
-    for load in scene.loads:
-        v = truth.voltages(load)
+    for load, v in zip(scene.loads, volts):
         for _ in range(scene.frames_per_load):
-            frames.append(add_noise(v, truth.reference, scene.snr_db, rng))
+            frames.append(add_noise(v, reference, scene.snr_db, rng))
             forces.append(load.force_vector)
     return ref, np.array(frames), np.array(forces)
 

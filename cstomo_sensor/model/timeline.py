@@ -56,10 +56,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..angles import force_angles, force_from_angles
+from ..angles import force_angles_deg, force_from_angles
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
+from ..progress import steps
 from ..settings import MAX_LOAD
 from . import elasticity
 from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
@@ -608,7 +609,8 @@ class Timeline:
                 index[tuple(f)] = len(index)
         t0 = time.perf_counter()
         tr = self.truth_model
-        th = np.array([tr.theta(Load("socket", force=k)) for k in index]).reshape(len(index), -1)
+        th = np.array([tr.theta(Load("socket", force=k)) for k in steps(index, log, "timeline: the mechanics of its "
+                                                                        "loads")]).reshape(len(index), -1)
         self.seconds["mechanics"] = time.perf_counter() - t0
         return index, th
 
@@ -676,7 +678,8 @@ class Timeline:
             self.seconds["cache_hit"] = 1.0
             return hit["t"], hit["n"], hit["v"]
         log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
-        v = np.array([self._solve(t, n) for t, n in zip(kt, kn)])
+        v = np.array([self._solve(t, n) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
+                                                          len(kt))])
         if "mechanics" in self.seconds:
             elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
         cache_save(path, key, t=kt, n=kn, v=v)
@@ -756,7 +759,7 @@ class Timeline:
         times = t0 + np.arange(int(np.ceil((t1 - t0) * rate - 1e-9))) / rate
         rng = rng or self.noise_rng()
         out = np.empty((len(times), len(self.reference)))
-        for i in range(0, len(times), chunk):
+        for i in steps(range(0, len(times), chunk), log, f"timeline: {len(times)} frames, in chunks of {chunk}"):
             sl = slice(i, i + chunk)
             out[sl] = add_noise(self.voltages(times[sl]), self.reference, self.snr_db, rng)
         return times, out, self.spec.force(times), self.state(times)
@@ -801,8 +804,7 @@ def is_timeline_scene(path) -> bool:
 def write_truth(path, times: np.ndarray, forces: np.ndarray, state: TimelineState) -> None:
     """A forces file (docs/formats.md#forces-file) with the time and the state columns after the
     standard ones (docs/formats.md#timeline)."""
-    mag, el, az = force_angles(forces)
-    el, az = el + 0.0, az + 0.0  # no -0 in the file
+    mag, el, az = force_angles_deg(forces)
     cols = {"time": times, **state.columns()}
     lines = [FORCES_HEADER + "," + ",".join(cols)]
     table = np.column_stack([forces, mag, el, az, *cols.values()])

@@ -56,6 +56,13 @@ def namespaces_of(args: list[str]) -> list[str]:
     return out
 
 
+def sensor_of(_record) -> str:
+    """``/left_knee: `` for a record logged while that sensor's frames or tare were handled (the
+    tare, the driver, the frame path), else ''."""
+    name = ros_log.current_sensor()
+    return f"{name}: " if name else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``cstomo_sensor_host``."""
     argv, own = own_args(argv)
@@ -82,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     # one route for the library's records (each node attached its own: every record N times)
     for node in nodes:
         ros_log.detach(node._log_handler)
-    handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), nodes[0].context.ok)
+    handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), nodes[0].context.ok, label=sensor_of)
     failed = Future()
     for node in nodes:
         node.autostart_failed.add_done_callback(lambda _f, node=node: failed.done() or failed.set_result(node))

@@ -8,7 +8,9 @@ reach ``/rosout`` (and the console) under the node's logger, the message prefixe
 """
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 
 from rclpy.impl.rcutils_logger import RcutilsLogger
 
@@ -21,10 +23,11 @@ class RosLogHandler(logging.Handler):
     last-resort handler writes them, and warnings are dropped: they are the board's port closing
     as a launch or a terminal stops the board together with the node."""
 
-    def __init__(self, ros_logger: RcutilsLogger, context_ok=lambda: True) -> None:
+    def __init__(self, ros_logger: RcutilsLogger, context_ok=lambda: True, label=None) -> None:
         super().__init__()
         self.ros_logger = ros_logger
         self.context_ok = context_ok
+        self.label = label  # record -> a prefix ('' for none): which sensor, in a process of several
 
     def emit(self, record: logging.LogRecord) -> None:
         if not self.context_ok():  # /rosout is gone (SIGINT): rcl would print an error per record
@@ -32,7 +35,8 @@ class RosLogHandler(logging.Handler):
                 logging.lastResort.handle(record)
             return
         try:
-            msg = f"{record.name.partition('.')[2] or record.name}: {self.format(record)}"
+            msg = f"{self.label(record) if self.label else ''}{record.name.partition('.')[2] or record.name}: " \
+                  f"{self.format(record)}"
             level, log = record.levelno, self.ros_logger
             # one call site per severity: rclpy keeps one severity per call site of a logger
             if level >= logging.CRITICAL:
@@ -49,10 +53,30 @@ class RosLogHandler(logging.Handler):
             self.handleError(record)
 
 
-def attach(ros_logger: RcutilsLogger, context_ok=lambda: True) -> RosLogHandler:
-    """Send the package's records to ``ros_logger`` at its level (not to stderr a second time);
-    returns the handler for :func:`detach`."""
-    handler = RosLogHandler(ros_logger, context_ok)
+_current = threading.local()
+
+
+@contextlib.contextmanager
+def sensor(name: str):
+    """Within the block, this thread's records are the sensor ``name``'s (:func:`current_sensor`):
+    a process of several sensors (``cstomo_sensor_host``) names which one said what."""
+    previous = getattr(_current, "name", "")
+    _current.name = name
+    try:
+        yield
+    finally:
+        _current.name = previous
+
+
+def current_sensor() -> str:
+    """The sensor whose frames or service this thread is handling ('' if none)."""
+    return getattr(_current, "name", "")
+
+
+def attach(ros_logger: RcutilsLogger, context_ok=lambda: True, label=None) -> RosLogHandler:
+    """Send the package's records to ``ros_logger`` at its level (not to stderr a second time), each
+    prefixed with ``label(record)`` if given; returns the handler for :func:`detach`."""
+    handler = RosLogHandler(ros_logger, context_ok, label)
     ROOT.addHandler(handler)
     ROOT.setLevel(max(int(ros_logger.get_effective_level()), logging.DEBUG))
     ROOT.propagate = False

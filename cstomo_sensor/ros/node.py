@@ -187,7 +187,13 @@ class CstomoSensorNode(LifecycleNode):
             self._source = TopicSource(self, "~/raw_voltages_in", qos)
             connect(self._source, self.stream)
             stream, sinks = self.stream, [self._pubs]
-            self._source.handler = lambda frame: step(stream, sinks, frame, self._process_now())
+            sensor = self.get_namespace()
+
+            def handler(frame) -> None:
+                with ros_log.sensor(sensor):  # the library's records of this frame name the sensor (a host)
+                    step(stream, sinks, frame, self._process_now())
+
+            self._source.handler = handler
         log.info(f"configured: input {cfg.input} ({cfg.port if serial else '~/raw_voltages_in'}), "
                  f"reference: {self.reference_source}")
         return TransitionCallbackReturn.SUCCESS
@@ -232,6 +238,11 @@ class CstomoSensorNode(LifecycleNode):
     # --- tare --------------------------------------------------------------------------------------
 
     def _on_tare(self, request: Trigger.Request, response: Trigger.Response, forced: bool = False) -> Trigger.Response:
+        with ros_log.sensor(self.get_namespace()):  # its records name the sensor (a host)
+            return self._tare_service(request, response, forced)
+
+    def _tare_service(self, request: Trigger.Request, response: Trigger.Response, forced: bool = False
+                      ) -> Trigger.Response:
         """A tare is a transaction (:meth:`FrameStream.tare`): it ends on its own frames within the
         deadline (accepted, or refused: not steady, under load, on a ramp, the board reconnected), or
         it is cancelled; only an accepted one changes the reference and the saved file. ``forced``
@@ -266,6 +277,7 @@ class CstomoSensorNode(LifecycleNode):
 
     def _serial_loop(self) -> None:
         set_os_thread_name(FRAME_THREAD)
+        ros_log.sensor(self.get_namespace()).__enter__()  # this thread's records name the sensor (a host)
         try:  # the board's frames, read, decoded and processed on this thread (docs/node.md)
             run(self._source, self.stream, [self._pubs], stop=self._stop, process=self._process_now)
         except RCLError:

@@ -26,7 +26,7 @@ from ..model.material import TYPICAL_CREEP_PER_DECADE
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
 from ..settings import MAX_LOAD, RATED_FORCE
-from .common import add_setting_arg
+from .common import ToolParser, add_setting_arg, positive, setup_logging
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -36,13 +36,13 @@ SCRIPT_HOLD_S = 3600.0
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
+    p = ToolParser(prog="cstomo board-sim", description="Simulated board on a pseudo-terminal.")
     add_setting_arg(p, "sensor")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="scene YAML file: a timeline scene's rubber creeps as its timeline's creep: "
+    src.add_argument("--scene", metavar="FILE", help="scene YAML file: a timeline scene's rubber creeps as its timeline's creep: "
                                      "says; a scene's list of loads (foreign loads too) holds each load exactly, "
                                      "1 s each (--creep does not apply to scenes)")
-    src.add_argument("--load-script", help=f"load script CSV (time,fx,fy,fz; socket forces up to {MAX_LOAD:g} N, "
+    src.add_argument("--load-script", metavar="CSV", help=f"load script CSV (time,fx,fy,fz; socket forces up to {MAX_LOAD:g} N, "
                                            f"1.5 x the rated {RATED_FORCE:g} N); its rubber creeps (--creep)")
     p.add_argument("--creep", type=float, default=TYPICAL_CREEP_PER_DECADE, metavar="C",
                    help="the load script's rubber creep per decade of time from 0.1 s after each change of load "
@@ -51,26 +51,28 @@ def parser() -> argparse.ArgumentParser:
                         "that does not creep, each load held exactly). The script is simulated as a timeline over "
                         f"--duration, else its last time + {SCRIPT_HOLD_S:g} s, after which the last load holds "
                         "without further creep; the first run solves its knots (about 40 ms each), cached")
-    p.add_argument("--rate", type=float, default=DEFAULT_RATE_HZ, help="frames per second (default %(default)g)")
-    p.add_argument("--duration", type=float, help="seconds to run (default: until SIGINT/SIGTERM)")
+    p.add_argument("--rate", type=positive("frames per second > 0"), default=DEFAULT_RATE_HZ, metavar="HZ",
+                   help="frames per second")
+    p.add_argument("--duration", type=positive("seconds > 0"), metavar="S",
+                   help="seconds to run (default: until SIGINT/SIGTERM)")
     add_setting_arg(p, "protocol")
-    p.add_argument("--link", help="symlink kept pointing at the current pty")
-    p.add_argument("--snr", type=float, default=None,
+    p.add_argument("--link", metavar="PATH", help="symlink kept pointing at the current pty")
+    p.add_argument("--snr", type=float, default=None, metavar="DB",
                    help=f"signal-to-noise ratio in dB (default: the scene's snr_db; {DEFAULT_SNR_DB:g} for a load script)")
-    p.add_argument("--seed", type=int, default=0)
-    g = p.add_argument_group("faults")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the faults")
+    g = p.add_argument_group("faults (injected, for tests; off by default)")
     g.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability per frame")
     g.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability per frame")
     g.add_argument("--truncate", type=float, default=0.0, metavar="P", help="probability per frame")
     g.add_argument("--garbage", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--garbage-bytes", type=int, default=48, metavar="N")
+    g.add_argument("--garbage-bytes", type=int, default=48, metavar="N", help="bytes of each garbage burst")
     g.add_argument("--nan", type=float, default=0.0, metavar="P", help="probability per frame")
-    g.add_argument("--stall-at", type=float, metavar="S")
-    g.add_argument("--stall-for", type=float, default=0.0, metavar="S")
-    g.add_argument("--disconnect-at", type=float, metavar="S")
-    g.add_argument("--reappear-after", type=float, default=0.5, metavar="S")
+    g.add_argument("--stall-at", type=float, metavar="S", help="stop sending at this time (s from the start)")
+    g.add_argument("--stall-for", type=float, default=0.0, metavar="S", help="for this long")
+    g.add_argument("--disconnect-at", type=float, metavar="S", help="remove the pty at this time (s from the start)")
+    g.add_argument("--reappear-after", type=float, default=0.5, metavar="S", help="and make a new one this much later")
     g.add_argument("--saturate-channel", type=int, metavar="I", help="value index 0..207")
-    g.add_argument("--full-scale", type=float, default=2.5, metavar="V")
+    g.add_argument("--full-scale", type=float, default=2.5, metavar="V", help="the saturated channel's value")
     g.add_argument("--dead-electrode", type=int, metavar="E", help="electrode index 0..15")
     return p
 
@@ -83,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     """``cstomo board-sim``: print ``device: PATH`` first, then stream until done or signalled."""
     p = parser()
     args = p.parse_args(argv)
+    setup_logging()  # warnings, and the progress of a first run's solves on a terminal
     if is_virtual(args.link):
         p.error(f"--link {args.link}: a virtual link lives in one process, no other could open it; give a path")
     # SIGINT and SIGTERM while the loads are computed: stop quietly (SIGINT also when the parent
@@ -103,11 +106,8 @@ def _interrupt(*_: object) -> None:
 
 
 def _main(args: argparse.Namespace) -> int:
-    if not 0 < args.rate < float("inf"):  # before the loads' frames are computed, not after
-        print(f"cstomo board-sim: --rate {args.rate:g}: expected a positive number of frames per second", file=sys.stderr)
-        return 2
-    if not 0 <= args.creep < 1:  # NaN too
-        print(f"cstomo board-sim: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
+    if not 0 <= args.creep < 1:  # NaN too; before the loads' frames are computed, not after
+        print(f"cstomo board-sim: error: --creep {args.creep:g}: expected a fraction per decade, 0 <= C < 1 "
               "(rubbers: 0.02..0.06; 0: no creep)", file=sys.stderr)
         return 2
     try:
@@ -150,7 +150,7 @@ def _main(args: argparse.Namespace) -> int:
             faults=faults, seed=args.seed, layers=layers,
         )
     except (CstomoError, OSError) as err:
-        print(f"cstomo board-sim: {err}", file=sys.stderr)
+        print(f"cstomo board-sim: error: {err}", file=sys.stderr)
         return 2
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: board.stop())

@@ -39,7 +39,7 @@ from ..force.creep import HELD_FOR, MIN_HELD
 from ..force.device import read_reference, reference_of
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
-from .common import add_pipeline_args, help_text, pipeline_config
+from .common import ToolParser, add_pipeline_args, help_text, pipeline_config, positive
 
 STAMP_TOLERANCE = 0.02  # s
 UNLOADED_BELOW = 0.5  # N
@@ -192,23 +192,31 @@ def file_loads(idx: np.ndarray, forces: np.ndarray, rate: float) -> HeldLoads:
     return HeldLoads(idx / rate, out, plateau_starts(t, label))
 
 
+#: The end of ``cstomo calibrate --help``: the two ways to run it; the rest is docs/calibration.md.
+EPILOG = """\
+from files:  cstomo calibrate --reference REF.csv --frames FRAMES.csv --forces FORCES.csv --out DEVICE.yaml
+from a bag:  cstomo calibrate --bag DIR --wrench-topic /ft/wrench --out DEVICE.yaml
+Writes DEVICE.yaml and DEVICE.cv.csv (the cross-validated accuracy before and after, also printed).
+How to record the loads, the pairing of frames with wrenches, the creep: docs/calibration.md."""
+
+
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo calibrate", description=help_text(__doc__.splitlines()[0]),
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=help_text(__doc__.split("\n", 1)[1]))
+    p = ToolParser(prog="cstomo calibrate", description=help_text(__doc__.splitlines()[0]), epilog=EPILOG)
     add_pipeline_args(p)
-    p.add_argument("--reference", help="frames file of unloaded frames (required with --frames)")
-    p.add_argument("--frames", help="frames file of the loaded frames")
-    p.add_argument("--forces", help="forces file: the known force of each used frame (by 'frame')")
-    p.add_argument("--bag", help="rosbag2 directory instead of --frames/--forces")
-    p.add_argument("--voltages-topic", default="/cstomo_sensor/raw_voltages")
-    p.add_argument("--wrench-topic", help="the reference sensor's WrenchStamped topic (with --bag)")
-    p.add_argument("--stamp-tolerance", type=float, default=STAMP_TOLERANCE, metavar="S",
+    p.add_argument("--reference", metavar="FILE", help="frames file of unloaded frames (required with --frames)")
+    p.add_argument("--frames", metavar="FILE", help="frames file of the loaded frames")
+    p.add_argument("--forces", metavar="FILE", help="forces file: the known force of each used frame (by 'frame')")
+    p.add_argument("--bag", metavar="DIR", help="rosbag2 directory instead of --frames/--forces")
+    p.add_argument("--voltages-topic", default="/cstomo_sensor/raw_voltages", metavar="TOPIC",
+                   help="the raw frames topic in --bag (sensor_msgs/Image, as the node publishes ~/raw_voltages)")
+    p.add_argument("--wrench-topic", metavar="TOPIC", help="the reference sensor's WrenchStamped topic (with --bag)")
+    p.add_argument("--stamp-tolerance", type=positive("seconds > 0"), default=STAMP_TOLERANCE, metavar="S",
                    help="largest stamp difference of a frame and its wrench (default %(default)g s)")
-    p.add_argument("--unloaded-below", type=float, default=UNLOADED_BELOW, metavar="N",
+    p.add_argument("--unloaded-below", type=positive("newtons >= 0", zero=True), default=UNLOADED_BELOW, metavar="N",
                    help="with --bag and no --reference: frames under this force are the reference; with --frames: "
                         "rows of the forces file under it are rests, the creep's history, not loads (default %(default)g)")
-    p.add_argument("--rate", type=float, metavar="HZ",
+    p.add_argument("--rate", type=positive("frames per second > 0"), metavar="HZ",
                    help="frames per second of --frames when it is one recording in time order: its loads held "
                         f"{HELD_FOR:g} s or more give the creep (a bag's frames carry their stamps)")
     p.add_argument("--creep-per-decade", type=float, metavar="C",
@@ -217,10 +225,10 @@ def parser() -> argparse.ArgumentParser:
                         "the node's creep_per_decade applies)")
     p.add_argument("--creep-hold", metavar="FRAMES",
                    help="frames file of one load held still for a minute or more, its first frame when the load "
-                        "was applied: the creep per decade is fitted from it (force/creep.py)")
-    p.add_argument("--creep-rate", type=float, default=100.0, metavar="HZ",
+                        "was applied: the creep per decade is fitted from it")
+    p.add_argument("--creep-rate", type=positive("frames per second > 0"), default=100.0, metavar="HZ",
                    help="frames per second of --creep-hold (default %(default)g)")
-    p.add_argument("--out", required=True, help="calibration file to write (YAML); the table goes beside it")
+    p.add_argument("--out", required=True, metavar="FILE", help="calibration file to write (YAML); the table goes beside it")
     return p
 
 

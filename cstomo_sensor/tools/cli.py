@@ -7,7 +7,6 @@ Subcommands: ``model build``, ``model voltages``, ``reconstruct``, ``simulate``,
 from __future__ import annotations
 
 import argparse
-import logging
 import resource
 import signal
 import sys
@@ -31,7 +30,7 @@ from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..sources import ArraySource
-from .common import add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config
+from .common import MAX_REPEATS, ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
 OWN_PARSERS = {"board-sim": ".board_sim", "board-check": ".board_check", "replay": ".replay",
@@ -128,9 +127,11 @@ def cmd_estimate(a) -> int:
     rows = Results(stream, every_frame=True, path=a.out, valid_column="auto")
     run(ArraySource(frames, rate_hz=a.rate), stream, [rows])
     results, valid = rows.results, rows.valid
-    for i, r in enumerate(results):
-        if not r.valid:
-            print(f"frame {i}: implausible ({r.reason}): no force", file=sys.stderr)
+    bad = [i for i, r in enumerate(results) if not r.valid]
+    for i in bad[:MAX_REPEATS]:  # the first few by name, the rest counted (the file's valid column has each)
+        print(f"frame {i}: implausible ({results[i].reason}): no force", file=sys.stderr)
+    if len(bad) > MAX_REPEATS:
+        print(f"... and {len(bad) - MAX_REPEATS} more implausible frames (valid 0 in {a.out})", file=sys.stderr)
     foreign = sum(r.foreign_load for r in results)
     print(f"wrote {a.out}: {valid.sum()} forces ({a.estimator} estimator); {(~valid).sum()} implausible"
           + (f"; {foreign} with a foreign load (not on the socket)" if foreign else ""))
@@ -180,9 +181,9 @@ FRAMES_HELP = "frames file: 208 comma-separated volts a line (docs/formats.md#fr
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``cstomo`` (the subcommands of :data:`OWN_PARSERS` parse their own arguments)."""
-    p = argparse.ArgumentParser(prog="cstomo", description="The force sensor's tools without ROS; to see it work, start "
+    p = ToolParser(prog="cstomo", description="The force sensor's tools without ROS; to see it work, start "
                                 "with `cstomo demo` (README.md, docs/). Each command's --help says what it reads and writes.")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what the library does (INFO)")
     sub = p.add_subparsers(dest="cmd", required=True)
     model = sub.add_parser("model", help="forward model").add_subparsers(dest="what", required=True)
     b = model.add_parser("build", help="build (or load) the forward model and print a summary")
@@ -200,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the reference is a saved tare this old: the node's restart (default: a tare just taken)")
     e.add_argument("--frames", required=True, help=FRAMES_HELP)
     e.add_argument("--out", required=True, help="forces file to write (CSV, docs/formats.md#forces-file)")
-    e.add_argument("--rate", type=float, default=100.0, metavar="HZ",
+    e.add_argument("--rate", type=positive("frames per second > 0"), default=100.0, metavar="HZ",
                    help="frames per second of the frames file, in file order: the clock of the drift tracking "
                         "(default %(default)g)")
     add_setting_arg(e, "drift_tracking")
@@ -208,8 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
-    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP)
     s.add_argument("--scene", required=True, metavar="FILE",
                    help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
     s.add_argument("--out", required=True, metavar="DIR",
@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] in OWN_PARSERS:  # commands that own their argument parsing
         return import_module(OWN_PARSERS[argv[0]], __package__).main(argv[1:])
     a = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(a.verbose)
     handlers = {("model", "build"): cmd_model_build, ("model", "voltages"): cmd_model_voltages}
     fn = handlers.get((a.cmd, getattr(a, "what", None))) or {
         "reconstruct": cmd_reconstruct, "estimate": cmd_estimate, "simulate": cmd_simulate}[a.cmd]

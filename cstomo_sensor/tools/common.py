@@ -9,11 +9,17 @@ in the node's parameters and the files.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
+import logging
+import math
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import IO
 
@@ -24,6 +30,188 @@ from ..force.config import PipelineConfig
 from ..settings import SETTING, text_of
 
 _SAME = object()
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """The ``--help`` of every ``cstomo`` command: descriptions as written, and every option's help
+    ending with its default (``(default: X)``) unless the help says its default itself; options
+    without a value (``--flag``), required ones and those whose default is None show none."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text.lower() or action.required or any(action.default is v for v in (None, False, argparse.SUPPRESS))
+                or not action.option_strings or action.nargs == 0 and not isinstance(action, argparse.BooleanOptionalAction)):
+            return text
+        return f"{text} (default: {_shown(action.default)})".lstrip()
+
+
+def _shown(value: object) -> str:
+    """A default as a person types it: ``8 8 4`` for a list, ``''`` for the empty string."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(map(str, value))
+    if isinstance(value, bool):
+        return str(value).lower()
+    return "''" if value == "" else str(value).replace("%", "%%")
+
+
+class ToolParser(argparse.ArgumentParser):
+    """The argument parser of a ``cstomo`` command: :class:`HelpFormatter`, and :meth:`fail`, the one
+    error line of every command, ``PROG: error: ...`` as argparse's own (its subparsers are ToolParsers too)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        """A bad command line: one line, ``PROG: error: MESSAGE``, exit 2 (argparse's own adds the usage)."""
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def fail(self, err: object, code: int = 2) -> int:
+        """Print ``PROG: error: ERR`` on stderr; ``code``."""
+        print(f"{self.prog}: error: {err}", file=sys.stderr, flush=True)
+        return code
+
+
+def positive(what: str = "a number > 0", *, zero: bool = False, kind: type = float):
+    """An argparse ``type`` for a finite number > 0 (>= 0 with ``zero``), refused at parsing as
+    ``argument --flag: VALUE: expected WHAT``."""
+
+    def parse(word: str):
+        try:
+            v = kind(word)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{word!r}: expected {what}") from None
+        if not (v >= 0 if zero else v > 0) or not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{word}: expected {what}")
+        return v
+
+    parse.__name__ = what
+    return parse
+
+
+#: A command prints one log message (one template of one logger) at most this many times; then it
+#: counts the rest and says how many at its end (:class:`RepeatFilter`).
+MAX_REPEATS = 3
+
+
+class RepeatFilter(logging.Filter):
+    """Lets at most :data:`MAX_REPEATS` records of each message template (logger and format string,
+    whatever its arguments) through; :meth:`summary` says what was held back. A benchmark that runs
+    hundreds of streams would otherwise print each stream's own once-per-run message hundreds of times."""
+
+    def __init__(self, limit: int = MAX_REPEATS, level: int = logging.NOTSET) -> None:
+        super().__init__()
+        self.limit = limit
+        self.level = level  # records below it are not shown, so not counted either
+        self.seen: dict[tuple[str, str], int] = {}
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "progress", None) is not None:  # a progress line updates itself
+            return True
+        if record.levelno < self.level:
+            return False
+        key = (record.name, str(record.msg))
+        self.seen[key] = self.seen.get(key, 0) + 1
+        return self.seen[key] <= self.limit
+
+    def say(self) -> None:
+        """Print :meth:`summary` on stderr (at the command's end)."""
+        for line in self.summary():
+            print(f"(log) {line}", file=sys.stderr)
+
+    def summary(self) -> list[str]:
+        """One line per message held back: its template and how often it came."""
+        return [f"{name.partition('.')[2] or name}: {msg!r} came {n} times; the {n - self.limit} after the first "
+                f"{self.limit} not shown" for (name, msg), n in self.seen.items() if n > self.limit]
+
+
+class _ToolHandler(logging.StreamHandler):
+    """stderr for a command: records at ``level`` and above; progress records (``extra={"progress":
+    (i, n)}``, :mod:`cstomo_sensor.progress`) as one line updated in place on a terminal, none
+    elsewhere (a log file, CI)."""
+
+    def __init__(self, level: int) -> None:
+        super().__init__(sys.stderr)
+        self.threshold = level
+        self.tty = sys.stderr.isatty()
+        self.open_line = False  # a progress line is on the terminal, not yet ended
+
+    def emit(self, record: logging.LogRecord) -> None:
+        progress = getattr(record, "progress", None)
+        if progress is None and record.levelno < self.threshold:
+            return
+        if progress is not None and not self.tty:
+            return
+        try:
+            if progress is not None:
+                i, n = progress
+                self.stream.write(f"\r{record.getMessage()}\x1b[K" + ("\n" if i >= n else ""))
+                self.open_line = i < n
+            else:
+                if self.open_line:
+                    self.stream.write("\n")
+                    self.open_line = False
+                self.stream.write(self.format(record) + "\n")
+            self.flush()
+        except Exception:  # noqa: BLE001 - logging must never raise into the code that logs
+            self.handleError(record)
+
+
+def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s",
+                  force: bool = False) -> RepeatFilter:
+    """The log of a ``cstomo`` command on stderr: WARNING and above (INFO with ``verbose``), each
+    message at most :data:`MAX_REPEATS` times, what was held back said once at the process's end;
+    progress of long steps as one updating line on a terminal (:class:`_ToolHandler`). As
+    :func:`logging.basicConfig`, nothing is changed when the root logger has handlers of another's
+    (a program or a test harness that calls the command's ``main``), unless ``force``."""
+    level = logging.INFO if verbose else logging.WARNING
+    handler = _ToolHandler(level)
+    handler.setFormatter(logging.Formatter(fmt))
+    repeats = RepeatFilter(level=level)
+    handler.addFilter(repeats)
+    root = logging.getLogger()
+    if not force and any(not getattr(h, "_cstomo", False) for h in root.handlers):
+        return repeats
+    for old in [h for h in root.handlers if getattr(h, "_cstomo", False)]:
+        root.removeHandler(old)
+    handler._cstomo = True
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)  # the handler decides: progress records are INFO
+    atexit.register(repeats.say)
+    return repeats
+
+
+@contextlib.contextmanager
+def ticking(what: str, stream: IO | None = None, every: float = 1.0):
+    """While the block runs, ``WHAT: N s`` updated in place every ``every`` s on a terminal (nothing
+    when ``stream``, default stdout, is not one): a wait on another process that says nothing itself."""
+    stream = stream or sys.stdout
+    if not stream.isatty():
+        yield
+        return
+    done = threading.Event()
+    t0 = time.monotonic()
+
+    def tick() -> None:
+        while not done.wait(every):
+            stream.write(f"\r{what}: {time.monotonic() - t0:.0f} s\x1b[K")
+            stream.flush()
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        if time.monotonic() - t0 >= every:
+            stream.write(f"\r{what}: done in {time.monotonic() - t0:.0f} s\x1b[K\n")
+            stream.flush()
+
+
+#: The short value name (metavar) of a setting's flag that takes a string.
+_METAVARS = {"sensor": "NAME", "cache_dir": "DIR", "calibration_file": "FILE", "tare_file": "FILE", "port": "URL",
+             "frame_id": "FRAME"}
 
 
 def help_text(doc: str) -> str:
@@ -52,7 +240,8 @@ def add_setting_arg(p: argparse.ArgumentParser, name: str, *, flag: str | None =
 
     parse.__name__ = name  # argparse's message names it
     kind = {"nargs": len(s.default), "default": list(value)} if isinstance(s.default, tuple) else {"default": value}
-    metavar = ("NX", "NY", "NZ") if name == "grid" else None
+    metavar = ("NX", "NY", "NZ") if name == "grid" else None if s.choices else _METAVARS.get(name) or (
+        "N" if isinstance(s.default, int) else "X" if isinstance(s.default, float) else "VALUE")
     return p.add_argument(flag, dest=name, type=None if s.choices else parse, choices=s.choices or None, help=text,
                           metavar=metavar, **kind)
 

@@ -40,18 +40,18 @@ from ..force.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
 from ..settings import MAX_LOAD
 from .board_sim import COMPUTING
-from .common import NodeWithBoard, add_setting_arg, help_text, local_ros_env
+from .common import NodeWithBoard, ToolParser, add_setting_arg, help_text, local_ros_env, positive, ticking
 from .plot import DIRECTION_SIGMAS, Forces, check_picture, figure, save_png
 
 
 def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """(times, forces, labels) of the demo sequence."""
     steps: list[tuple[str, np.ndarray]] = [("unloaded (tare)", np.zeros(3))]
-    for gamma in (30, 90, 120):  # the paper's planar cases: gamma = atan2(-Fz, Fx)
+    for gamma in (30, 90, 120):  # the paper's planar cases: gamma = atan2(-Fz, Fx), in the x-z plane
         g = np.radians(gamma)
-        steps.append((f"paper case {gamma} deg", 20.0 * np.array([np.cos(g), 0.0, -np.sin(g)])))
+        steps.append((f"paper {gamma}° in x-z", 20.0 * np.array([np.cos(g), 0.0, -np.sin(g)])))
     for az in range(0, 360, 45):
-        steps.append((f"sweep azimuth {az} deg", force_from_angles(20.0, np.radians(60), np.radians(az))))
+        steps.append((f"sweep azimuth {az}°", force_from_angles(20.0, np.radians(60), np.radians(az))))
     for mag in (5.0, 15.0, 30.0, 40.0):
         steps.append((f"magnitude {mag:g} N", force_from_angles(mag, np.radians(75), np.radians(30))))
     steps.append(("released", np.zeros(3)))
@@ -59,22 +59,41 @@ def load_script(hold: float = 2.0, lead: float = 3.0) -> tuple[np.ndarray, np.nd
     return times, np.array([f for _, f in steps]), [s for s, _ in steps]
 
 
+#: The force columns of a demo line: magnitude, elevation, azimuth (units in the header, :data:`LEGEND`).
+FORCE_COLUMNS = f"{'|F| [N]':>7}  {'elev [deg]':>10}  {'azim [deg]':>10}"
+
+#: What the columns of the demo's table are, said once above it.
+LEGEND = (
+    "elev: elevation, degrees below the horizontal (90: straight down)\n"
+    "azim: azimuth, degrees from +x towards +y, 0..360 ('-' straight down: a vertical force has none)\n"
+    f"'-' for both: |F| below {DIRECTION_SIGMAS:g} x its 1-sigma (~/wrench_sigma), a direction within the noise\n"
+    "'paper G° in x-z': the paper's planar cases, the angle G from +x in the x-z plane")
+
+
 def _fmt(f: np.ndarray, sigma_n: float = math.nan) -> str:
-    """``|F| N  el D  az D`` of force ``f``; no angles for no force, or for a force below
-    :data:`DIRECTION_SIGMAS` x its 1-sigma ``sigma_n`` (N; nan: unknown, angles shown)."""
+    """The :data:`FORCE_COLUMNS` of force ``f``: magnitude N, elevation and azimuth in degrees (azimuth
+    0..360). No angles for no force, or for a force below :data:`DIRECTION_SIGMAS` x its 1-sigma
+    ``sigma_n`` (N; nan: unknown, angles shown); no azimuth for a force straight down, or whose
+    horizontal part is below that."""
     m, el, az = force_angles(f)
     if m == 0 or m < DIRECTION_SIGMAS * sigma_n:  # no (meaningful) direction (not "el -0.0  az 0.0")
-        return f"{m:6.2f} N  el {'-':>6}  az {'-':>7}"
-    return f"{m:6.2f} N  el {np.degrees(el):6.1f}  az {np.degrees(az):7.1f}"
+        return f"{m:7.2f}  {'-':>10}  {'-':>10}"
+    horizontal = float(np.hypot(f[0], f[1]))
+    if horizontal <= 1e-9 * m or horizontal < DIRECTION_SIGMAS * sigma_n:  # no (meaningful) azimuth
+        return f"{m:7.2f}  {np.degrees(el):10.1f}  {'-':>10}"
+    azimuth = float(np.degrees(az)) % 360.0
+    return f"{m:7.2f}  {np.degrees(el):10.1f}  {0.0 if round(azimuth, 1) == 360.0 else azimuth:10.1f}"
 
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo demo", description=help_text(__doc__.splitlines()[0]))
+    p = ToolParser(prog="cstomo demo", description=help_text(__doc__.splitlines()[0]))
     add_setting_arg(p, "sensor")
     add_setting_arg(p, "estimator")
-    p.add_argument("--rate", type=float, default=100.0, help="board frame rate, Hz")
-    p.add_argument("--hold", type=float, default=2.0, help="seconds each load is held (the last one, with --load-script)")
+    p.add_argument("--rate", type=positive("frames per second > 0"), default=100.0, metavar="HZ",
+                   help="the simulated board's frames per second")
+    p.add_argument("--hold", type=positive("seconds > 0"), default=2.0, metavar="S",
+                   help="seconds each load is held (with --load-script: the last one)")
     p.add_argument("--load-script", metavar="CSV", help="play this load script (time,fx,fy,fz) instead of the demo's")
     p.add_argument("--plot", metavar="PNG", help="at the end, draw the run's true and estimated forces over time into "
                    "this picture, as `cstomo plot` does (default: none)")
@@ -82,14 +101,14 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    a = parser().parse_args(argv)
+    p = parser()
+    a = p.parse_args(argv)
     local_ros_env(150)
     signal.signal(signal.SIGTERM, _interrupt)  # SIGTERM ends the demo as Ctrl-C does
     try:
         return _run(a)
     except (CstomoError, OSError) as err:
-        print(f"cstomo demo: {err}", file=sys.stderr)
-        return 2
+        return p.fail(err)
     except KeyboardInterrupt:  # before the board streams (the watch handles its own)
         print("\ncstomo demo: stopped before the board streamed", file=sys.stderr)
         return 0
@@ -134,7 +153,8 @@ def _run(a: argparse.Namespace) -> int:
             Pipeline.build(PipelineConfig(sensor=a.sensor, estimator=a.estimator),
                            progress=lambda m: print("      " + m, flush=True))
             print(f"      ready in {time.perf_counter() - t:.1f} s", flush=True)
-            device = run.start()
+            with ticking("      the simulated board computes its loads (once; cached)"):
+                device = run.start()
             marks["board ready"] = time.monotonic() - started
             print(f"[3/3] board on {device}; waiting for the node to connect", flush=True)
             script_t0 = run.wait_streaming()  # the script's t = 0 on the wrenches' clock (None: unknown)
@@ -205,9 +225,23 @@ def _print_summary(a, summary: dict, marks: dict, started: float, board_lines: l
                  ("median angle error", f"{np.median(e[:, 0]):.2f} deg (between the estimated and the true force)"),
                  ("magnitude error", f"median {100 * np.median(e[:, 1]):.1f} % (| |F estimated| - |F true| | / "
                                      f"|F true|; {a.estimator} estimator)")]
-    rows += [("simulated board" if i == 0 else "", line) for i, line in enumerate(board_lines)]
+    rows += [("simulated board" if i == 0 else "", line) for i, line in enumerate(_board_counts(board_lines, a.rate))]
     for name, text in rows:
         print(f"  {name:<19} {text}")
+
+
+def _board_counts(lines: list[str], rate: float) -> list[str]:
+    """board-sim's final counts as the demo's summary says them: its overrun (frames it could not write
+    once the demo had stopped the node, which it does first, before the board's last 2 s) as a few
+    words on the first line, unless more frames than those 2 s overran (then its own line stays)."""
+    overrun = [ln for ln in lines if " overrun: " in ln]
+    if not overrun or not lines:
+        return lines
+    n = int(overrun[0].split()[0]) if overrun[0].split()[0].isdigit() else None
+    if n is None or n > 2.5 * rate:
+        return lines
+    rest = [ln for ln in lines if ln is not overrun[0]]
+    return [f"{rest[0]}; {n} more unsent after the node stopped (as expected at the end)", *rest[1:]] if rest else lines
 
 
 class _View:
@@ -290,11 +324,11 @@ def judge(times: np.ndarray, forces: np.ndarray, labels: list[str], t: float, es
     true = force_at(times, forces, t)
     settled = i >= 0 and t - times[i] > settle
     err = np.degrees(angle_between(est, true)) if np.linalg.norm(true) > 0 else float("nan")
-    shown = f"{err:8.1f}°" if np.isfinite(err) else f"{'-':>9}"
+    shown = f"{err:15.1f}" if np.isfinite(err) else f"{'-':>15}"
     counted = None
     if settled and np.isfinite(err):
         counted = (float(err), float(abs(np.linalg.norm(est) - np.linalg.norm(true)) / np.linalg.norm(true)))
-    return f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true):<34} {_fmt(est, sigma_n):<34} {shown}", counted
+    return f"{t:6.1f}  {labels[max(i, 0)]:<22} {_fmt(true)}   {_fmt(est, sigma_n)}   {shown}", counted
 
 
 def _watch(a, t0, duration, times, forces, labels, board, view: _View,
@@ -309,9 +343,12 @@ def _watch(a, t0, duration, times, forces, labels, board, view: _View,
         view.wake.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    print(f"estimated: the node's ~/wrench; 'el - az -' when |F| < {DIRECTION_SIGMAS:g} x its 1-sigma sigma_n "
-          "(~/wrench_sigma): a direction within the noise")
-    print(f"{'t [s]':>6}  {'load':<22} {'true':<34} {'estimated':<34} {'angle err':>9} {'rate':>7}")
+    print(LEGEND)
+    width = len(FORCE_COLUMNS)
+    estimated = "estimated (the node's ~/wrench)"
+    print(f"\n{'':6}  {'':22} {'true force':^{width}}   {estimated:^{width}}")
+    print(f"{'t [s]':>6}  {'load':<22} {FORCE_COLUMNS}   {FORCE_COLUMNS}   {'angle err [deg]':>15} "
+          f"{'rate [1/s]':>10}")
     errors = []
     last_n, last_t = 0, time.monotonic()
     try:
@@ -335,7 +372,7 @@ def _watch(a, t0, duration, times, forces, labels, board, view: _View,
             line, counted = judge(times, forces, labels, t, est, view.sigma_n)
             if counted is not None:
                 errors.append(counted)
-            print(f"{line} {rate:6.0f}/s", flush=True)
+            print(f"{line} {rate:10.0f}", flush=True)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -30,7 +30,7 @@ from ..model.geometry import load_sensor
 from ..model.material import pressure_of_theta
 from ..model.mesh import MeshSpec, build_mesh, electrode_patches
 from ..model.simulate import Scene, add_noise
-from .common import add_setting_arg, help_text
+from .common import ToolParser, add_setting_arg, help_text
 
 WINDOW = (1200, 600)
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "scenes" / "cuboid_planar_60db.yaml"
@@ -48,7 +48,11 @@ def _grid(points: np.ndarray, tets: np.ndarray, **cell_data):
 
 def _plotter(shape=(1, 2)):
     import pyvista as pv  # heavy (VTK): only where a surface is made or rendered
+    from vtkmodules.vtkCommonCore import vtkLogger
 
+    # off screen, VTK's logger warns once per window that it has no X display ('bad X server
+    # connection. DISPLAY=', ANSI-coloured): nothing a user can act on; its errors still show
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
     pv.OFF_SCREEN = True
     size = [WINDOW[0] + 600 * max(0, shape[1] - 2), WINDOW[1]]
     p = pv.Plotter(off_screen=True, window_size=size, shape=shape, border=False)
@@ -222,7 +226,7 @@ def render(sensor: str, out: str | Path, scene_path: str | Path | None = None, c
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo render", description=help_text(__doc__.splitlines()[0]))
+    p = ToolParser(prog="cstomo render", description=help_text(__doc__.splitlines()[0]))
     add_setting_arg(p, "sensor")
     p.add_argument("--out", required=True, help="output directory for the PNGs")
     p.add_argument("--scene", default=None, help=f"scene file (default {DEFAULT_SCENE.name})")

@@ -29,7 +29,6 @@ complete.
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import shutil
 import sys
@@ -49,7 +48,7 @@ from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
-from .common import add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config, setup_logging
 
 STORAGES = ("sqlite3", "mcap")
 log = logging.getLogger(__name__)
@@ -82,8 +81,9 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
            wrench_filter_hz: float = default("wrench_filter_hz"), drift_tracking: bool = default("drift_tracking"),
            creep_per_decade: float = default("creep_per_decade"), frame_id: str = default("frame_id"),
            topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
-           forces_file: str | Path | None = None) -> ReplaySummary:
-    """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist).
+           forces_file: str | Path | None = None, overwrite: bool = False) -> ReplaySummary:
+    """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist, unless ``overwrite``: an existing
+    rosbag2 there is replaced once the replay is complete).
 
     Parameters
     ----------
@@ -112,8 +112,13 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     if storage not in STORAGES:
         raise ConfigError(f"{storage=}: expected one of {list(STORAGES)}")
     out_bag = Path(out_bag)
-    if out_bag.exists():
-        raise ConfigError(f"output bag {out_bag}: exists; expected a new directory")
+    if out_bag.exists() and not overwrite:
+        raise ConfigError(f"output bag {out_bag}: exists; expected a new directory (--force replaces it)")
+    if out_bag.exists() and not (out_bag / "metadata.yaml").is_file():  # never delete what is not a bag
+        raise ConfigError(f"output bag {out_bag}: exists and is not a rosbag2 directory (no metadata.yaml); "
+                          "not replaced, give a new directory")
+    if out_bag.exists() and out_bag.resolve() == Path(in_bag).resolve():
+        raise ConfigError(f"output bag {out_bag}: is the input bag; give another directory")
     if not out_bag.parent.is_dir():
         raise ConfigError(f"output bag {out_bag}: its directory {out_bag.parent} does not exist")
     if forces_file is not None and not Path(forces_file).parent.is_dir():
@@ -155,6 +160,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                                   f"reference: the tare needs {tare_frames} steady unloaded frames); give --reference "
                                   "FILE (unloaded frames of this device), fewer --tare-frames (at most the unloaded "
                                   "frames it starts with) or a bag that starts unloaded for longer; no output written")
+            if overwrite and out_bag.exists():
+                shutil.rmtree(out_bag)
             os.replace(partial, out_bag)
         except BaseException:
             if forces_file is not None and not had_forces:  # written at the run's end: only a complete replay leaves it
@@ -170,13 +177,14 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo replay", description=help_text(__doc__.split("\n\n")[0]))
+    p = ToolParser(prog="cstomo replay", description=help_text(__doc__.split("\n\n")[0]))
     p.add_argument("in_bag", help="rosbag2 directory (sqlite3 or mcap) holding a */raw_voltages topic")
-    p.add_argument("--out", required=True, help="output bag directory (must not exist)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output bag directory (must not exist, unless --force)")
+    p.add_argument("--force", action="store_true", help="replace an existing output bag (once the replay is complete)")
     p.add_argument("--topic", help="input topic (default: the one ending in raw_voltages)")
     add_pipeline_args(p)
-    p.add_argument("--reference", help="frames file used as the reference; a saved tare older than the bag: the "
-                                       "node's restart at its age (default: tare on the first frames)")
+    p.add_argument("--reference", metavar="FILE", help="frames file used as the reference; a saved tare older than "
+                   "the bag: the node's restart at its age (else: tare on the first frames)")
     add_setting_arg(p, "tare_frames")
     add_setting_arg(p, "stress_field_every", default=0,
                     note=f"here no stress fields unless asked (the node's default: {default('stress_field_every')})")
@@ -184,8 +192,8 @@ def parser() -> argparse.ArgumentParser:
     add_setting_arg(p, "drift_tracking")
     add_creep_arg(p)
     add_setting_arg(p, "frame_id")
-    p.add_argument("--storage", default="sqlite3", help="output storage: sqlite3 or mcap")
-    p.add_argument("--forces", help="also write a forces file (CSV) with the consistency and foreign_load columns")
+    p.add_argument("--storage", default="sqlite3", choices=list(STORAGES), help="output storage")
+    p.add_argument("--forces", metavar="FILE", help="also write a forces file (CSV) with the consistency and foreign_load columns")
     return p
 
 
@@ -194,16 +202,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     from rosbags.rosbag2 import ReaderError, WriterError  # optional: the [full] extra
 
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    setup_logging(verbose=True, fmt="%(message)s")
     try:
         cfg = pipeline_config(args)
         s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
                    stress_field_every=args.stress_field_every, wrench_filter_hz=args.wrench_filter_hz,
                    drift_tracking=args.drift_tracking, creep_per_decade=args.creep_per_decade,
                    frame_id=args.frame_id, topic=args.topic, storage=args.storage, forces_file=args.forces,
+                   overwrite=args.force,
                    progress=lambda m: print(f"model: {m}", file=sys.stderr))
     except (CstomoError, OSError, ReaderError, WriterError) as err:
-        print(f"cstomo replay: {err}", file=sys.stderr)
+        print(f"cstomo replay: error: {err}", file=sys.stderr)
         return 2
     print(f"{s.frames_in} frames from {s.input_topic}: {s.results} results written to {args.out} "
           f"({', '.join(s.output_topics)}); {s.corrupt} corrupt; {s.implausible} implausible; "

@@ -10,7 +10,7 @@ import os
 import sys
 from pathlib import Path
 
-from ..common import add_setting_arg
+from ..common import ToolParser, add_setting_arg, positive, setup_logging
 from .drift import drift_bench, frame_cost
 from .effort import calibration_effort
 from .filter import filter_bench
@@ -25,14 +25,15 @@ from .weight import choose_weight
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo bench", description=(
+    p = ToolParser(prog="cstomo bench", description=(
         "Speed and accuracy on honest simulations (docs/benchmark.md): by default the table of every knob; "
         "one of the options below runs one other benchmark instead."))
     g = p.add_mutually_exclusive_group()
     g.add_argument("--smoke", action="store_true", help="default setting only, 2 scenes (under a minute, warm caches)")
     g.add_argument("--quick", action="store_true", help="every knob, 8 scenes (a few minutes)")
     g.add_argument("--pyeit", action="store_true", help="comparison with pyEIT (needs `pip install pyeit`)")
-    g.add_argument("--heldout", type=int, metavar="N", help="both estimators on N held-out forces at 60 and 40 dB")
+    g.add_argument("--heldout", type=positive("a whole number >= 1", kind=int), metavar="N",
+                   help="both estimators on N held-out forces at 60 and 40 dB")
     g.add_argument("--greit", action="store_true", help="GREIT-style figures for inclusions at several places")
     g.add_argument("--calibration-effort", action="store_true",
                    help="held-out accuracy of a simulated non-nominal device against the number of calibration loads")
@@ -62,6 +63,7 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     p = parser()
     a = p.parse_args(sys.argv[1:] if argv is None else argv)
+    setup_logging()
     if a.robot and not a.drift:
         p.error("--robot goes with --drift")
     if a.one_frame_reference and not a.heldout:
@@ -73,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             import pyeit  # noqa: F401  (optional; never a dependency of the package)
         except ImportError:
-            print("cstomo bench --pyeit: pyEIT is not installed (.venv/bin/pip install pyeit)", file=sys.stderr)
-            return 2
+            return p.fail("--pyeit: pyEIT is not installed (pip install pyeit, in the activated .venv)")
 
         run_pyeit(a.out, a.cache_dir or None)
         return 0

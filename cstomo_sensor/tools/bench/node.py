@@ -77,7 +77,7 @@ from geometry_msgs.msg import WrenchStamped
 from ...errors import CstomoError
 from ...force.config import PipelineConfig
 from ...force.pipeline import Pipeline
-from ..common import NodeWithBoard, add_setting_arg, executable, help_text, local_ros_env
+from ..common import NodeWithBoard, ToolParser, add_setting_arg, executable, help_text, local_ros_env, positive
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
            "frames_dropped", "dropped_overflow", "seq_gaps", "late_dropped", "keeps_up",
@@ -525,22 +525,27 @@ def sensors_markdown(rows: list[dict]) -> str:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo bench-node", description=help_text(__doc__.splitlines()[0]))
-    p.add_argument("--rates", type=float, nargs="+", default=[100.0, 1000.0], help="board frame rates, Hz")
-    p.add_argument("--stress", type=int, nargs="+", default=[0, 1], help="stress_field_every values (0 = off)")
-    p.add_argument("--sensors", type=int, nargs="+", default=[1], metavar="N",
+    p = ToolParser(prog="cstomo bench-node", description=help_text(__doc__.splitlines()[0]))
+    p.add_argument("--rates", type=positive("frames per second > 0"), nargs="+", default=[100.0, 1000.0], metavar="HZ",
+                   help="board frame rates")
+    p.add_argument("--stress", type=positive("a whole number >= 0", zero=True, kind=int), nargs="+", default=[0, 1],
+                   metavar="N", help="stress_field_every values (0 = off)")
+    p.add_argument("--sensors", type=positive("a whole number >= 1", kind=int), nargs="+", default=[1], metavar="N",
                    help="numbers of boards and sensors run together (default 1)")
     p.add_argument("--hosted", action="store_true",
                    help="the sensors in one cstomo_sensor_host process (default: a cstomo_sensor_node each)")
     p.add_argument("--lean", action="store_true",
-                   help="the lean loop of tools/bench/lean.py in place of each node: the floor of an rclpy node")
+                   help="a minimal rclpy loop (read, estimate, publish) in place of each node: the floor of an rclpy node")
     p.add_argument("--both", action="store_true", help="every configuration with a process each and hosted")
-    p.add_argument("--seconds", type=float, default=10.0, help="measured window per configuration, s")
-    p.add_argument("--warmup", type=float, default=2.0, help="s after the first wrench before measuring")
+    p.add_argument("--seconds", type=positive("seconds > 0"), default=10.0, metavar="S",
+                   help="measured window per configuration")
+    p.add_argument("--warmup", type=positive("seconds >= 0", zero=True), default=2.0, metavar="S",
+                   help="seconds after the first wrench before measuring")
     p.add_argument("--cold", action="store_true",
                    help="every configuration also at --cold-rate (frames after an idle period; doubles the run time)")
-    p.add_argument("--cold-rate", type=float, default=10.0, help="the cold run's frame rate, Hz (default 10)")
-    p.add_argument("--out", default=".", help="directory for the tables and the processes' logs")
+    p.add_argument("--cold-rate", type=positive("frames per second > 0"), default=10.0, metavar="HZ",
+                   help="the cold run's frame rate")
+    p.add_argument("--out", default=".", metavar="DIR", help="directory for the tables and the processes' logs")
     add_setting_arg(p, "sensor")
     add_setting_arg(p, "estimator")
     return p

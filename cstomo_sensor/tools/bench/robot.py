@@ -191,6 +191,25 @@ def sigma_figures(err: np.ndarray, sigma: np.ndarray) -> dict:
             "sigma_ratio": med / max(float(np.median(err)), 1e-12)}
 
 
+def describe(r: dict) -> str:
+    """A row of :func:`window_errors` in words: a window without a published force says so (not
+    'err nan N'), and the error bar is said against the error it should cover (too small, honest, or
+    too cautious: over 3 x the median error)."""
+    if not np.isfinite(r["err_n"]):
+        return f"no force published ({r['implausible']} of {r['frames']} frames implausible)"
+    text = f"median error {r['err_n']:.3f} N"
+    if np.isfinite(r["angle_deg"]):
+        text += f", angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %"
+    text += f", wrong {r['wrong_pct']:.1f} %" + (f", {r['implausible']} implausible" if r["implausible"] else "")
+    if np.isfinite(r["sigma_n"]):
+        ratio = r["sigma_ratio"]
+        verdict = ("smaller than the error" if ratio < 1 else "covers the error" if ratio <= 3
+                   else "over-cautious: over 3 x the error")
+        text += (f"; sigma_n {r['sigma_n']:.3f} N, {ratio:.1f} x the median error ({verdict}), "
+                 f"{r['over3sigma_pct']:.2f} % of errors beyond 3 sigma_n")
+    return text
+
+
 def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     t_start = time.perf_counter()
     rows = []
@@ -227,9 +246,7 @@ def device_rows(scene, cache_dir=None, say=print) -> list[dict]:
             rows.append({"scenario": scenario, "device": dev, "estimator": name, "tracking": tracking, "window": label,
                          **window_errors(est, forces, scale, sel, sigma)})
         r = rows[-1]
-        say(f"robot bench: {scenario}, {name}, tracking {tracking}, {r['window']}: err {r['err_n']:.3f} N, "
-            f"angle {r['angle_deg']:.2f} deg, magnitude {r['magnitude_pct']:.2f} %, wrong {r['wrong_pct']:.1f} %, "
-            f"> 3 sigma {r['over3sigma_pct']:.2f} %, sigma_n {r['sigma_n']:.3f} N ({r['sigma_ratio']:.2f} x the error)")
+        say(f"robot bench: {scenario}, {name}, tracking {tracking}, {r['window']}: {describe(r)}")
 
     def minutes(t):
         return [(f"min {m + 1}", (t >= 60 * m) & (t < 60 * (m + 1))) for m in range(int(WARM_S // 60))]
