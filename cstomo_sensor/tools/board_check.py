@@ -18,12 +18,12 @@ import numpy as np
 from ..board.driver import BoardDriver
 from ..board.wire import N_VALUES, PROTOCOL_VERSION
 from ..errors import CstomoError
-from .common import add_setting_arg
+from .common import ToolParser, add_setting_arg
 
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo board-check",
+    p = ToolParser(prog="cstomo board-check",
                                 description="Identify a board; report its rate, sequence gaps and noise.")
     p.add_argument("--port", required=True, help="the board's device (e.g. /dev/ttyACM0, /dev/pts/N) or a pyserial URL")
     add_setting_arg(p, "protocol")
@@ -36,12 +36,12 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     a = parser().parse_args(argv)
     if not 0 < a.seconds < math.inf:
-        print(f"cstomo board-check: --seconds {a.seconds:g}: expected a positive number of seconds", file=sys.stderr)
+        print(f"cstomo board-check: error: --seconds {a.seconds:g}: expected a positive number of seconds", file=sys.stderr)
         return 2
     try:
         driver = BoardDriver(a.port, protocol=a.protocol, baudrate=a.baudrate, rate_hz=a.rate, queue_size=1 << 16)
     except CstomoError as err:
-        print(f"cstomo board-check: {err}", file=sys.stderr)
+        print(f"cstomo board-check: error: {err}", file=sys.stderr)
         return 2
     frames = []
     try:

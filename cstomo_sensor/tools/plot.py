@@ -25,7 +25,7 @@ import numpy as np
 from ..angles import force_angles
 from ..errors import ConfigError, CstomoError
 from ..frames_io import atomic_write, check_out_file, read_forces_table
-from .common import help_text
+from .common import ToolParser, help_text
 
 #: An estimate is shown without a direction when its magnitude is below this many times its 1-sigma
 #: ``sigma_n`` (the rms of its error's norm): its direction is then the noise's.
@@ -275,7 +275,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo plot", description=help_text(__doc__.split("\n\n")[0]),
+    p = ToolParser(prog="cstomo plot", description=help_text(__doc__.split("\n\n")[0]),
                                 epilog=help_text(__doc__.split("\n\n", 1)[1]))
     p.add_argument("forces_or_bag", nargs="?", metavar="FORCES_OR_BAG",
                    help="a forces file (CSV, docs/formats.md#forces-file) or a rosbag2 directory; none with --live")
@@ -370,10 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError as err:
         from ..errors import install_hint
 
-        print(f"cstomo plot: {err.name or err} is missing: {install_hint(err.name)}", file=sys.stderr)
+        print(f"cstomo plot: error: {err.name or err} is missing: {install_hint(err.name)}", file=sys.stderr)
         return 2
     except (CstomoError, OSError) as err:
-        print(f"cstomo plot: {err}", file=sys.stderr)
+        print(f"cstomo plot: error: {err}", file=sys.stderr)
         return 2
     return 0
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from ..errors import ConfigError, CstomoError
 from ..outputs import OUTPUTS, TOPIC_TYPES
-from .common import help_text
+from .common import ToolParser, help_text
 
 STORAGES = ("sqlite3", "mcap")
 #: The topics recorded unless ``--topics`` says otherwise: every output but the heavy stress fields.
@@ -163,7 +163,7 @@ def _interrupt(*_: object) -> None:
 
 def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
-    p = argparse.ArgumentParser(prog="cstomo record", description=help_text(__doc__.split("\n\n")[0]),
+    p = ToolParser(prog="cstomo record", description=help_text(__doc__.split("\n\n")[0]),
                                 epilog=help_text(__doc__.split("\n\n", 1)[1]))
     p.add_argument("--out", required=True, metavar="DIR", help="bag directory to write (must not exist)")
     p.add_argument("--node", default="/cstomo_sensor", metavar="NAME",
@@ -199,11 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError as err:
         from ..errors import install_hint
 
-        print(("\n" if tty else "") + f"cstomo record: {err.name or err} is missing: {install_hint(err.name)}",
+        print(("\n" if tty else "") + f"cstomo record: error: {err.name or err} is missing: {install_hint(err.name)}",
               file=sys.stderr)
         return 2
     except (CstomoError, OSError) as err:
-        print(("\n" if tty else "") + f"cstomo record: {err}", file=sys.stderr)
+        print(("\n" if tty else "") + f"cstomo record: error: {err}", file=sys.stderr)
         return 2
     if tty:
         print("", file=sys.stderr)

@@ -29,6 +29,7 @@ complete.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import shutil
 import sys
