@@ -25,7 +25,7 @@ def parser() -> argparse.ArgumentParser:
     """This command's argument parser (cli.subcommand_parser)."""
     p = ToolParser(prog="cstomo board-check",
                                 description="Identify a board; report its rate, sequence gaps and noise.")
-    p.add_argument("--port", required=True, help="the board's device (e.g. /dev/ttyACM0, /dev/pts/N) or a pyserial URL")
+    add_setting_arg(p, "port", note="e.g. /dev/ttyACM0, a pseudo-terminal /dev/pts/N, or a pyserial URL")
     add_setting_arg(p, "protocol")
     add_setting_arg(p, "baudrate")
     p.add_argument("--rate", type=float, default=None, help="frames per second to ask for (default: the board's)")
