@@ -69,6 +69,22 @@ REST_WEIGHT = 0.1
 RESTART_SIGMA, RESTART_MIN, RESTART_MAX = 0.015, 0.003, 0.05
 RESTART_RATE = 1e-4
 RESTART_OTHER_N = 0.15
+#: ... and at least what section 9's hours off can do to the other states (docs/physics.md#device-changes):
+#: each resistivity gradient RESTART_GRADIENT of the scale's 1-sigma (a gradient of up to 30 % across the
+#: block: +-0.75 % from its middle at a 2.5 % change); each contact state RESTART_CONTACT of it (contacts
+#: -0.5..-1.5 %/K against the rubber's 0.8 %/K: 1.9 x the scale's change), and, in quadrature, their own
+#: drift of up to RESTART_CONTACT_DRIFT over RESTART_CONTACT_DAYS days, growing as the square root of the
+#: tare's age. Before (0.15 N each): a restart after warming with a 30 % gradient read a phantom lateral
+#: force of 3-11 N for ever (issue 34).
+RESTART_GRADIENT = 0.3
+RESTART_CONTACT = 1.9
+RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
+#: A loaded frame measures the other states too (:meth:`~.joint.JointScale.others_part`: the load and the
+#: scale profiled out; their Cramer-Rao bound in docs/physics.md#device-changes), counted as a loaded frame's
+#: scale (:data:`LOADED_WEIGHT` per 10 ms) and with a floor for the model's mismatch with the load along
+#: each of them: what reads as LOADED_OTHER_N newtons at zero load. Only while a state is less certain than
+#: that floor (a restart, a long task): else the rests measure them, as before.
+LOADED_OTHER_N = 0.3
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
 #: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
@@ -94,8 +110,9 @@ class DriftTracker:
     the rest frames' force bound (None: the residual bound alone)."""
 
     def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray,
-                 force_map: np.ndarray | None = None) -> None:
+                 force_map: np.ndarray | None = None, contacts: int = 0) -> None:
         self._args = (r, gradients, noise, keep, force_map)
+        self.contacts = int(contacts)  # the first this many other states are the contacts' (widen)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
@@ -114,6 +131,8 @@ class DriftTracker:
             sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
             self._W, self._Wr = W, W @ D[0]
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
+            self._other_n = np.maximum(np.linalg.norm(self._Wo, axis=0), 1e-12)  # its norm: N per unit
+            self._floor2 = (LOADED_OTHER_N / self._other_n) ** 2  # the loaded frames' floor (LOADED_OTHER_N)
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
             self._quiet = QuietTest(sigma, self.rest_force)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
@@ -147,7 +166,7 @@ class DriftTracker:
         noise ``noise`` (y units), with the estimator's ``force_map`` (None: each as it was)."""
         r, gradients, noise0, keep0, map0 = self._args
         new = DriftTracker(r, gradients, noise0 if noise is None else noise, keep0 if keep is None else keep,
-                           map0 if force_map is None else force_map)
+                           map0 if force_map is None else force_map, self.contacts)
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         new._follow = self._follow.copy()
@@ -213,7 +232,7 @@ class DriftTracker:
             # (JointScale, force/joint.py), so that a load is never taken for the device; a loaded frame counts as
             # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise), and the
             # mismatch's part that stays while the load is held is a state of its own (force/rest.py LoadBias)
-            z, var, u, v, force = joint
+            z, var, u, v, force = joint[:5]
             if rest:
                 self._bias.rest()
                 Pc = P[:, 0].copy()
@@ -229,6 +248,8 @@ class DriftTracker:
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
                 if delta is not None:
                     tot += delta
+                if len(joint) > 5 and joint[5] is not None:
+                    self._loaded_others(P, tot, joint[5], w)
         if rest:
             self._unmeasured, self._t_rest = 0.0, self._t
         elif m > 1:  # unmeasured, the other states follow the scale by a slope known to FOLLOW_SIGMA
@@ -265,10 +286,44 @@ class DriftTracker:
             else:  # unmeasured: the other states follow the scale's change (FOLLOW_MEMORY)
                 g += self.follow * (self.scale - scale0)
             self._set_gradient(g)
-        if joint is not None:
-            self.force_step = joint[2] - joint[3] * d[0]  # the force given the scale now known
+        if joint is not None:  # the force given the scale (and the others, when measured) now known
+            self.force_step = joint[2] - joint[3] * d[0]
+            if len(joint) > 5 and joint[5] is not None:
+                self.force_step = self.force_step - np.dot(joint[5][2], tot[1:m])
         self.P = 0.5 * (P + P.T)
         return rest
+
+    def _loaded_others(self, P: np.ndarray, tot: np.ndarray, part: tuple, w: float) -> None:
+        """A loaded frame's measurement of the other states (``part``: :meth:`~.joint.JointScale.others_part`'s
+        information and vector), weighted ``w``, with :data:`LOADED_OTHER_N`'s floor: a Kalman update of
+        every state through their covariance ``P`` (in place) into ``tot``."""
+        Ho, bo, _ = part
+        m = self.m
+        try:
+            Hinv = solve_small(Ho, self._eye[1:m, 1:m].copy())
+        except np.linalg.LinAlgError:
+            return
+        z = np.dot(Hinv, bo)
+        R = Hinv
+        R.reshape(-1)[:: m] += self._floor2
+        S = P[1:m, 1:m] + R / w
+        Po = P[1:m, :]
+        try:
+            Kt = solve_small(0.5 * (S + S.T), Po)  # (m - 1, m + 1): the gain's transpose
+        except np.linalg.LinAlgError:
+            return
+        delta = np.dot(z - tot[1:m], Kt)
+        if math.isfinite(float(delta.sum())):
+            tot += delta
+            P -= np.dot(Kt.T, Po)
+
+    @property
+    def wants_others(self) -> bool:
+        """Whether a loaded frame should measure the other states (:data:`LOADED_OTHER_N`): one of them is
+        less certain than the loaded frames' floor."""
+        if self._W is None or self.m < 2:
+            return False
+        return bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
@@ -279,8 +334,14 @@ class DriftTracker:
         s = min(RESTART_MAX, max(RESTART_MIN, RESTART_SIGMA * math.sqrt(age_s / 3600.0)))
         m = self.m
         add = np.zeros(m + 1)
-        if self._W is not None and m > 1:
-            add[1:m] = (RESTART_OTHER_N / np.maximum(np.linalg.norm(self._W @ self._Dg.T, axis=0), 1e-12)) ** 2
+        if m > 1:
+            other = np.full(m - 1, RESTART_GRADIENT * s)
+            nc = min(self.contacts, m - 1)
+            other[:nc] = math.hypot(RESTART_CONTACT * s, RESTART_CONTACT_DRIFT
+                                    * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
+            add[1:m] = other ** 2
+            if self._W is not None:
+                add[1:m] = np.maximum(add[1:m], (RESTART_OTHER_N / self._other_n) ** 2)
         add[0], add[m] = s * s, RESTART_RATE ** 2
         self.P = self.P + np.diag(add)
 

@@ -86,7 +86,8 @@ class SlowStates:
                     self._gradients = g if c is None else np.vstack([c, g])
                 self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
                                           change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                          ~pipe.bad_channels, force_map(pipe))
+                                          ~pipe.bad_channels, force_map(pipe),
+                                          contacts=0 if pipe.model.contact is None else len(pipe.model.contact))
                 if age_s is not None:
                     self.drift.widen(age_s)
             c = self.creep_per_decade(pipe.calibration)
@@ -143,10 +144,10 @@ class SlowStates:
         if getattr(est, "last_fit", None) is None:
             return None
         if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
-            self._joint, self._joint_for = JointScale(est, self.drift._D[0]), self.drift
+            self._joint, self._joint_for = JointScale(est, self.drift._D[0], self.drift._D[1:]), self.drift
         e = self._expected
         use = e is not None and (t is None or not e[2] or 0.0 <= t - e[2] <= EXPECTED_HOLD)
-        return self._joint.measure(e[:2] if use else None)
+        return self._joint.measure(e[:2] if use else None, self.drift.wants_others)
 
     def expect_load(self, force, sigma: float, stamp_ns: int = 0) -> None:
         """A controller's expected load now: ``force`` (3,) N in the wrench frame, its 1-sigma ``sigma``
