@@ -81,10 +81,14 @@ RESTART_CONTACT = 1.9
 RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
 #: A loaded frame measures the other states too (:meth:`~.joint.JointScale.others_part`: the load and the
 #: scale profiled out; their Cramer-Rao bound in docs/physics.md#device-changes), counted as a loaded frame's
-#: scale (:data:`LOADED_WEIGHT` per 10 ms) and with a floor for the model's mismatch with the load along
-#: each of them: what reads as LOADED_OTHER_N newtons at zero load. Only while a state is less certain than
-#: that floor (a restart, a long task): else the rests measure them, as before.
-LOADED_OTHER_N = 0.3
+#: scale (:data:`LOADED_WEIGHT` per 10 ms). The model's mismatch with the device for a load reaches into
+#: them as an error that stays while the load is held (device_a, no change: the x and y gradients read
+#: -0.15 and -0.6 N at zero load under 12-30 N loads, against a Cramer-Rao bound of 0.28 N per frame): it
+#: is a state of its own for each load (:class:`~.rest.LoadBias`'s new load), 1-sigma what reads as
+#: LOADED_OTHER_N + LOADED_OTHER_REL |F| newtons at zero load, so a held load counts as one measurement at
+#: most and loads with different mismatches average it. Only while a state is less certain than
+#: LOADED_OTHER_N (a restart, a long task): else the rests measure them, as before.
+LOADED_OTHER_N, LOADED_OTHER_REL = 0.3, 0.05
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
 #: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
@@ -156,6 +160,7 @@ class DriftTracker:
         self._follow = FollowSlope(m)
         self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
         self._bias = LoadBias(m + 1)  # the held load's error of its measurement of the scale (force/rest.py)
+        self._obias: list | None = None  # ... and of the other states (_loaded_others)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
@@ -172,6 +177,7 @@ class DriftTracker:
         new._follow = self._follow.copy()
         new.follow = new._follow.slope
         new._bias = self._bias.copy()
+        new._obias = None if self._obias is None else [a.copy() for a in self._obias]
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
             q, o = new._quiet, self._quiet
@@ -304,18 +310,29 @@ class DriftTracker:
         except np.linalg.LinAlgError:
             return
         z = np.dot(Hinv, bo)
-        R = Hinv
-        R.reshape(-1)[:: m] += self._floor2
-        S = P[1:m, 1:m] + R / w
-        Po = P[1:m, :]
+        ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c)
+        if self._bias.new or ob is None:
+            k = LOADED_OTHER_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((m + 1, m - 1))]
+        else:
+            ob[2] = np.dot(self._F, ob[2])
+        beta, pb, c = ob
+        Cxy = P[:, 1:m] + c  # cov(states, measured), measured = others + beta + noise
+        Cby = c[1:m].T + pb
+        S = Cxy[1:m] + c[1:m].T + pb + Hinv / w
         try:
-            Kt = solve_small(0.5 * (S + S.T), Po)  # (m - 1, m + 1): the gain's transpose
+            sol = solve_small(0.5 * (S + S.T), np.hstack([Cxy.T, Cby.T]))  # S^-1 [Cxy^T, Cby^T]
         except np.linalg.LinAlgError:
             return
-        delta = np.dot(z - tot[1:m], Kt)
+        Kx, Kb = sol[:, :m + 1].T, sol[:, m + 1:].T
+        nu = z - tot[1:m] - beta
+        delta = np.dot(Kx, nu)
         if math.isfinite(float(delta.sum())):
             tot += delta
-            P -= np.dot(Kt.T, Po)
+            P -= np.dot(Kx, Cxy.T)
+            ob[0] = beta + np.dot(Kb, nu)
+            ob[2] = c - np.dot(Kx, Cby.T)
+            ob[1] = pb - np.dot(Kb, Cby.T)
 
     @property
     def wants_others(self) -> bool:

@@ -122,6 +122,7 @@ class LoadBias:
 
     def __init__(self, n: int) -> None:
         self.c, self.p, self.b, self.force = np.zeros(n), 0.0, 0.0, None
+        self.new = False  # the latest update began a new load
 
     def copy(self) -> LoadBias:
         new = LoadBias(len(self.c))
@@ -136,7 +137,8 @@ class LoadBias:
         white variance ``var``; ``P`` the states' predicted covariance (updated in place), ``F`` the
         prediction's transition; returns the states' update (None: not finite, nothing changed)."""
         f = np.asarray(force, float).tolist()  # on Python floats: a norm of 3 numbers in 0.1 us, not 3
-        if self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force)):
+        self.new = self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force))
+        if self.new:
             self.force, self.p, self.b = f, LOAD_BIAS_SIGMA ** 2, 0.0
             self.c[:] = 0.0
         else:
