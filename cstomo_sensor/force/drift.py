@@ -76,7 +76,11 @@ RESTART_OTHER_N = 0.15
 #: drift of up to RESTART_CONTACT_DRIFT over RESTART_CONTACT_DAYS days, growing as the square root of the
 #: tare's age. Before (0.15 N each): a restart after warming with a 30 % gradient read a phantom lateral
 #: force of 3-11 N for ever (issue 34).
+#: Whatever the age: the scale's change they follow is taken as at least RESTART_CHANGE (a tare saved minutes
+#: before a restart may follow a fast warm-up; the scale itself is measured by every frame, loaded or not,
+#: the others under load only weakly, docs/physics.md#device-changes).
 RESTART_GRADIENT = 0.3
+RESTART_CHANGE = 0.025
 RESTART_CONTACT = 1.9
 RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
 #: A loaded frame measures the other states too (:meth:`~.joint.JointScale.others_part`: the load and the
@@ -89,6 +93,13 @@ RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
 #: most and loads with different mismatches average it. Only while a state is less certain than
 #: LOADED_OTHER_N (a restart, a long task): else the rests measure them, as before.
 LOADED_OTHER_N, LOADED_OTHER_REL = 0.3, 0.05
+#: ... and, while they are certain, every CHECK_EVERY-th unrested frame checks them: the frame's measurement
+#: of the other states against their estimate, in units of its own noise, the held load's mismatch and their
+#: covariance (chi-square per state, averaged over CHECK_S seconds). Beyond CHECK_BOUND the states are wider
+#: than their covariance says (a restart from a recent tare after a fast change; a change none of the rests
+#: saw): each widens by its innovation and the loaded frames measure it again. Before: the phantom lateral
+#: force of a gradient unmeasured at a restart kept every frame from counting as rest, for ever (issue 34).
+CHECK_EVERY, CHECK_S, CHECK_BOUND = 8, 1.0, 1.4
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
 #: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
@@ -161,6 +172,7 @@ class DriftTracker:
         self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
         self._bias = LoadBias(m + 1)  # the held load's error of its measurement of the scale (force/rest.py)
         self._obias: list | None = None  # ... and of the other states (_loaded_others)
+        self._check, self._frames, self._wanted = 0.0, 0, False  # the other states' check (CHECK_EVERY)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
@@ -317,6 +329,21 @@ class DriftTracker:
         else:
             ob[2] = np.dot(self._F, ob[2])
         beta, pb, c = ob
+        if not self._wanted:  # a check (CHECK_EVERY): widen the states the frame finds wider than their covariance
+            nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
+            k = LOADED_OTHER_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            try:
+                d2 = float(nu.dot(solve_small(P[1:m, 1:m] + np.diag(k * k / self._other_n ** 2) + Hinv, nu))) / (m - 1)
+            except np.linalg.LinAlgError:
+                return
+            if not math.isfinite(d2):
+                return
+            a = 1.0 - math.exp(-CHECK_EVERY * self._dt / CHECK_S)
+            self._check += a * (d2 - self._check)
+            if self._check < CHECK_BOUND:
+                return
+            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += nu * nu
+            self._check = 0.0
         Cxy = P[:, 1:m] + c  # cov(states, measured), measured = others + beta + noise
         Cby = c[1:m].T + pb
         S = Cxy[1:m] + c[1:m].T + pb + Hinv / w
@@ -336,11 +363,13 @@ class DriftTracker:
 
     @property
     def wants_others(self) -> bool:
-        """Whether a loaded frame should measure the other states (:data:`LOADED_OTHER_N`): one of them is
-        less certain than the loaded frames' floor."""
+        """Whether the next frame, if unrested, should measure the other states (:data:`LOADED_OTHER_N`): one
+        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`)."""
         if self._W is None or self.m < 2:
             return False
-        return bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
+        self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
+        self._frames += 1
+        return self._wanted or self._frames % CHECK_EVERY == 0
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
@@ -352,9 +381,10 @@ class DriftTracker:
         m = self.m
         add = np.zeros(m + 1)
         if m > 1:
-            other = np.full(m - 1, RESTART_GRADIENT * s)
+            so = max(s, RESTART_CHANGE)
+            other = np.full(m - 1, RESTART_GRADIENT * so)
             nc = min(self.contacts, m - 1)
-            other[:nc] = math.hypot(RESTART_CONTACT * s, RESTART_CONTACT_DRIFT
+            other[:nc] = math.hypot(RESTART_CONTACT * so, RESTART_CONTACT_DRIFT
                                     * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
             add[1:m] = other ** 2
             if self._W is not None:
