@@ -52,7 +52,9 @@ RATE_MEMORY = 30.0
 #: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
 #: sigma says what a long task leaves unmeasured; the diagnostics warn when that reads more than
 #: :data:`~.slow.UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
-#: (:meth:`widen` covers it: a block off for hours has no gradient).
+#: (:meth:`widen` covers it: a block off for hours has no gradient). Before a rest measured the slope
+#: (:class:`~.rest.FollowSlope`, 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT`
+#: and :data:`RESTART_CONTACT` (a loaded warm-up from the tare, no rest: the loaded frames then measure them).
 FOLLOW_SIGMA = 0.1
 #: A loaded frame's own measurement of the scale (:class:`~.joint.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
@@ -132,6 +134,9 @@ class DriftTracker:
                  force_map: np.ndarray | None = None, contacts: int = 0) -> None:
         self._args = (r, gradients, noise, keep, force_map)
         self.contacts = int(contacts)  # the first this many other states are the contacts' (widen)
+        # each other state's slope against the scale before a rest measured it: section 9's range (FOLLOW_SIGMA)
+        self._unfitted2 = np.full(0 if gradients is None else len(gradients), RESTART_GRADIENT ** 2)
+        self._unfitted2[:min(self.contacts, len(self._unfitted2))] = RESTART_CONTACT ** 2
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
@@ -277,7 +282,8 @@ class DriftTracker:
         elif m > 1:  # unmeasured, the other states follow the scale by a slope known to FOLLOW_SIGMA
             a0 = self._unmeasured
             self._unmeasured = a1 = a0 + abs(step)
-            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += FOLLOW_SIGMA * FOLLOW_SIGMA * (a1 * a1 - a0 * a0)
+            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
+                                                       else self._unfitted2) * (a1 * a1 - a0 * a0)
         if rest:
             # at rest the other states (the contacts', the gradient's) are measured with their full
             # directions; the scale too without a joint fit (the linear estimator). The information
