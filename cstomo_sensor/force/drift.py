@@ -378,8 +378,10 @@ class DriftTracker:
         if self._W is None or self.m < 2:
             return False
         self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
-        self._frames += 1
-        return self._wanted or self._frames % CHECK_EVERY == 0
+        if self._wanted:
+            return True
+        self._frames += 1  # a check after unrested frames only (a rest measures them all)
+        return self._frames % CHECK_EVERY == 0 and self._t_rest != self._t
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
