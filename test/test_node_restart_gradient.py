@@ -143,22 +143,25 @@ def restart(probe, tmp_path, tare: Path, device: dict, tag: str) -> np.ndarray:
     assert "saved tare" in err, err[-3000:]
     with probe.lock:
         w = np.array(probe.wrenches, float).reshape(-1, 4)
-    w[:, 0] -= w[0, 0]  # the first frame's wrench: the timeline's t = 0 (within a frame and the latency)
     return w
 
 
 def figures(w: np.ndarray) -> dict:
-    """The zero's p99 over the rest from 1 s after the node's first wrench; the held load's median angle
+    """The zero's p99 over the rest from the timeline's 1 s (found by the load's step); the held load's median angle
     (deg) and magnitude (%) errors over its last 5 s (its first 5 s after the step are the converging)."""
-    rest = w[(w[:, 0] >= 1.0) & (w[:, 0] < REST_S - 0.5)]
-    load = w[(w[:, 0] >= REST_S + LOAD_S - 5.0) & (w[:, 0] < REST_S + LOAD_S - 0.3)]
-    assert len(rest) > 5 * RATE * 0.5 and len(load) > 3 * RATE * 0.5, (len(rest), len(load), first)
+    # the load's step (the timeline's REST_S): the first wrench may come later than the first frame
+    step = w[np.argmax(np.linalg.norm(w[:, 1:], axis=1) > 0.5 * np.linalg.norm(LOAD)), 0] - REST_S
+    rest = w[(w[:, 0] >= step + 1.0) & (w[:, 0] < step + REST_S - 0.5)]
+    load = w[(w[:, 0] >= step + REST_S + LOAD_S - 5.0) & (w[:, 0] < step + REST_S + LOAD_S - 0.3)]
+    assert len(rest) > 5 * RATE * 0.5 and len(load) > 3 * RATE * 0.5, (len(rest), len(load), step)
     f = load[:, 1:]
     cos = f @ np.array(LOAD) / (np.linalg.norm(f, axis=1) * np.linalg.norm(LOAD))
     return {"zero_p99": float(np.percentile(np.linalg.norm(rest[:, 1:], axis=1), 99)),
             "angle": float(np.median(np.degrees(np.arccos(np.clip(cos, -1, 1))))),
             "magnitude": float(np.median(np.abs(np.linalg.norm(f, axis=1) / np.linalg.norm(LOAD) - 1) * 100)),
-            "per_s": [round(float(np.median(np.linalg.norm(w[(w[:, 0] >= k) & (w[:, 0] < k + 1), 1:], axis=1))), 2)
+            "first_wrench_s": float(w[0, 0] - step),
+            "per_s": [round(float(np.median(np.linalg.norm(w[(w[:, 0] >= step + k) & (w[:, 0] < step + k + 1), 1:],
+                                                           axis=1))), 2)
                       for k in range(int(REST_S + LOAD_S))]}
 
 

@@ -91,10 +91,11 @@ RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
 #: them as an error that stays while the load is held (device_a, no change: the x and y gradients read
 #: -0.15 and -0.6 N at zero load under 12-30 N loads, against a Cramer-Rao bound of 0.28 N per frame): it
 #: is a state of its own for each load (:class:`~.rest.LoadBias`'s new load), 1-sigma what reads as
-#: LOADED_OTHER_N + LOADED_OTHER_REL |F| newtons at zero load, so a held load counts as one measurement at
-#: most and loads with different mismatches average it. Only while a state is less certain than
+#: LOADED_BIAS_N + LOADED_OTHER_REL |F| newtons at zero load (under 4-12 N: 0.04-0.08 N), so a held load
+#: counts as one measurement at most and loads with different mismatches average it; a frame without load
+#: (a phantom of the states themselves) has next to none. Only while a state is less certain than
 #: LOADED_OTHER_N (a restart, a long task): else the rests measure them, as before.
-LOADED_OTHER_N, LOADED_OTHER_REL = 0.3, 0.05
+LOADED_OTHER_N, LOADED_BIAS_N, LOADED_OTHER_REL = 0.3, 0.05, 0.05
 #: ... and, while they are certain, every CHECK_EVERY-th unrested frame checks them: the frame's measurement
 #: of the other states against their estimate, in units of its own noise, the held load's mismatch and their
 #: covariance (chi-square per state, averaged over CHECK_S seconds). Beyond CHECK_BOUND the states are wider
@@ -334,14 +335,14 @@ class DriftTracker:
         z = np.dot(Hinv, bo)
         ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c)
         if self._bias.new or ob is None:
-            k = LOADED_OTHER_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
             ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((m + 1, m - 1))]
         else:
             ob[2] = np.dot(self._F, ob[2])
         beta, pb, c = ob
         if not self._wanted:  # a check (CHECK_EVERY): widen the states the frame finds wider than their covariance
             nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
-            k = LOADED_OTHER_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
             try:
                 d2 = float(nu.dot(solve_small(P[1:m, 1:m] + np.diag(k * k / self._other_n ** 2) + Hinv, nu))) / (m - 1)
             except np.linalg.LinAlgError:
