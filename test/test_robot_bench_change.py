@@ -119,7 +119,7 @@ def test_the_full_change_rows_exist_on_the_device_and_their_counts_are_sane(devi
     assert {r["estimator"] for r in rows} == {"model"} and all(r["tracking"] for r in rows)
     by = {(r["scenario"], r["window"]): r for r in rows}
     durations = {rc.WARM: (WARM_S, robot.LOADED_RATE), rc.WARM_STILL: (WARM_S, robot.LOADED_RATE)}
-    for case, changed, still, window, keys, aims in rc.AIMS:
+    for case, changed, still, window, keys, _aims in rc.AIMS:
         at_rest = "at rest" in case
         for scenario in (changed, still):
             dur, rate = durations.get(scenario, (REST_S if at_rest else LOADED_S, robot.RATE))

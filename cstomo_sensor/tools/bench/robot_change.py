@@ -63,11 +63,21 @@ SILENT_AIM = 1.0            # % of published frames silently wrong, every series
 def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     """``cstomo bench --drift --robot``: robot.py's rows on its :data:`~.robot.DEVICE_SCENES`, then this
     module's on :data:`FULL_SCENES`; one calibration per device. Writes robot.csv and robot.md in ``out``."""
+    return _bench(out, robot.DEVICE_SCENES, "robot", cache_dir, say)
+
+
+def full_change_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+    """This module's rows only (the lines of robot.md's last table, a third of the bench's time): writes
+    robot_change.csv and robot_change.md in ``out``."""
+    return _bench(out, (), "robot_change", cache_dir, say)
+
+
+def _bench(out, robot_scenes, name: str, cache_dir, say) -> list[dict]:
     t_start = time.perf_counter()
     rows = []
-    for scene in dict.fromkeys((*robot.DEVICE_SCENES, *FULL_SCENES)):
+    for scene in dict.fromkeys((*robot_scenes, *FULL_SCENES)):
         device = robot.prepare_device(scene, cache_dir, say)
-        if scene in robot.DEVICE_SCENES:
+        if scene in robot_scenes:
             rows += robot.device_rows(scene, cache_dir, say, device)
         if scene in FULL_SCENES:
             t0 = time.perf_counter()
@@ -75,9 +85,9 @@ def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
             say(f"robot bench: the full change on {device[1].geometry.name}, {time.perf_counter() - t0:.0f} s")
         del device
     Path(out).mkdir(parents=True, exist_ok=True)
-    write_csv(Path(out) / "robot.csv", rows, list(rows[0]))
-    md = robot.markdown(rows) + "\n" + markdown(rows)
-    (Path(out) / "robot.md").write_text(md)
+    write_csv(Path(out) / f"{name}.csv", rows, list(rows[0]))
+    md = (robot.markdown(rows) + "\n" if robot_scenes else "") + markdown(rows)
+    (Path(out) / f"{name}.md").write_text(md)
     say(md)
     say(f"robot bench: {time.perf_counter() - t_start:.0f} s")
     return rows
