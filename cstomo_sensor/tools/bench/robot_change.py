@@ -161,7 +161,7 @@ def aim_figures(rows: list[dict], dev: str, est: str) -> list[dict]:
         ratios = [c[k] / u[k] if u[k] > 0 else np.nan for k in keys]
         first = find(changed, "first 1 s")
         out.append({"case": case, "window": window, "changed": [c[k] for k in keys], "unchanged": [u[k] for k in keys],
-                    "ratios": ratios, "aims": aims, "met": all(r <= a for r, a in zip(ratios, aims)),
+                    "ratios": ratios, "aims": aims, "met": all(r <= a for r, a in zip(ratios, aims)),  # NaN (every frame refused): missed
                     "first_s_err_n": first["err_n"] if first else np.nan,
                     "silent_pct": (ca["silent_pct"], ua["silent_pct"]),
                     "over3sigma_pct": (ca["over3sigma_pct"], ua["over3sigma_pct"]),
@@ -184,7 +184,8 @@ def markdown(rows: list[dict]) -> str:
                 keys = next(a[4] for a in AIMS if a[0] == f["case"])
                 fig = " / ".join({"angle_deg": "angle deg", "magnitude_pct": "magnitude %",
                                   "zero_p99_n": "zero p99 N"}[k] for k in keys)
-                vals = " ; ".join(f"{c:.2f} / {u:.2f} ({r:.2f} x) [{a:g}]"
+                vals = " ; ".join((f"{c:.2f}" if np.isfinite(c) else "refused") + f" / {robot._f(u)}"
+                                  + (f" ({r:.2f} x)" if np.isfinite(r) else "") + f" [{a:g}]"
                                   for c, u, r, a in zip(f["changed"], f["unchanged"], f["ratios"], f["aims"]))
                 lines.append(f"| {dev.replace('cuboid_joint_', '')} | {est} | {f['case']} | {f['window']} | {fig} | "
                              f"{vals}{'' if f['met'] else ' (missed)'} | {robot._f(f['first_s_err_n'])} | "
