@@ -52,7 +52,9 @@ RATE_MEMORY = 30.0
 #: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
 #: sigma says what a long task leaves unmeasured; the diagnostics warn when that reads more than
 #: :data:`~.slow.UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
-#: (:meth:`widen` covers it: a block off for hours has no gradient).
+#: (:meth:`widen` covers it: a block off for hours has no gradient). Before a rest measured the slope
+#: (:class:`~.rest.FollowSlope`, 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT`
+#: and :data:`RESTART_CONTACT` (a loaded warm-up from the tare, no rest: the loaded frames then measure them).
 FOLLOW_SIGMA = 0.1
 #: A loaded frame's own measurement of the scale (:class:`~.joint.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
@@ -69,6 +71,42 @@ REST_WEIGHT = 0.1
 RESTART_SIGMA, RESTART_MIN, RESTART_MAX = 0.015, 0.003, 0.05
 RESTART_RATE = 1e-4
 RESTART_OTHER_N = 0.15
+#: ... and at least what section 9's hours off can do to the other states (docs/physics.md#device-changes):
+#: each resistivity gradient RESTART_GRADIENT of the scale's 1-sigma (a gradient of up to 30 % across the
+#: block: +-0.75 % from its middle at a 2.5 % change); each contact state RESTART_CONTACT of it (contacts
+#: -0.5..-1.5 %/K against the rubber's 0.8 %/K: 1.9 x the scale's change), and, in quadrature, their own
+#: drift of up to RESTART_CONTACT_DRIFT over RESTART_CONTACT_DAYS days, growing as the square root of the
+#: tare's age. Before (0.15 N each): a restart after warming with a 30 % gradient read a phantom lateral
+#: force of 3-11 N for ever (issue 34).
+#: Whatever the age: the scale's change they follow is taken as at least RESTART_CHANGE (a tare saved minutes
+#: before a restart may follow a fast warm-up; the scale itself is measured by every frame, loaded or not,
+#: the others under load only weakly, docs/physics.md#device-changes).
+RESTART_GRADIENT = 0.3
+RESTART_CHANGE = 0.025
+RESTART_CONTACT = 1.9
+RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
+#: A loaded frame measures the other states too (:meth:`~.joint.JointScale.others_part`: the load and the
+#: scale profiled out; their Cramer-Rao bound in docs/physics.md#device-changes), counted as a loaded frame's
+#: scale (:data:`LOADED_WEIGHT` per 10 ms). The model's mismatch with the device for a load reaches into
+#: them as an error that stays while the load is held (device_a, no change: the x and y gradients read
+#: -0.15 and -0.6 N at zero load under 12-30 N loads, against a Cramer-Rao bound of 0.28 N per frame): it
+#: is a state of its own for each load (:class:`~.rest.LoadBias`'s new load), 1-sigma what reads as
+#: LOADED_BIAS_N + LOADED_OTHER_REL |F| newtons at zero load (under 4-12 N: 0.04-0.08 N), so a held load
+#: counts as one measurement at most and loads with different mismatches average it; a frame without load
+#: (a phantom of the states themselves) has next to none. Only while a state is less certain than
+#: LOADED_OTHER_N (a restart, a long task): else the rests measure them, as before.
+LOADED_OTHER_N, LOADED_BIAS_N, LOADED_OTHER_REL = 0.3, 0.05, 0.05
+#: ... and, while they are certain, every CHECK_EVERY-th unrested frame checks them: the frame's measurement
+#: of the other states against their estimate, in units of its own noise, the held load's mismatch and their
+#: covariance (chi-square per state, averaged over CHECK_S seconds). Beyond CHECK_BOUND the states are wider
+#: than their covariance says (a restart from a recent tare after a fast change; a change none of the rests
+#: saw): each widens by its innovation and the loaded frames measure it again. Before: the phantom lateral
+#: force of a gradient unmeasured at a restart kept every frame from counting as rest, for ever (issue 34).
+CHECK_EVERY, CHECK_S, CHECK_BOUND = 8, 1.0, 1.4
+#: A loaded frame's measurement of the other states counts as OTHERS_WEIGHT of one per 10 ms: the part its
+#: frames share (the held load's mismatch) is their bias state, so the rest of it is the frame's noise
+#: (0.1: the restart loaded from the first frame 0.98 deg / 1.71 % from 5 s; 1: 0.95 / 1.67).
+OTHERS_WEIGHT = 1.0
 #: Bound of a rest frame's whitened residual, per channel in use: the noise gives 1 (its chi-square
 #: spread over 208 channels is 0.1); a change beyond the directions' reach (the voltages' noise grows
 #: as the scale falls, a device's change is not exactly the model's) takes the rest. A 1 N socket
@@ -94,8 +132,12 @@ class DriftTracker:
     the rest frames' force bound (None: the residual bound alone)."""
 
     def __init__(self, r: np.ndarray, gradients: np.ndarray | None, noise: np.ndarray, keep: np.ndarray,
-                 force_map: np.ndarray | None = None) -> None:
+                 force_map: np.ndarray | None = None, contacts: int = 0) -> None:
         self._args = (r, gradients, noise, keep, force_map)
+        self.contacts = int(contacts)  # the first this many other states are the contacts' (widen)
+        # each other state's slope against the scale before a rest measured it: section 9's range (FOLLOW_SIGMA)
+        self._unfitted2 = np.full(0 if gradients is None else len(gradients), RESTART_GRADIENT ** 2)
+        self._unfitted2[:min(self.contacts, len(self._unfitted2))] = RESTART_CONTACT ** 2
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
@@ -114,6 +156,8 @@ class DriftTracker:
             sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
             self._W, self._Wr = W, W @ D[0]
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
+            self._other_n = np.maximum(np.linalg.norm(self._Wo, axis=0), 1e-12)  # its norm: N per unit
+            self._floor2 = (LOADED_OTHER_N / self._other_n) ** 2  # the loaded frames' floor (LOADED_OTHER_N)
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
             self._quiet = QuietTest(sigma, self.rest_force)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
@@ -137,6 +181,8 @@ class DriftTracker:
         self._follow = FollowSlope(m)
         self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
         self._bias = LoadBias(m + 1)  # the held load's error of its measurement of the scale (force/rest.py)
+        self._obias: list | None = None  # ... and of the other states (_loaded_others)
+        self._check, self._frames, self._wanted = 0.0, 0, False  # the other states' check (CHECK_EVERY)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
@@ -147,12 +193,13 @@ class DriftTracker:
         noise ``noise`` (y units), with the estimator's ``force_map`` (None: each as it was)."""
         r, gradients, noise0, keep0, map0 = self._args
         new = DriftTracker(r, gradients, noise0 if noise is None else noise, keep0 if keep is None else keep,
-                           map0 if force_map is None else force_map)
+                           map0 if force_map is None else force_map, self.contacts)
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         new._follow = self._follow.copy()
         new.follow = new._follow.slope
         new._bias = self._bias.copy()
+        new._obias = None if self._obias is None else [a.copy() for a in self._obias]
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
             q, o = new._quiet, self._quiet
@@ -213,7 +260,7 @@ class DriftTracker:
             # (JointScale, force/joint.py), so that a load is never taken for the device; a loaded frame counts as
             # LOADED_WEIGHT of a measurement (the model's mismatch with a load is not white noise), and the
             # mismatch's part that stays while the load is held is a state of its own (force/rest.py LoadBias)
-            z, var, u, v, force = joint
+            z, var, u, v, force = joint[:5]
             if rest:
                 self._bias.rest()
                 Pc = P[:, 0].copy()
@@ -229,12 +276,15 @@ class DriftTracker:
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
                 if delta is not None:
                     tot += delta
+                if len(joint) > 5 and joint[5] is not None:
+                    self._loaded_others(P, tot, joint[5], OTHERS_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD)
         if rest:
             self._unmeasured, self._t_rest = 0.0, self._t
         elif m > 1:  # unmeasured, the other states follow the scale by a slope known to FOLLOW_SIGMA
             a0 = self._unmeasured
             self._unmeasured = a1 = a0 + abs(step)
-            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += FOLLOW_SIGMA * FOLLOW_SIGMA * (a1 * a1 - a0 * a0)
+            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
+                                                       else self._unfitted2) * (a1 * a1 - a0 * a0)
         if rest:
             # at rest the other states (the contacts', the gradient's) are measured with their full
             # directions; the scale too without a joint fit (the linear estimator). The information
@@ -265,10 +315,74 @@ class DriftTracker:
             else:  # unmeasured: the other states follow the scale's change (FOLLOW_MEMORY)
                 g += self.follow * (self.scale - scale0)
             self._set_gradient(g)
-        if joint is not None:
-            self.force_step = joint[2] - joint[3] * d[0]  # the force given the scale now known
+        if joint is not None:  # the force given the scale (and the others, when measured) now known
+            self.force_step = joint[2] - joint[3] * d[0]
+            if len(joint) > 5 and joint[5] is not None:
+                self.force_step = self.force_step - np.dot(joint[5][2], tot[1:m])
         self.P = 0.5 * (P + P.T)
         return rest
+
+    def _loaded_others(self, P: np.ndarray, tot: np.ndarray, part: tuple, w: float) -> None:
+        """A loaded frame's measurement of the other states (``part``: :meth:`~.joint.JointScale.others_part`'s
+        information and vector), weighted ``w``, with :data:`LOADED_OTHER_N`'s floor: a Kalman update of
+        every state through their covariance ``P`` (in place) into ``tot``."""
+        Ho, bo, _ = part
+        m = self.m
+        try:
+            Hinv = solve_small(Ho, self._eye[1:m, 1:m].copy())
+        except np.linalg.LinAlgError:
+            return
+        z = np.dot(Hinv, bo)
+        ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c)
+        if self._bias.new or ob is None:
+            k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((m + 1, m - 1))]
+        else:
+            ob[2] = np.dot(self._F, ob[2])
+        beta, pb, c = ob
+        if not self._wanted:  # a check (CHECK_EVERY): widen the states the frame finds wider than their covariance
+            nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
+            k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
+            try:
+                d2 = float(nu.dot(solve_small(P[1:m, 1:m] + np.diag(k * k / self._other_n ** 2) + Hinv, nu))) / (m - 1)
+            except np.linalg.LinAlgError:
+                return
+            if not math.isfinite(d2):
+                return
+            a = 1.0 - math.exp(-CHECK_EVERY * self._dt / CHECK_S)
+            self._check += a * (d2 - self._check)
+            if self._check < CHECK_BOUND:
+                return
+            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += nu * nu
+            self._check = 0.0
+        Cxy = P[:, 1:m] + c  # cov(states, measured), measured = others + beta + noise
+        Cby = c[1:m].T + pb
+        S = Cxy[1:m] + c[1:m].T + pb + Hinv / w
+        try:
+            sol = solve_small(0.5 * (S + S.T), np.hstack([Cxy.T, Cby.T]))  # S^-1 [Cxy^T, Cby^T]
+        except np.linalg.LinAlgError:
+            return
+        Kx, Kb = sol[:, :m + 1].T, sol[:, m + 1:].T
+        nu = z - tot[1:m] - beta
+        delta = np.dot(Kx, nu)
+        if math.isfinite(float(delta.sum())):
+            tot += delta
+            P -= np.dot(Kx, Cxy.T)
+            ob[0] = beta + np.dot(Kb, nu)
+            ob[2] = c - np.dot(Kx, Cby.T)
+            ob[1] = pb - np.dot(Kb, Cby.T)
+
+    @property
+    def wants_others(self) -> bool:
+        """Whether the next frame, if unrested, should measure the other states (:data:`LOADED_OTHER_N`): one
+        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`)."""
+        if self._W is None or self.m < 2:
+            return False
+        self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
+        if self._wanted:
+            return True
+        self._frames += 1  # a check after unrested frames only (a rest measures them all)
+        return self._frames % CHECK_EVERY == 0 and self._t_rest != self._t
 
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
@@ -279,8 +393,15 @@ class DriftTracker:
         s = min(RESTART_MAX, max(RESTART_MIN, RESTART_SIGMA * math.sqrt(age_s / 3600.0)))
         m = self.m
         add = np.zeros(m + 1)
-        if self._W is not None and m > 1:
-            add[1:m] = (RESTART_OTHER_N / np.maximum(np.linalg.norm(self._W @ self._Dg.T, axis=0), 1e-12)) ** 2
+        if m > 1:
+            so = max(s, RESTART_CHANGE)
+            other = np.full(m - 1, RESTART_GRADIENT * so)
+            nc = min(self.contacts, m - 1)
+            other[:nc] = math.hypot(RESTART_CONTACT * so, RESTART_CONTACT_DRIFT
+                                    * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
+            add[1:m] = other ** 2
+            if self._W is not None:
+                add[1:m] = np.maximum(add[1:m], (RESTART_OTHER_N / self._other_n) ** 2)
         add[0], add[m] = s * s, RESTART_RATE ** 2
         self.P = self.P + np.diag(add)
 

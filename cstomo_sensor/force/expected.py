@@ -185,12 +185,13 @@ class ExpectedLoad:
 
 def bounded(with_load: tuple, without: tuple | None) -> tuple:
     """A frame's joint measurement of the scale (:meth:`~.joint.JointScale.measure`: (d, var, u, v,
-    force)) with an expected load, bounded by the one ``without`` it: its ``d`` within the frame's own
-    1-sigma of ``d`` (one message moves the states by no more than one frame's noise may), and the
-    force's step the frame's own (the published force is what the frames say, given the states)."""
+    force, the others' part)) with an expected load, bounded by the one ``without`` it: its ``d`` within
+    the frame's own 1-sigma of ``d`` (one message moves the states by no more than one frame's noise
+    may), and the force's step and the other states' measurement the frame's own (the published force
+    is what the frames say, given the states)."""
     if without is None:
         return with_load
-    d0, var0, u0, v0, force0 = without
+    d0, var0, u0, v0, force0, *others0 = without
     step = math.sqrt(var0)
     d = d0 + min(max(with_load[0] - d0, -step), step)
-    return d, with_load[1], u0, v0, force0
+    return (d, with_load[1], u0, v0, force0, *others0)

@@ -42,18 +42,37 @@ class JointScale:
     load explains. The part of ``d_w`` outside the estimator's basis (no load makes it) is taken from
     dot products over the full change. :meth:`measure` returns it with the force's step for a given
     ``d``: ``dF = u - v d`` (N).
+
+    With the tracker's other directions ``D_o`` (``others``: the contacts', the gradients'), the same least
+    squares over ``(dx, d, d_o)`` profiled over ``dx`` and then ``d`` gives their information
+    (:meth:`others_part`): its inverse is their Cramer-Rao bound for the frame. On device_a at 60 dB, as the
+    1-sigma of the force each reads at zero load: contacts 0.09 / 0.13 / 0.06 / 0.04 N under a load (0.07 /
+    0.12 / 0.04 / 0.03 at rest), gradients along x, y, z 0.28 / 0.28 / 0.02 N (0.07 / 0.08 / 0.02 at
+    rest): a lateral load takes 15/16 of the x and y gradients' information (docs/physics.md#device-changes).
     """
 
-    def __init__(self, estimator, r: np.ndarray) -> None:
+    def __init__(self, estimator, r: np.ndarray, others: np.ndarray | None = None) -> None:
         self.est = estimator
         rw = np.asarray(r, float)[estimator.keep] * estimator.w
         self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
         self.dof = max(len(rw) - 4, 1)
         self._M = np.empty((len(self.Brw), 2))
+        self.n_others = 0
+        if others is not None and len(others):  # the tracker's other states' directions (whitened, in use)
+            Dw = np.ascontiguousarray(np.atleast_2d(np.asarray(others, float))[:, estimator.keep] * estimator.w)
+            self.n_others = k = len(Dw)
+            self._Dw, self._BD = Dw, np.ascontiguousarray(estimator.basis @ Dw.T)  # (k, n_keep), (kb, k)
+            self._Dr, self._DD = Dw @ rw, Dw @ Dw.T
+            self._Mx = np.empty((len(self.Brw), 2 + k))
+            self._Q = np.empty((1 + k, 1 + k))
+            self._Q[1:, 1:] = self._DD
 
-    def measure(self, expected: tuple | None = None) -> tuple | None:
-        """(d, its variance, u, v, the frame's force) of the estimator's latest frame (class docstring); ``expected``:
-        (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives nothing."""
+    def measure(self, expected: tuple | None = None, others: bool = False) -> tuple | None:
+        """(d, its variance, u, v, the frame's force, the others' part) of the estimator's latest frame (class
+        docstring); ``expected``: (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives
+        nothing. ``others`` (and the tracker's other directions given): the others' part is (``H``, ``b``,
+        ``V``): their information and information vector with the load and the scale profiled out
+        (:meth:`others_part`), and the force's step per unit of each (``dF = u - v d - V d_o``); else None."""
         est = self.est
         if est.last_fit is None:
             return None
@@ -67,10 +86,13 @@ class JointScale:
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
         dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
         A = np.dot(Jt, Jt.T)
-        M = self._M
+        ext = others and self.n_others > 0
+        M = self._Mx if ext else self._M
         M[:, 0] = rho
         M[:, 1] = Bd
-        rhs = np.dot(Jt, M)  # (3, 2): J^T rho, g = J^T d_w
+        if ext:
+            M[:, 2:] = self._BD
+        rhs = np.dot(Jt, M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
@@ -87,4 +109,28 @@ class JointScale:
             return None
         chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
-        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k)
+        part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
+        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k), part
+
+    def others_part(self, yw, By, rho, rhs, sol, dd, H00, b0, chi2, k) -> tuple | None:
+        """The other states' measurement by the frame, the load's force and the scale profiled out (the
+        Schur complements of the joint least squares over force, scale and others): their information ``H``
+        (n_o, n_o), its vector ``b`` (``H^-1 b`` their estimate), inflated by the frame's misfit beyond the
+        noise; and the force's step per unit of each, the scale held (3, n_o)."""
+        Dy = np.dot(self._Dw, yw)
+        BD = self._BD
+        G = rhs[:, 1:]  # (3, 1 + n_o): J^T [d_w, D_o]
+        Q = self._Q
+        Q[0, 0] = dd
+        Q[0, 1:] = Q[1:, 0] = self._Dr + Dy
+        Hf = Q - np.dot(G.T, sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
+        c = np.dot(rho, BD) + Dy - np.dot(By, BD) - np.dot(G[:, 1:].T, sol[:, 0])  # the others' vector
+        h0 = Hf[1:, 0]
+        Ho = Hf[1:, 1:] - np.multiply.outer(h0, h0) / H00  # ... and the scale profiled
+        bo = c - h0 * (b0 / H00)
+        try:
+            est = solve_small(Ho, bo)
+        except np.linalg.LinAlgError:
+            return None
+        inflate = max(1.0, (chi2 - float(bo.dot(est))) / self.dof)
+        return Ho / inflate, bo / inflate, k * sol[:, 2:]

@@ -93,11 +93,12 @@ class FollowSlope:
 
     def __init__(self, m: int) -> None:
         self.slope = np.zeros(m - 1)
+        self.fitted = False  # the scale spanned FOLLOW_SPAN at rest: the slope is measured
         self._fit = np.zeros((3, m))  # the weighted sums: (1, s, s^2) x (1, x_o)
 
     def copy(self) -> FollowSlope:
         new = FollowSlope(len(self.slope) + 1)
-        new.slope[:], new._fit[:] = self.slope, self._fit
+        new.slope[:], new._fit[:], new.fitted = self.slope, self._fit, self.fitted
         return new
 
     def add(self, dt: float, s: float, g: np.ndarray) -> None:
@@ -112,6 +113,7 @@ class FollowSlope:
         n, ss = F[0, 0], F[2, 0] - F[1, 0] ** 2 / F[0, 0]  # the scale's weighted spread, times n
         if ss > n * FOLLOW_SPAN ** 2:
             self.slope[:] = (F[1, 1:] - F[1, 0] * F[0, 1:] / n) / ss
+            self.fitted = True
 
 
 class LoadBias:
@@ -122,6 +124,7 @@ class LoadBias:
 
     def __init__(self, n: int) -> None:
         self.c, self.p, self.b, self.force = np.zeros(n), 0.0, 0.0, None
+        self.new = False  # the latest update began a new load
 
     def copy(self) -> LoadBias:
         new = LoadBias(len(self.c))
@@ -136,7 +139,8 @@ class LoadBias:
         white variance ``var``; ``P`` the states' predicted covariance (updated in place), ``F`` the
         prediction's transition; returns the states' update (None: not finite, nothing changed)."""
         f = np.asarray(force, float).tolist()  # on Python floats: a norm of 3 numbers in 0.1 us, not 3
-        if self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force)):
+        self.new = self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force))
+        if self.new:
             self.force, self.p, self.b = f, LOAD_BIAS_SIGMA ** 2, 0.0
             self.c[:] = 0.0
         else:

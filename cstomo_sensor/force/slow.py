@@ -89,7 +89,8 @@ class SlowStates:
                     self._gradients = g if c is None else np.vstack([c, g])
                 self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
                                           change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                          ~pipe.bad_channels, force_map(pipe))
+                                          ~pipe.bad_channels, force_map(pipe),
+                                          contacts=0 if pipe.model.contact is None else len(pipe.model.contact))
                 if age_s is not None:
                     self.drift.widen(age_s)
             c = self.creep_per_decade(pipe.calibration)
@@ -150,12 +151,13 @@ class SlowStates:
         if getattr(est, "last_fit", None) is None:
             return None
         if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
-            self._joint, self._joint_for = JointScale(est, self.drift._D[0]), self.drift
+            self._joint, self._joint_for = JointScale(est, self.drift._D[0], self.drift._D[1:]), self.drift
         e = None
         if self.expected.pending is not None and result.valid:
             e = self.expected.for_frame(t, result.force, self._frame_sigma)
-        own = self._joint.measure()
-        return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)
+        others = self.drift.wants_others
+        own = self._joint.measure(None, others)
+        return own if e is None or own is None else bounded(self._joint.measure(e, others) or own, own)
 
     def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,
                     source: str | None = None) -> str:

@@ -479,6 +479,21 @@ def held_load_creep(magnitude: float = 20.0, elevation_deg: float = 90.0, azimut
     return TimelineSpec(duration=duration, creep=creep, load_times=times, load_forces=forces)
 
 
+def full_change(change: float = 0.024, gradient: float = 0.3, contact_per_k: float = -0.01,
+                resistivity_per_k: float = 0.008, ramp_s: float = 0.0, duration: float = 60.0,
+                tasks: Tasks | None = None, axis=(1.0, 0.0, 0.0)) -> TimelineSpec:
+    """A device changed in every way a temperature change moves it (docs/physics.md#device-changes): the
+    rubber's mean resistivity by ``change`` (dT = change / ``resistivity_per_k`` K), +-``gradient`` of it
+    across the block along ``axis``, every contact following its own temperature at ``contact_per_k``
+    (-1 %/K: -3 % at +2.4 %, +3 % at -2.4 %); reached linearly at ``ramp_s`` from the tare's state, or with
+    ``ramp_s`` 0 already there at the first frame (a restart long after the tare), under ``tasks``."""
+    dT = float(change) / resistivity_per_k
+    temp = Profile(((0.0, 0.0), (float(ramp_s), dT))) if ramp_s > 0 else Profile(((0.0, dT),))
+    return TimelineSpec(duration=duration, temperature=temp, resistivity_per_k=resistivity_per_k,
+                        contact_per_k=contact_per_k, gradient=Profile(((0.0, float(gradient)),)),
+                        gradient_axis=tuple(map(float, axis)), tasks=tasks)
+
+
 def warmup_30min(seed: int = 0, creep: float = TYPICAL_CREEP_PER_DECADE, duration: float = 1800.0) -> TimelineSpec:
     """The 30-minute warm-up: 15 K (an exponential approach, time constant 10 min, scaled to reach 15 K
     at 30 min, piecewise linear every 2 min, to 0.01 K) at +0.8 %/K with a 30 % gradient along +x, contacts
@@ -493,7 +508,7 @@ def warmup_30min(seed: int = 0, creep: float = TYPICAL_CREEP_PER_DECADE, duratio
 #: Issue 20's benchmark scenarios by name: builders of :class:`TimelineSpec` (keyword arguments as above).
 SCENARIOS = {"uniform_resistivity": uniform_resistivity, "temperature_gradient": temperature_gradient,
              "drive_change": drive_change, "contact_drift": contact_drift, "held_load_creep": held_load_creep,
-             "warmup_30min": warmup_30min}
+             "warmup_30min": warmup_30min, "full_change": full_change}
 
 
 # --- the simulated device over time ------------------------------------------------------------
@@ -839,5 +854,5 @@ def with_spec(tl: Timeline, **changes) -> Timeline:
 
 
 __all__ = ["ContactDrift", "Profile", "SCENARIOS", "Tasks", "Timeline", "TimelineSpec", "TimelineState",
-           "contact_drift", "drive_change", "held_load_creep", "is_timeline_scene", "simulate_timeline_files",
+           "contact_drift", "drive_change", "full_change", "held_load_creep", "is_timeline_scene", "simulate_timeline_files",
            "temperature_gradient", "uniform_resistivity", "warmup_30min", "with_spec", "write_truth"]

@@ -17,7 +17,7 @@ from .filter import filter_bench
 from .greit import greit
 from .heldout import heldout, one_frame_reference, sigma_table
 from .pyeit import run as run_pyeit
-from .robot import robot_bench
+from .robot_change import robot_bench
 from .scene import run_scene
 from .table import run
 from .weight import choose_weight

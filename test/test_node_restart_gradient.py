@@ -1,0 +1,190 @@
+"""A live restart on a device whose change the model's uniform scale does not describe (issue 34): the rubber
+warmed with a 30 % gradient along x and its contacts moved while the node was stopped with SIGINT; the
+node restarts from its saved tare (``tare_on_start:=false``), at rest and under a held 20 N. Before, it read
+a phantom force along -x of 2-7 N at rest and 7-11 N under the load, for ever, with status OK.
+
+Everything real: ``cstomo board-sim`` playing timeline scenes on a pseudo-terminal (the truth on its own
+4 mm mesh, not the node's model), ``cstomo_sensor_node`` as a process stopped with SIGINT, the tare file it
+wrote, and the wrenches it published. The judge is the same node restarted on the unchanged device (the
+issue's aims: the zero's p99 from 1 s within 1.25 x of the unchanged device's, the held load's error within
+1.5 x angle and 1.6 x magnitude), and the load the scene applies."""
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import PIPE, wait_for
+
+pytestmark = pytest.mark.slow
+
+NODE = dict(PIPE, estimator="model", creep_per_decade=0.0, stale_timeout=0.5)
+RATE = 50
+REST_S, LOAD_S = 10.0, 10.0  # the restarted node: a rest, then a held load of LOAD_N along -z
+LOAD = (0.0, 0.0, -20.0)
+WARMED = dict(temperature=3.0, resistivity_per_k=0.008, contact_per_k=-0.01, gradient=0.3)  # +2.4 %, 30 %, -3 %
+UNCHANGED = dict(temperature=0.0, resistivity_per_k=0.008, contact_per_k=0.0, gradient=0.0)
+
+
+def scene(path: Path, duration: float, device: dict, load: bool) -> Path:
+    loads = (f"  loads: [{{time: 0, force: [0, 0, 0]}}, {{time: {REST_S}, force: {list(LOAD)}}}]\n" if load else "")
+    path.write_text(
+        "sensor: cuboid_joint\nsnr_db: 60\nseed: 3\ntruth_mesh_size: 0.004\ntimeline:\n"
+        f"  duration: {duration}\n  rate_hz: {RATE}\n"
+        f"  temperature: [[0, {device['temperature']}]]\n  resistivity_per_k: {device['resistivity_per_k']}\n"
+        f"  contact_per_k: {device['contact_per_k']}\n"
+        + (f"  gradient: [[0, {device['gradient']}]]\n" if device["gradient"] else "") + loads)
+    return path
+
+
+@pytest.fixture(scope="module")
+def model_built():
+    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.force.pipeline import Pipeline
+
+    return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()
+                                            if k != "estimator"}, estimator="model"))
+
+
+def board(path: Path, link: Path, duration: float) -> subprocess.Popen:
+    """``cstomo board-sim`` playing the scene ``path`` (its timeline from the node's first START), once its
+    pty is there; the scene's frames computed here first (into the cache the board reads)."""
+    from cstomo_sensor.model.timeline import Timeline
+
+    Timeline.from_scene(path).prepare()
+    exe = Path(sys.executable).parent / "cstomo"
+    p = subprocess.Popen([str(exe), "board-sim", "--scene", str(path), "--rate", str(RATE), "--duration",
+                          str(duration), "--link", str(link)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    line = p.stdout.readline()
+    assert line.startswith("device: "), line + stop(p)
+    return p
+
+
+def node(link: Path, tare: Path, tare_on_start: bool) -> subprocess.Popen:
+    exe = Path(sys.executable).parent / "cstomo_sensor_node"
+    args = [str(exe), "--ros-args"]
+    for k, v in dict(NODE, port=str(link), tare_file=str(tare), tare_on_start=tare_on_start).items():
+        args += ["-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}"]
+    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+
+
+class Probe:
+    """The node's wrenches (receive time, force) and diagnostics' messages, on a probe of its own."""
+
+    def __init__(self, ctx):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import WrenchStamped
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        self.node = Node("restart_probe", context=ctx)
+        self.wrenches, self.levels, self.lock = [], [], threading.Lock()
+        self.node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", self._wrench, 1000)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 100)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
+        self.thread.start()
+
+    def _wrench(self, msg):
+        f = msg.wrench.force
+        with self.lock:
+            self.wrenches.append((time.monotonic(), f.x, f.y, f.z))
+
+    def _diag(self, msg):
+        with self.lock:
+            self.levels += [(time.monotonic(), s.level[0] if isinstance(s.level, bytes) else s.level, s.message)
+                            for s in msg.status if s.name.startswith("cstomo_sensor")]
+
+    def clear(self):
+        with self.lock:
+            self.wrenches.clear()
+            self.levels.clear()
+
+    def close(self):
+        self.ex.shutdown(timeout_sec=2.0)
+        self.thread.join(5.0)
+        self.node.destroy_node()
+
+
+def stop(p: subprocess.Popen, sig=signal.SIGINT) -> str:
+    if p.poll() is None:
+        p.send_signal(sig)
+        try:
+            p.wait(20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+    return p.stderr.read() if p.stderr else ""
+
+
+def restart(probe, tmp_path, tare: Path, device: dict, tag: str) -> np.ndarray:
+    """The node restarted from ``tare`` on a board playing ``device`` (a rest, then the held load): its
+    wrenches as (seconds since the board's start, fx, fy, fz)."""
+    link = tmp_path / f"board_{tag}"
+    duration = REST_S + LOAD_S
+    b = board(scene(tmp_path / f"{tag}.yaml", duration, device, True), link, duration)
+    probe.clear()
+    n = node(link, tare, tare_on_start=False)
+    try:  # the board's timeline starts at the node's first START, and ends its duration later
+        assert wait_for(lambda: len(probe.wrenches) > 0, 60.0, 0.05), "no wrench"
+        b.wait(duration + 30.0)
+        time.sleep(0.3)
+    finally:
+        err = stop(n)
+        stop(b, signal.SIGTERM)
+    assert "saved tare" in err, err[-3000:]
+    with probe.lock:
+        w = np.array(probe.wrenches, float).reshape(-1, 4)
+    return w
+
+
+def figures(w: np.ndarray) -> dict:
+    """The zero's p99 over the rest from the timeline's 1 s (found by the load's step); the held load's median angle
+    (deg) and magnitude (%) errors over its last 5 s (its first 5 s after the step are the converging)."""
+    # the load's step (the timeline's REST_S): the first wrench may come later than the first frame
+    step = w[np.argmax(np.linalg.norm(w[:, 1:], axis=1) > 0.5 * np.linalg.norm(LOAD)), 0] - REST_S
+    rest = w[(w[:, 0] >= step + 1.0) & (w[:, 0] < step + REST_S - 0.5)]
+    load = w[(w[:, 0] >= step + REST_S + LOAD_S - 5.0) & (w[:, 0] < step + REST_S + LOAD_S - 0.3)]
+    assert len(rest) > 5 * RATE * 0.5 and len(load) > 3 * RATE * 0.5, (len(rest), len(load), step)
+    f = load[:, 1:]
+    cos = f @ np.array(LOAD) / (np.linalg.norm(f, axis=1) * np.linalg.norm(LOAD))
+    return {"zero_p99": float(np.percentile(np.linalg.norm(rest[:, 1:], axis=1), 99)),
+            "angle": float(np.median(np.degrees(np.arccos(np.clip(cos, -1, 1))))),
+            "magnitude": float(np.median(np.abs(np.linalg.norm(f, axis=1) / np.linalg.norm(LOAD) - 1) * 100)),
+            "first_wrench_s": float(w[0, 0] - step),
+            "per_s": [round(float(np.median(np.linalg.norm(w[(w[:, 0] >= step + k) & (w[:, 0] < step + k + 1), 1:],
+                                                           axis=1))), 2)
+                      for k in range(int(REST_S + LOAD_S))]}
+
+
+def test_a_restart_after_warming_with_a_gradient_recovers_at_rest_and_under_load(ros, tmp_path, model_built):
+    tare = tmp_path / "tare.csv"
+    probe = Probe(ros)
+    try:
+        # the device as tared: the node tares on start and writes its tare file; then SIGINT
+        link = tmp_path / "board_tare"
+        b = board(scene(tmp_path / "tare.yaml", 30.0, UNCHANGED, False), link, 30.0)
+        n = node(link, tare, tare_on_start=True)
+        try:
+            assert wait_for(lambda: tare.exists() and len(probe.wrenches) > 20, 60.0, 0.1), "no tare written"
+        finally:
+            err = stop(n)
+            stop(b, signal.SIGTERM)
+        assert n.returncode == 0 and "Traceback" not in err, err[-3000:]
+        # it warmed by 2.4 % with a 30 % gradient along x, contacts -3 %; the node restarts from its tare
+        warm = figures(restart(probe, tmp_path, tare, WARMED, "warm"))
+        still = figures(restart(probe, tmp_path, tare, UNCHANGED, "still"))
+    finally:
+        probe.close()
+    print("warmed", warm, "unchanged", still)
+    assert still["zero_p99"] < 0.5 and still["magnitude"] < 10, still  # the judge itself reads right
+    assert warm["zero_p99"] <= 1.25 * still["zero_p99"], (warm, still)
+    assert warm["angle"] <= max(1.5 * still["angle"], 1.0), (warm, still)
+    assert warm["magnitude"] <= max(1.6 * still["magnitude"], 1.0), (warm, still)
