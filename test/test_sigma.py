@@ -159,9 +159,10 @@ def test_a_restart_from_an_old_tare_on_a_device_that_changed_unevenly_covers_its
     """Issue 34: a restart 8 h after the tare (the node's path: the saved tare with its age) of a device
     that meanwhile warmed unevenly, as section 9 of the device's physics says they do: +2.4 % resistivity
     (3 K at 0.8 %/K) with a 30 % gradient along x, its contacts -3 % (-1 %/K); the honest simulator's
-    truth (its own mesh), 60 dB, at rest or loaded from the first frame. The first frame reads newtons
-    off (the tracker has measured nothing yet), and its sigma_n says so: error <= 3 sigma_n (before: 3.7 x
-    its sigma_n at rest). The frame's misfit (force/sigma.py) is what widens it."""
+    truth (its own mesh), 60 dB, at rest or loaded from the first frame. The first frames read off (the
+    tracker has measured little yet), and their sigma_n says so: error <= 3 sigma_n on each of the first
+    10 frames (before issue 34: the first frame 4.1 N off at rest, 3.7 x its sigma_n). The frame's misfit
+    (force/sigma.py) widens the first; the restart's widened device states (force/drift.py) the next."""
     from cstomo_sensor.model.timeline import Profile, Timeline, TimelineSpec
 
     tare = Timeline(TimelineSpec(duration=1.0), snr_db=60.0, seed=5, truth=cuboid_truth).tare(20, np.random.default_rng(1))
@@ -172,8 +173,9 @@ def test_a_restart_from_an_old_tare_on_a_device_that_changed_unevenly_covers_its
     times, frames, forces, _ = tl.frames(100.0, rng=np.random.default_rng(2))
     stream = FrameStream(model_pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=8 * 3600.0)
-    r = stream.push(frames[0], stamp_ns=1_000_000_000).result
-    err = float(np.linalg.norm(r.force - forces[0]))
-    print(f"first frame: error {err:.2f} N, sigma_n {r.sigma_n:.2f} N, consistency {r.consistency:.1f}")
-    assert err > 1.0, err  # the restart's first frame is off: the test can fail
-    assert err <= 3.0 * r.sigma_n, (err, r.sigma_n)
+    rs = [stream.push(v, stamp_ns=1_000_000_000 + k * 10_000_000).result for k, v in enumerate(frames[:10])]
+    err = np.array([np.linalg.norm(r.force - f) for r, f in zip(rs, forces)])
+    sigma_n = np.array([r.sigma_n for r in rs])
+    print("first 10 frames: error N", np.round(err, 2), "sigma_n N", np.round(sigma_n, 2),
+          f"consistency of the first {rs[0].consistency:.1f}")
+    assert (err <= 3.0 * sigma_n).all(), (err, sigma_n)
