@@ -37,7 +37,8 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     issue 26's follow under load: the other states' slope against the scale by a weighted polynomial
     fit of every rest frame kept (``np.polyfit``), and their variance's growth since the last rest."""
     from cstomo_sensor.force.creep import DEFAULT_PERIOD
-    from cstomo_sensor.force.drift import FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY
+    from cstomo_sensor.force.drift import (FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY, RESTART_CONTACT,
+                                           RESTART_GRADIENT)
 
     self = tracker
     dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
@@ -67,7 +68,13 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
             a0 = self._unmeasured
             self._unmeasured = a0 + abs(step)
             others = np.arange(1, m)
-            P[others, others] += FOLLOW_SIGMA ** 2 * (self._unmeasured ** 2 - a0 ** 2)
+            # the slope's 1-sigma: FOLLOW_SIGMA once rests spanned FOLLOW_SPAN of the scale, else section 9's
+            # range (issue 34): RESTART_CONTACT for the contacts' states (the first), RESTART_GRADIENT for the rest
+            if getattr(self, "_ref_fitted", False):
+                slope2 = np.full(m - 1, FOLLOW_SIGMA ** 2)
+            else:
+                slope2 = np.array([(RESTART_CONTACT if k < self.contacts else RESTART_GRADIENT) ** 2 for k in range(m - 1)])
+            P[others, others] += slope2 * (self._unmeasured ** 2 - a0 ** 2)
             self.gradient = self.gradient + self.follow * (self.scale - s0)
             np.dot(self.gradient, self._D[1:], out=self.offset)
         self.P = P
@@ -92,6 +99,7 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
         w = np.exp(-(clock - c) / FOLLOW_MEMORY)
         if len(hist) > 1 and np.sum(w * (s - np.sum(w * s) / np.sum(w)) ** 2) > np.sum(w) * FOLLOW_SPAN ** 2:
             self.follow = np.array([np.polyfit(s, g[:, i], 1, w=np.sqrt(w))[0] for i in range(m - 1)])
+            self._ref_fitted = True
     self.P = 0.5 * (P + P.T)
     return True
 
