@@ -412,13 +412,17 @@ void board_poll(void) {
     if (now < due)
         return;
     if (now - due > cfg.resync_us) { /* fell behind (a stalled line, a debugger): skip, do not burst */
-        uint32_t k = (uint32_t)((((now - t0_us) << 16) + period_q16 - 1) / period_q16);
-        st.skipped += k - k_next;
-        k_next = k;
+        uint64_t k = ((((now - t0_us) << 16) + period_q16 - 1) / period_q16);
+        st.skipped += (uint32_t)(k - k_next);
+        t0_us += (k >> 16) * period_q16; /* rebase (below) */
+        k_next = (uint32_t)(k & 0xFFFFu);
         return;
     }
     frame(now);
-    k_next++;
+    if (++k_next == 0x10000u) { /* rebase every 2^16 slots, exactly (due_us(2^16) = t0 + period_q16): */
+        t0_us += period_q16;    /* k_next never wraps, whatever the uptime */
+        k_next = 0;
+    }
     hal_link_poll();
 }
 

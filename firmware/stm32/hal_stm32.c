@@ -98,7 +98,12 @@ uint64_t hal_micros(void) {
     } while (ms != millis);
     if (pending && val > SYST_RVR / 2u) /* the counter wrapped, its interrupt not taken yet */
         ms++;
-    uint64_t now = (uint64_t)ms * 1000u + (SYST_RVR - val) / TICKS_PER_US;
+    static uint32_t last_ms;
+    static uint64_t ms_high; /* the millisecond counter's wraps (every 49.7 days) */
+    if (ms < last_ms)
+        ms_high += (uint64_t)1 << 32;
+    last_ms = ms;
+    uint64_t now = (ms_high + ms) * 1000u + (SYST_RVR - val) / TICKS_PER_US;
     if (now < last) /* monotonic whatever the interrupt's latency */
         now = last;
     last = now;
