@@ -37,8 +37,7 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     issue 26's follow under load: the other states' slope against the scale by a weighted polynomial
     fit of every rest frame kept (``np.polyfit``), and their variance's growth since the last rest."""
     from cstomo_sensor.force.creep import DEFAULT_PERIOD
-    from cstomo_sensor.force.drift import (FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY, RESTART_CONTACT,
-                                           RESTART_GRADIENT)
+    from cstomo_sensor.force.drift import FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY, RESTART_CONTACT, RESTART_GRADIENT
 
     self = tracker
     dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)

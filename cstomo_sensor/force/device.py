@@ -19,6 +19,7 @@ foreign-load statistic counts; :data:`LEGACY_NOISE_FRAMES` for a file saved befo
 """
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,8 @@ import numpy as np
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame, read_frames, write_frames
 from ..model.geometry import DEFAULT_SNR_DB
+
+log = logging.getLogger(__name__)
 
 #: The noise assumed without a measurement (one-frame reference): 60 dB, the default scene (docs/physics.md#noise).
 DEFAULT_NOISE_DB = DEFAULT_SNR_DB
@@ -188,7 +191,11 @@ def saved_at(path: str | Path) -> float | None:
         for line in f:
             m = _SAVED_AT.search(line) if line.lstrip().startswith("#") else None
             if m:
-                return datetime.strptime(m.group(1), "%Y-%m-%dT%H:%M:%S%z").timestamp()
+                try:
+                    return datetime.strptime(m.group(1), "%Y-%m-%dT%H:%M:%S%z").timestamp()
+                except ValueError:  # a hand-edited date that is none (month 13): as if it recorded none
+                    log.warning("%s: saved at %r is not a date; its file's time is used", path, m.group(1))
+                    return None
     return None
 
 

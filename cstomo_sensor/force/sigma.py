@@ -111,7 +111,7 @@ def relative_error(calibration, estimator: str) -> tuple[tuple[float, float], st
         ang = bound * math.radians(after["angle_deg_p90"]) / _P90_2D
         where = f"calibration {calibration.path or ''} (cross-validated p90 of {n} loads)".replace("  ", " ")
         return (math.sqrt(mag * mag + 2.0 * ang * ang), 0.0), where
-    where = "the nominal model's error by direction (force/sigma.py NOMINAL_ERROR)" if calibration is None else \
+    where = "the nominal model's error by direction (cstomo bench --sigma-table)" if calibration is None else \
         f"the nominal model's error by direction (calibration {calibration.path} not cross-validated)"
     return NOMINAL_ERROR.get(estimator, NOMINAL_ERROR["linear"]), where
 

@@ -80,6 +80,7 @@ class SlowStates:
         """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
         ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states."""
         self.drift = self.creep = None
+        self._frame_sigma = None  # the previous reference's frames' sigma is not this one's (expected load)
         self.age_s = age_s  # the reference's age (a restart), for the diagnostics and the tests
         if pipe.reference is not None:
             if self.tracking:
@@ -157,7 +158,7 @@ class SlowStates:
             e = self.expected.for_frame(t, result.force, self._frame_sigma)
         others = self.drift.wants_others
         own = self._joint.measure(None, others)
-        return own if e is None or own is None else bounded(self._joint.measure(e, others) or own, own)
+        return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)  # others: own's
 
     def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,
                     source: str | None = None) -> str:

@@ -258,7 +258,8 @@ class FrameStream:
         if self.noise_state.estimate is not None and not pipe.noise_measured:
             self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
         slow.observe(pipe, result, t, self.channels.frozen)
-        if self.first_tare is not None and result.valid and self.first_tare.observe(pipe.last_y):
+        if (self.first_tare is not None and result.valid and not result.foreign_load  # a press elsewhere: no pull
+                and self.first_tare.observe(pipe.last_y)):
             # the first tare carried a load (force/first_tare.py): dropped, nothing published until a tare
             self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tare_file))
             self.first_tare, pipe.reference = None, None
