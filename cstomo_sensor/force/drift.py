@@ -263,7 +263,6 @@ class DriftTracker:
             z, var, u, v, force = joint[:5]
             if rest:
                 self._bias.rest()
-                self._obias = None  # the held load's bias of the other states goes with it
                 Pc = P[:, 0].copy()
                 gain = Pc / (Pc[0] + var / REST_WEIGHT)
                 delta = gain * (z - step)
@@ -275,8 +274,6 @@ class DriftTracker:
                 # do not measure more (the same held load reads the same at 10 and 100 frames/s)
                 w = LOADED_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
-                if self._bias.new:  # a new load: its own bias of the other states (_loaded_others)
-                    self._obias = None
                 if delta is not None:
                     tot += delta
                 if len(joint) > 5 and joint[5] is not None:
