@@ -265,7 +265,7 @@ def test_record_without_a_node_says_one_line_and_leaves_nothing(tmp_path):
                        capture_output=True, text=True, timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     assert p.returncode == 2, p.stdout + p.stderr
     err = [ln for ln in p.stderr.splitlines() if ln.strip()]
-    assert err[-1].startswith("cstomo record: no message on /nobody_here/*") and p.stdout == "", err
+    assert err[-1].startswith("cstomo record: error: no message on /nobody_here/*") and p.stdout == "", err
     assert "Traceback" not in p.stderr
     assert list(tmp_path.iterdir()) == []  # no bag, no partial directory
     bad = subprocess.run([EXE, "record", "--out", str(tmp_path / "rec"), "--topics", "wrench", "nonsense"],
