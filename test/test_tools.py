@@ -378,7 +378,10 @@ def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monke
 
     log = logging.getLogger("cstomo_sensor.model.timeline")
     clock = iter(np.arange(0.0, 100.0, 0.6))  # each item takes 0.6 s: a record every other item
-    monkeypatch.setattr(progress.time, "monotonic", lambda: next(clock))
+    # the progress module's own clock only (patching time.monotonic itself reaches every thread of the process:
+    # a thread left by an earlier test spun on it once, and CI hung here)
+    from types import SimpleNamespace
+    monkeypatch.setattr(progress, "time", SimpleNamespace(monotonic=lambda: next(clock)))
 
     def run_on(stream):
         monkeypatch.setattr(sys, "stderr", stream)
@@ -399,6 +402,8 @@ def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monke
         assert tty.isatty()
         run_on(tty)
         _time.sleep(0.1)
+        import select
+        assert select.select([master], [], [], 5.0)[0], "nothing written on the terminal"
         text = os.read(master, 65536).decode()
     os.close(master)
     assert text.count("\rtimeline") == 6 and "timeline: the truth at its knots: 0/10" in text, repr(text)
