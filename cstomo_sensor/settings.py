@@ -6,7 +6,7 @@ and the node's ``NodeConfig``, the command-line flags that mirror a setting (:fu
 the launch arguments that override one (:mod:`.tools.launching`), ``cstomo_sensor_node --help``,
 ``config/cstomo_sensor.yaml`` and the parameter table of docs/node.md all come from :data:`SETTINGS`;
 the last two are written by ``python -m cstomo_sensor.settings yaml|markdown`` and held equal by
-test/test_settings.py. No ROS here.
+test/test_settings.py. No ROS here, and nothing of the package but errors.py: a leaf every layer may read.
 """
 from __future__ import annotations
 
@@ -15,19 +15,35 @@ import sys
 import textwrap
 from dataclasses import dataclass, fields
 
-from .board.wire import PROTOCOLS
 from .errors import ConfigError
-from .force.creep import DEFAULT_CREEP, MAX_CREEP
-from .force.estimate import ESTIMATORS
-from .force.training import CalibrationSpec
-from .inverse.reconstruction import ReconSpec
-from .model.geometry import DEFAULT_SENSOR
-from .model.mesh import MESH_SIZE_RANGE
+
+# settings.py imports nothing of the package but errors.py: the modules that read a setting (model/,
+# force/, inverse/, board/, ros/, tools/) are never imported back by it. The values below are what both
+# a setting and its owner use: declared here once, imported by the owner (named beside each).
+#: The wire modes a board may speak (board/wire.py); the first is the default.
+PROTOCOLS = ("binary", "text")
+#: The force estimators by name (force/estimate.py); the first is the default: ``model``, the more accurate,
+#: whose per-frame cost with the drift tracking (``cstomo bench --frame-cost``) is within the 0.1 ms aim.
+ESTIMATORS = ("model", "linear")
+#: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name, model/geometry.py).
+DEFAULT_SENSOR = "cuboid_joint"
+#: m: the element sizes a mesh may be asked for (model/mesh.py).
+MESH_SIZE_RANGE = (2.0e-4, 2.0e-2)
+#: The typical rubber's creep per decade (model/material.py's creep law), the middle of the documented
+#: 2..6 % per decade: the one declaration of both what the frame stream compensates without a calibration
+#: (``creep_per_decade``, force/creep.py) and how the simulated board's rubber creeps by default
+#: (``cstomo board-sim --creep``), so that the node with its defaults reads a held load of the simulated
+#: board with its defaults constant.
+TYPICAL_CREEP_PER_DECADE = 0.04
+#: The largest creep coefficient taken (rubbers: 0.02..0.06); the compensation (force/creep.py) feeds back
+#: its own output, stable to about 0.3 per decade.
+MAX_CREEP = 0.2
+#: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load
+#: (force/training.py ``CalibrationSpec.magnitudes``), N.
+RATED_FORCE = 40.0
 
 INPUTS = ("serial", "topic")
 RELIABILITIES = ("system_default", "reliable", "best_effort")
-#: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load, N.
-RATED_FORCE = max(CalibrationSpec.magnitudes)
 _KINDS = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string"}
 
 
@@ -112,11 +128,11 @@ SETTINGS: tuple[Setting, ...] = (
             "$XDG_CACHE_HOME/cstomo_sensor (~/.cache/cstomo_sensor when XDG_CACHE_HOME is unset)"),
     Setting("estimator", ESTIMATORS[0], "Force estimator: model (the more accurate) or linear (the fastest)",
             choices=ESTIMATORS),
-    Setting("mesh_size", ReconSpec.mesh_size, "Forward-model mesh element size (smaller: slower build, finer model)",
+    Setting("mesh_size", 4.0e-3, "Forward-model mesh element size (smaller: slower build, finer model)",
             *MESH_SIZE_RANGE, "metres"),
-    Setting("grid", ReconSpec.grid, "Reconstruction voxel grid nx, ny, nz", 1, 64),
+    Setting("grid", (8, 8, 4), "Reconstruction voxel grid nx, ny, nz", 1, 64),
     Setting("iterations", 0, "Landweber iterations; 0 = chosen by the discrepancy rule", 0, 1_000_000_000),
-    Setting("damping", ReconSpec.damping, "Landweber damping, relative to s_max^2", 0.0, 1.0e6),
+    Setting("damping", 0.0, "Landweber damping, relative to s_max^2", 0.0, 1.0e6),
     Setting("max_force", 1.5 * RATED_FORCE, f"A frame implying a larger force, or a change no such load explains, is "
             f"implausible: not published, counted in the diagnostics (default: 1.5 x the rated {RATED_FORCE:g} N)",
             1.0, 100000.0, "N"),
@@ -137,7 +153,7 @@ SETTINGS: tuple[Setting, ...] = (
             "1/(2 pi f): 8 ms at 20 Hz); 0 = off (no ~/wrench_filtered)", 0.0, 10000.0, "Hz"),
     Setting("drift_tracking", True, "Follow the device's slow uniform change after the tare (warming, drive drift) "
             "so the zero holds; the diagnostics show the tracked change"),
-    Setting("creep_per_decade", DEFAULT_CREEP, "The rubber's creep per decade of time (rubbers: 0.02..0.06), "
+    Setting("creep_per_decade", TYPICAL_CREEP_PER_DECADE, "The rubber's creep per decade of time (rubbers: 0.02..0.06), "
             "compensated so a held load reads constant; a calibration's fitted value wins; "
             "0 = off (a calibration's too)", 0.0, MAX_CREEP),
     # above the 1-sigma of a 40 dB board's noise alone (about 1.9 N)

@@ -1,5 +1,5 @@
 """The defaults agree (issue 25 items 3 and 8): the simulated board's default rubber creeps as the
-node's default compensation assumes (one declaration, model/material.py TYPICAL_CREEP_PER_DECADE),
+node's default compensation assumes (one declaration, settings.py TYPICAL_CREEP_PER_DECADE),
 so the node with every default reads a held load of ``cstomo board-sim`` with every default
 constant; ``cstomo demo`` judges each line at its wrench's frame time; board-sim's sensor and rate
 default to the pipeline's sensor and the launch's rate."""
@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from cstomo_sensor.model.material import TYPICAL_CREEP_PER_DECADE
+from cstomo_sensor.settings import TYPICAL_CREEP_PER_DECADE
 
 
 def test_one_declaration_of_the_typical_creep_and_of_the_simulated_boards_rate_and_sensor(tmp_path):

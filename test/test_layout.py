@@ -135,7 +135,7 @@ def test_core_modules_load_no_heavy_or_ros_package_at_import():
 
 def test_cli_flags_take_their_defaults_and_choices_from_the_config():
     from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.estimate import ESTIMATORS
+    from cstomo_sensor.settings import ESTIMATORS
     from cstomo_sensor.tools import cli
 
     d = PipelineConfig()
@@ -151,9 +151,9 @@ def test_cli_flags_take_their_defaults_and_choices_from_the_config():
 
 def test_node_parameter_defaults_are_the_config_defaults():
     pytest.importorskip("rclpy")
-    from cstomo_sensor.board.wire import PROTOCOLS
     from cstomo_sensor.force.config import PipelineConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
+    from cstomo_sensor.settings import PROTOCOLS
 
     cfg = NodeConfig.from_parameters(lambda n: PARAMETERS[n][0])
     assert cfg.pipeline == PipelineConfig()
@@ -168,10 +168,10 @@ def test_ruff_finds_nothing():
 
 
 def test_the_default_sensor_is_named_only_where_it_is_defined():
-    """``DEFAULT_SENSOR`` (model/geometry.py) is the one place the default sensor's name is written
+    """``DEFAULT_SENSOR`` (settings.py) is the one place the default sensor's name is written
     in code; every other module imports it (docstrings and comments may name it)."""
-    from cstomo_sensor.model.geometry import DEFAULT_SENSOR
+    from cstomo_sensor.settings import DEFAULT_SENSOR
 
-    wrong = [f"{m}:{n.lineno}" for m, p in MODULES.items() if m != "cstomo_sensor.model.geometry"
+    wrong = [f"{m}:{n.lineno}" for m, p in MODULES.items() if m != "cstomo_sensor.settings"
              for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Constant) and n.value == DEFAULT_SENSOR]
     assert not wrong, wrong

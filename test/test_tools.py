@@ -126,7 +126,7 @@ def test_bench_sigma_table_on_a_few_forces(tmp_path):
 def test_bench_frame_cost_times_both_estimators_with_and_without_tracking(tmp_path):
     """``cstomo bench --frame-cost`` (one round here): a row per estimator and tracking, every frame of
     the stream timed, the host's load stated. No timing assertions."""
-    from cstomo_sensor.force.estimate import ESTIMATORS
+    from cstomo_sensor.settings import ESTIMATORS
     from cstomo_sensor.tools.bench.drift import frame_cost
 
     frame_cost(tmp_path, rounds=1, say=lambda msg: None)

@@ -26,7 +26,8 @@ from typing import Literal
 import serial
 
 from ..errors import ConfigError
-from .wire import PROTOCOLS, DataFrame, Decoder, Error, Identify, Identity, Start, TextDecoder, encode
+from ..settings import PROTOCOLS
+from .wire import DataFrame, Decoder, Error, Identify, Identity, Start, TextDecoder, encode
 
 log = logging.getLogger(__name__)
 

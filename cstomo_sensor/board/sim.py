@@ -20,12 +20,12 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..model.pattern import MeasurementPattern
+from ..settings import PROTOCOLS
 from .links import PtyLink, VirtualLink, open_link
 from .wire import (
     DRIVE_CURRENT_A,
     N_ELECTRODES,
     N_VALUES,
-    PROTOCOLS,
     Ack,
     DataFrame,
     Decoder,

@@ -21,7 +21,6 @@ from ..errors import FrameError
 from ..model.geometry import DRIVE_CURRENT_A, N_ELECTRODES
 
 PROTOCOL_VERSION = 1
-PROTOCOLS = ("binary", "text")  # the two wire modes a board may speak
 N_VALUES = 208
 
 _HEADER = struct.Struct("<BBH")  # version, type, payload length

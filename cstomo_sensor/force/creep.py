@@ -43,18 +43,16 @@ from functools import cache
 
 import numpy as np
 
-from ..model.material import CREEP_T0, TYPICAL_CREEP_PER_DECADE
+from ..model.material import CREEP_T0
+from ..settings import MAX_CREEP, TYPICAL_CREEP_PER_DECADE
 
 #: The coefficient assumed without a calibration: the middle of the documented 2..6 % per decade,
-#: the simulated board's default rubber too (model/material.py declares both; CREEP_T0: creep counts
-#: from this many seconds after a change of load).
+#: the simulated board's default rubber too (one declaration: settings.py; model/material.py's CREEP_T0:
+#: creep counts from this many seconds after a change of load).
 DEFAULT_CREEP = TYPICAL_CREEP_PER_DECADE
 #: Seconds between frames without stamps (`cstomo estimate` without `--rate`): the creep compensation
 #: and the drift tracker (force/drift.py) take it.
 DEFAULT_PERIOD = 0.01
-#: The largest coefficient taken (rubbers: 0.02..0.06); the compensation feeds back its own output,
-#: stable to about 0.3 per decade.
-MAX_CREEP = 0.2
 #: Time steps are rounded to this many seconds to look up their decay factors (board stamps jitter
 #: by microseconds: 10 us changes a factor of the fastest mode by 3e-4 of itself, far below noise).
 STEP_ROUND = 1e-5

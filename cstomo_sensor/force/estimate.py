@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..inverse.reconstruction import ReconstructionModel
 from ..model.geometry import SensorGeometry
+from ..settings import ESTIMATORS
 from .small import cramer3
 from .tps import ThinPlateSpline
 from .training import CalibrationSpec, calibration_set, response_set
@@ -204,11 +205,6 @@ class ModelEstimator:
     def with_noise(self, noise: np.ndarray) -> ModelEstimator:
         """The same estimator for a device whose per-channel noise (y units) is ``noise``."""
         return self._like(self.forces, self.y, noise, self.keep)
-
-
-#: The force estimators by name; the first is the default: ``model``, the more accurate, whose
-#: per-frame cost with the drift tracking (``cstomo bench --frame-cost``) is within the 0.1 ms aim.
-ESTIMATORS = ("model", "linear")
 
 
 def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionModel, cache_dir=None,

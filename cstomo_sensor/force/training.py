@@ -26,6 +26,7 @@ from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.material import conductivity_of_theta
 from ..model.mesh import MeshSpec, TetMesh, build_mesh
+from ..settings import RATED_FORCE
 from .joint import gradient_coordinates
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,7 @@ class CalibrationSpec:
     n_directions: int = 40
     #: 1 N: without it the ``model`` estimator's spline between the unloaded state and 5 N read 1 N
     #: straight down as 0.86 N on the model's own mesh (2 N as 1.85 N; 0.99 x at and above 5 N)
-    magnitudes: tuple[float, ...] = (1.0, 5.0, 12.0, 22.0, 40.0)
+    magnitudes: tuple[float, ...] = (1.0, 5.0, 12.0, 22.0, RATED_FORCE)  # the rated force last
     min_elevation_deg: float = 15.0
     mechanics_mesh_size: float = 6e-3
     ridge: float = 1e-3

@@ -39,6 +39,7 @@ from ..frames_io import check_frame
 from ..model.cem import ForwardModel
 from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
 from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
+from ..settings import default
 from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
 
 log = logging.getLogger(__name__)
@@ -61,11 +62,11 @@ class ReconSpec:
     within 8 mm (``cstomo bench --choose-weight``; never the held-out scenes).
     """
 
-    mesh_size: float = 4.0e-3
-    grid: tuple[int, int, int] = (8, 8, 4)
+    mesh_size: float = default("mesh_size")
+    grid: tuple[int, int, int] = default("grid")
     basis_grid: tuple[int, int, int] = (24, 24, 12)
     iterations: int | None = None
-    damping: float = 0.0
+    damping: float = default("damping")
     snr_db: float = DEFAULT_SNR_DB
     weight_power: float = 0.75
     tau: float = 0.9

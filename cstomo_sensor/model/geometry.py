@@ -29,9 +29,8 @@ from .material import Material
 log = logging.getLogger(__name__)
 
 SURFACE_TOL = 1e-6  # m: how far an electrode centre may lie from the body surface
-# The reference sensor and board (docs/physics.md#geometry), defined here once and imported everywhere else:
-#: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name).
-DEFAULT_SENSOR = "cuboid_joint"
+# The reference sensor and board (docs/physics.md#geometry), defined here once and imported everywhere else
+# (the default sensor's name: settings.py, imported above):
 N_ELECTRODES = 16  # the board drives 16 electrodes and the measurement pattern has 208 values
 #: A: the board's constant current between adjacent electrodes (a sensor file's ``drive_current``).
 DRIVE_CURRENT_A = 8.0e-3

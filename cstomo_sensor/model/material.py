@@ -52,7 +52,6 @@ __all__ = [
     "pressure_of_theta",
     "theta_of_conductivity",
     "theta_of_conductivity_change",
-    "TYPICAL_CREEP_PER_DECADE",
 ]
 
 @dataclass(frozen=True)
@@ -101,11 +100,6 @@ SIGMA_FLOOR_FRACTION = 1.0e-6
 #: c of its initial value per decade of time, counted from this many seconds after the load changed
 #: (log10(max(t, CREEP_T0) / CREEP_T0)). The simulation's law and the stream's compensation both use it.
 CREEP_T0 = 0.1
-#: The typical rubber's c, the middle of the documented 2..6 % per decade: the one declaration of both
-#: what the frame stream compensates without a calibration (``creep_per_decade``) and how the
-#: simulated board's rubber creeps by default (``cstomo board-sim --creep``), so that the node with
-#: its defaults reads a held load of the simulated board with its defaults constant.
-TYPICAL_CREEP_PER_DECADE = 0.04
 
 
 def conductivity_floor(mat: Material) -> float:

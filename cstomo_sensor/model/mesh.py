@@ -35,12 +35,12 @@ import numpy as np
 
 from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError, MeshError
+from ..settings import MESH_SIZE_RANGE  # m: the element sizes a mesh may be asked for
 from .geometry import SensorGeometry
 
 log = logging.getLogger(__name__)
 
 MESH_FORMAT = 3  # bump when the mesher or the file layout changes: old cache entries are not reused
-MESH_SIZE_RANGE = (2.0e-4, 2.0e-2)  # m: the element sizes a mesh may be asked for
 MIN_QUALITY = 0.02  # smallest accepted normalised tetrahedron quality (1 = regular, 0 = flat)
 
 

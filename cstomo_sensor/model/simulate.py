@@ -44,10 +44,10 @@ from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
 from ..progress import steps
-from ..settings import MAX_LOAD
+from ..settings import DEFAULT_SENSOR, MAX_LOAD
 from . import elasticity
 from .cem import ForwardModel
-from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor
+from .geometry import DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor
 from .material import conductivity_of_theta
 from .mesh import MeshSpec, TetMesh, build_mesh
 

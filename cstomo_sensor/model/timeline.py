@@ -61,10 +61,10 @@ from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
 from ..progress import steps
-from ..settings import MAX_LOAD
+from ..settings import DEFAULT_SENSOR, MAX_LOAD, TYPICAL_CREEP_PER_DECADE
 from . import elasticity
-from .geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
-from .material import CREEP_T0, TYPICAL_CREEP_PER_DECADE, conductivity_of_theta
+from .geometry import DEFAULT_SNR_DB, load_sensor
+from .material import CREEP_T0, conductivity_of_theta
 from .simulate import (
     CONTACT_MISMATCH,
     ELECTRODE_JITTER,

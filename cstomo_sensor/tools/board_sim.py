@@ -1,7 +1,7 @@
 """``cstomo board-sim``: the simulated board (:class:`~cstomo_sensor.board.sim.SimulatedBoard`) on a
 pseudo-terminal, playing a scene or a load script of an honestly simulated device.
 
-A load script's rubber creeps (``--creep``, default :data:`~cstomo_sensor.model.material.TYPICAL_CREEP_PER_DECADE`,
+A load script's rubber creeps (``--creep``, default :data:`~cstomo_sensor.settings.TYPICAL_CREEP_PER_DECADE`,
 the node's default compensation): the script is played as a :class:`~cstomo_sensor.model.timeline.Timeline`
 of its loads with that creep and nothing else changing, over ``--duration`` (else the script's last
 time plus :data:`SCRIPT_HOLD_S`; after that the device holds its last state: the last load no longer
@@ -21,11 +21,10 @@ from ..board.sim import DEFAULT_RATE_HZ, FaultConfig, SimulatedBoard
 from ..cache import on_miss
 from ..errors import CstomoError
 from ..frames_io import read_load_script
-from ..model.geometry import DEFAULT_SENSOR, DEFAULT_SNR_DB, load_sensor
-from ..model.material import TYPICAL_CREEP_PER_DECADE
+from ..model.geometry import DEFAULT_SNR_DB, load_sensor
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
-from ..settings import MAX_LOAD, RATED_FORCE
+from ..settings import DEFAULT_SENSOR, MAX_LOAD, RATED_FORCE, TYPICAL_CREEP_PER_DECADE
 from .common import ToolParser, add_setting_arg, positive, setup_logging
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the

@@ -25,10 +25,11 @@ from ..frames_io import atomic_write, check_out_file, read_frames, write_frames
 from ..inverse.reconstruction import build_model
 from ..loop import Results, run
 from ..model.cem import ForwardModel
-from ..model.geometry import DEFAULT_SENSOR, load_sensor
+from ..model.geometry import load_sensor
 from ..model.mesh import MeshSpec, build_mesh
 from ..model.simulate import Scene, simulate_scene_files
 from ..model.timeline import is_timeline_scene, simulate_timeline_files
+from ..settings import DEFAULT_SENSOR
 from ..sources import ArraySource
 from .common import MAX_REPEATS, ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 

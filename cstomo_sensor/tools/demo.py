@@ -14,7 +14,7 @@
    the demo's own clock, which lags the script by the board's report and the wrench's transport.
 
 The simulated rubber creeps as a typical rubber does (board-sim's default ``--creep``) and the node
-compensates that (its default ``creep_per_decade``): both are the model layer's
+compensates that (its default ``creep_per_decade``): both are settings.py's
 ``TYPICAL_CREEP_PER_DECADE``.
 """
 from __future__ import annotations
@@ -132,7 +132,7 @@ def _run(a: argparse.Namespace) -> int:
     np.savetxt(script, np.column_stack([times, forces]), delimiter=",", header="time,fx,fy,fz", comments="")
     duration = float(times[-1] + a.hold)
     # the simulated rubber creeps as a typical rubber (board-sim's default) and the node compensates
-    # that (its default creep_per_decade): one declaration, model/material.py TYPICAL_CREEP_PER_DECADE
+    # that (its default creep_per_decade): one declaration, settings.py TYPICAL_CREEP_PER_DECADE
     params = {"sensor": a.sensor, "estimator": a.estimator, "tare_on_start": "true", "tare_frames": 50,
               "tare_file": work / "tare.csv", "stress_field_every": 0}
     board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(a.rate),

@@ -40,13 +40,13 @@ import numpy as np
 
 from ...angles import angle_between, force_from_angles
 from ...force.config import PipelineConfig, StreamConfig
-from ...force.estimate import ESTIMATORS
 from ...force.pipeline import Pipeline
 from ...force.stream import FrameStream
 from ...loop import Trace, run
-from ...model.geometry import DEFAULT_SENSOR, load_sensor
+from ...model.geometry import load_sensor
 from ...model.simulate import Load, Truth, add_noise
 from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, temperature_gradient, warmup_30min
+from ...settings import DEFAULT_SENSOR, ESTIMATORS
 from ...sources import ArraySource
 from .report import write_rows
 from .timing import one_core

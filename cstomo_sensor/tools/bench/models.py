@@ -12,7 +12,8 @@ from ...force.config import PipelineConfig
 from ...force.estimate import build_estimator
 from ...force.pipeline import Pipeline
 from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
-from ...model.geometry import DEFAULT_SENSOR, load_sensor
+from ...model.geometry import load_sensor
+from ...settings import DEFAULT_SENSOR
 
 #: The image before issue 13: plain Landweber, k by the discrepancy rule at tau = 1.1.
 PLAIN = {"weight_power": 0.0, "tau": 1.1}

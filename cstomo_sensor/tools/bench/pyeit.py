@@ -39,8 +39,9 @@ from scipy.spatial import cKDTree
 
 from ...inverse.reconstruction import ReconSpec, model_of_mesh, voxel_basis
 from ...model.cem import ForwardModel
-from ...model.geometry import DEFAULT_SENSOR, load_sensor
+from ...model.geometry import load_sensor
 from ...model.mesh import MeshSpec, build_mesh
+from ...settings import DEFAULT_SENSOR
 from .models import PLAIN
 from .scenes import NOISE_SEED, SceneSet, image_errors
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...model.geometry import DEFAULT_SENSOR
+from ...settings import DEFAULT_SENSOR
 
 
 def pareto(times: np.ndarray, errs: np.ndarray) -> np.ndarray:

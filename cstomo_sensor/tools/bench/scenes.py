@@ -9,9 +9,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...angles import angle_between, force_from_angles
-from ...model.geometry import DEFAULT_SENSOR, load_sensor
+from ...model.geometry import load_sensor
 from ...model.material import conductivity_of_theta
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
+from ...settings import DEFAULT_SENSOR
 
 TRUTH_SEED = 9001  # the simulated device of the held-out scenes; no calibration or test uses it
 FORCE_SEED = 20261121
