@@ -11,10 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .force.pipeline import FrameResult
+from typing import Any
 
 #: The raw frames' topic (the serial node's input as measured) and its type (rosbag2's spelling).
 RAW_TOPIC = "raw_voltages"
@@ -29,7 +26,7 @@ class FrameOutput:
     """What the frame stream emits for one processed frame (:meth:`~.force.stream.FrameStream.push`):
     the result, the filtered force (None without the filter) and the frame's stamp (ns)."""
 
-    result: FrameResult
+    result: Any  # a FrameResult (force/pipeline.py): not imported, force/ imports this module
     filtered: tuple[float, float, float] | None
     stamp_ns: int
 
