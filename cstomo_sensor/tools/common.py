@@ -309,6 +309,13 @@ def executable(name: str) -> str:
                       "install the package (pip install . or colcon build) and source its set-up")
 
 
+def bag_typestore():
+    """The rosbags type store of the bags the tools write and read (ROS 2 Kilted's, else the newest)."""
+    from rosbags.typesys import Stores, get_typestore  # optional: the [full] extra
+
+    return get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
+
+
 def package_file(path: str) -> tuple[Path | None, list[Path]]:
     """(the file ``path``, or None; the places looked): ``path`` as given (a relative one from the
     current directory), else relative to the installed package's share directory

@@ -25,7 +25,7 @@ import numpy as np
 from ..angles import force_angles
 from ..errors import ConfigError, CstomoError
 from ..frames_io import atomic_write, check_out_file, read_forces_table
-from .common import ToolParser, help_text
+from .common import ToolParser, bag_typestore, help_text
 
 #: An estimate is shown without a direction when its magnitude is below this many times its 1-sigma
 #: ``sigma_n`` (the rms of its error's norm): its direction is then the noise's.
@@ -92,12 +92,6 @@ def from_csv(path: str | Path, rate: float | None = None) -> Forces:
     return Forces(frame / rate, force, None, cols.get("sigma_n"))
 
 
-def _typestore():
-    from rosbags.typesys import Stores, get_typestore  # optional: the [full] extra
-
-    return get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
-
-
 def wrench_topic_of(topics: dict[str, str], given: str | None, path) -> str:
     """The estimated wrench's topic of a bag (``topics``: name -> type): ``given``, else the one
     WrenchStamped topic ending in ``cstomo_sensor/wrench`` (the node's, in any namespace)."""
@@ -121,7 +115,7 @@ def from_bag(path: str | Path, wrench_topic: str | None = None, truth_topic: str
 
     from ..ros.sources import bag_path
 
-    store = _typestore()
+    store = bag_typestore()
     with Reader(bag_path(path)) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         topic = wrench_topic_of(topics, wrench_topic, path)

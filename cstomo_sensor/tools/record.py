@@ -22,7 +22,7 @@ from pathlib import Path
 
 from ..errors import ConfigError, CstomoError
 from ..outputs import OUTPUTS, TOPIC_TYPES
-from .common import ToolParser, help_text
+from .common import ToolParser, bag_typestore, help_text
 
 STORAGES = ("sqlite3", "mcap")
 #: The topics recorded unless ``--topics`` says otherwise: every output but the heavy stress fields.
@@ -69,8 +69,6 @@ def record(out: str | Path, node_name: str = "/cstomo_sensor", topics: tuple[str
     from rclpy.signals import SignalHandlerOptions
     from rosbags.rosbag2 import StoragePlugin, Writer  # optional: the [full] extra
 
-    from .replay import _typestore
-
     out = Path(out)
     if out.exists():
         raise ConfigError(f"--out {out}: exists; expected a new directory")
@@ -80,7 +78,7 @@ def record(out: str | Path, node_name: str = "/cstomo_sensor", topics: tuple[str
     if unknown:
         raise ConfigError(f"--topics {unknown}: expected names of {sorted(TOPIC_TYPES)}")
     prefix = "/" + node_name.strip("/") + "/"
-    store = _typestore()
+    store = bag_typestore()
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial", dir=out.parent))
     partial = work / out.name  # a bag's files are named after its directory

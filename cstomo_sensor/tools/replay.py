@@ -49,7 +49,7 @@ from ..outputs import RAW_TOPIC
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
-from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, help_text, pipeline_config, setup_logging
+from .common import ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, bag_typestore, help_text, pipeline_config, setup_logging
 
 STORAGES = ("sqlite3", "mcap")
 log = logging.getLogger(__name__)
@@ -68,13 +68,6 @@ class ReplaySummary:
     output_topics: tuple[str, ...]
     implausible: int = 0
     foreign_load: int = 0
-
-
-def _typestore():
-    from rosbags.typesys import Stores, get_typestore  # optional: the [full] extra
-
-    store = getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST
-    return get_typestore(store)
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
@@ -148,7 +141,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         partial = work / out_bag.name  # the bag's files are named after its directory
         try:
             with Writer(partial, version=9, storage_plugin=plugin) as writer:
-                bag = BagWriter(writer, names, prefix, pipe.centers, frame_id, _typestore())
+                bag = BagWriter(writer, names, prefix, pipe.centers, frame_id, bag_typestore())
                 results = Results(path=forces_file)
                 run(source, stream, [bag, results])
             n_in = source.messages
