@@ -31,13 +31,6 @@ from .training import CalibrationSpec, calibration_set, response_set
 log = logging.getLogger(__name__)
 
 
-def _noise_y(model: ReconstructionModel, db: float) -> np.ndarray:
-    """Per-channel std of the normalised noise at ``db`` (the assumption without a measured noise:
-    :data:`~cstomo_sensor.force.device.DEFAULT_NOISE_DB`; a tare of several frames replaces it)."""
-    ref = model.model_reference
-    return np.sqrt(np.mean(ref**2)) * 10 ** (-db / 20) / model.v_scale
-
-
 #: :meth:`ModelEstimator.estimate` keeps its surrogate's coefficients while the device's states it follows
 #: move by less than this (relative resistivity per half extent: a load's response changes by 1e-4 of
 #: itself, far below the noise; the 30-minute warm-up's gradient grows to 0.03).
@@ -218,8 +211,8 @@ def build_estimator(name: str, geometry: SensorGeometry, model: ReconstructionMo
     # the unloaded state is a calibration point too: no load, no change
     forces, y = np.vstack([np.zeros(3), forces]), np.vstack([np.zeros(y.shape[1]), y])
     if name == "linear":
-        return LinearEstimator(forces, y, _noise_y(model, spec.noise_db), spec.ridge)
+        return LinearEstimator(forces, y, model.snr_noise(spec.noise_db), spec.ridge)
     dy = response_set(geometry, model, spec, cache_dir, progress)
     response = np.concatenate([np.zeros((len(dy), 1, y.shape[1])), dy], axis=1)
-    return ModelEstimator(forces, y, _noise_y(model, spec.noise_db), spec.ridge, response=response)
+    return ModelEstimator(forces, y, model.snr_noise(spec.noise_db), spec.ridge, response=response)
 

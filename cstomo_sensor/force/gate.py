@@ -54,7 +54,7 @@ class PlausibilityGate:
         self.max_force = float(max_force)
         self.k = float(np.max(np.linalg.norm(Y[loaded], axis=1) / mag[loaded]))  # ||y|| per N
         ref = model.model_reference
-        noise = np.sqrt(np.mean(ref**2)) * 10 ** (-GATE_SNR_DB / 20) / model.v_scale
+        noise = model.snr_noise(GATE_SNR_DB)
         self.norm_bound = DEVICE_MARGIN * self.k * self.max_force + NOISE_NORM_FACTOR * float(np.linalg.norm(noise))
         self.channel_bound = DEVICE_MARGIN * per_n.max(axis=0) * self.max_force + CHANNEL_NOISE_SIGMAS * noise
         # no |g_i| exceeds the norm ||g||: a norm within every channel's bound needs no channel test

@@ -37,7 +37,7 @@ from ..cache import UNREADABLE, cache_load, cache_save, default_cache_dir, input
 from ..errors import ConfigError, ModelMismatchError
 from ..frames_io import check_frame
 from ..model.cem import ForwardModel
-from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry
+from ..model.geometry import DEFAULT_SNR_DB, SensorGeometry, noise_std
 from ..model.mesh import MESH_SIZE_RANGE, MeshSpec, TetMesh, build_mesh
 from ..settings import default
 from .landweber import LandweberSVD, choose_by_discrepancy, column_weight
@@ -170,6 +170,11 @@ class ReconstructionModel:
     def n_cells(self) -> int:
         return self.R.shape[0]
 
+    def snr_noise(self, snr_db: float) -> np.ndarray:
+        """Per-channel std of the normalised noise ``y`` of a board ``snr_db`` below the model's reference
+        (:func:`~cstomo_sensor.model.geometry.noise_std` over ``v_scale``)."""
+        return noise_std(self.model_reference, snr_db) / self.v_scale
+
     def normalise(self, frames: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """``y = (V - V_ref) / v_scale`` for (n_meas,) or (n_frames, n_meas) frames; refuses NaN/Inf."""
         v = check_frame(frames, self.n_meas, "frame", batch=True)
@@ -268,8 +273,7 @@ def discrepancy_iterations(geometry: SensorGeometry, svd: LandweberSVD, S: np.nd
                            snr_db: float = ReconSpec.snr_db, tau: float = ReconSpec.tau) -> int:
     """k by the discrepancy principle at ``tau`` times the noise of ``snr_db`` on the noise-free
     response of :func:`reference_inclusion` (the rule of ``ReconSpec(iterations=None)``)."""
-    noise = np.sqrt(np.mean(model_reference**2)) * 10 ** (-snr_db / 20)
-    noise_norm = float(np.linalg.norm(noise / v_scale))
+    noise_norm = float(np.linalg.norm(noise_std(model_reference, snr_db) / v_scale))
     y = S @ reference_inclusion(geometry, centers)
     return int(choose_by_discrepancy(svd, y, noise_norm, tau=tau, step=step, damping=lam))
 

@@ -42,6 +42,14 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
 NAME_EXPECTED = "1..64 letters, digits, '_', '.' or '-', not starting with '.' (it names cache files)"
 
 
+def noise_std(reference, snr_db: float) -> float:
+    """The std (volts) of white noise ``snr_db`` dB below the rms of ``reference`` (a frame, frames, or
+    their rms as one number): ``rms * 10^(-snr_db/20)`` (docs/physics.md#noise). The one rule of a noise
+    given as an SNR: the simulated boards', the one the estimators and the reconstruction assume, the
+    range a measured noise is checked against."""
+    return float(np.sqrt(np.mean(np.square(reference)))) * 10 ** (-snr_db / 20)
+
+
 @dataclass(frozen=True)
 class Electrode:
     """A disc electrode on a side face: centre (m), outward unit normal, radius (m)."""

@@ -47,7 +47,7 @@ from ..progress import steps
 from ..settings import DEFAULT_SENSOR, MAX_LOAD
 from . import elasticity
 from .cem import ForwardModel
-from .geometry import DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor
+from .geometry import DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor, noise_std
 from .material import conductivity_of_theta
 from .mesh import MeshSpec, TetMesh, build_mesh
 
@@ -72,10 +72,10 @@ TRUTH_FORMAT = 1
 
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
-    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (docs/physics.md#noise); None = no noise."""
+    """White Gaussian noise with std rms(reference) * 10^(-SNR/20) (:func:`~.geometry.noise_std`); None = no noise."""
     if snr_db is None:
         return np.array(v, dtype=float)
-    std = np.sqrt(np.mean(np.asarray(reference) ** 2)) * 10 ** (-snr_db / 20)
+    std = noise_std(reference, snr_db)
     return v + rng.normal(0.0, std, np.shape(v))
 
 

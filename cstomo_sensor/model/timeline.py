@@ -63,7 +63,7 @@ from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_fra
 from ..progress import steps
 from ..settings import DEFAULT_SENSOR, MAX_LOAD, TYPICAL_CREEP_PER_DECADE
 from . import elasticity
-from .geometry import DEFAULT_SNR_DB, load_sensor
+from .geometry import DEFAULT_SNR_DB, load_sensor, noise_std
 from .material import CREEP_T0, conductivity_of_theta
 from .simulate import (
     CONTACT_MISMATCH,
@@ -750,7 +750,7 @@ class Timeline:
             errs.append(np.abs(d) / rms_ref)
         e = np.array(errs) if errs else np.zeros((1, 1))
         return {"max": float(e.max()), "rms": float(np.sqrt(np.mean(e ** 2))), "intervals": len(errs),
-                "noise": float(10 ** (-self.snr_db / 20)) if self.snr_db is not None else 0.0}
+                "noise": noise_std(1.0, self.snr_db) if self.snr_db is not None else 0.0}
 
     # --- frames --------------------------------------------------------------------------------
 

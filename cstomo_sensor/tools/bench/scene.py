@@ -16,7 +16,6 @@ import numpy as np
 
 from ...angles import force_from_angles
 from ...force.config import PipelineConfig
-from ...force.estimate import _noise_y
 from ...force.pipeline import Pipeline
 from ...force.scene_field import Consistency, change_noise, mismatch_allowance
 from ...force.training import CalibrationSpec
@@ -103,7 +102,7 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
              "top + socket": [dev.voltages((ld, TOP)) for ld in socket]}
     elasticity.release()
     for snr in (60.0, 40.0):
-        noise = change_noise(_noise_y(pipe.model, snr), n_tare)
+        noise = change_noise(pipe.model.snr_noise(snr), n_tare)
         check = Consistency(np.asarray(pipe.estimator.y), noise, mismatch_allowance(pipe.model))
         rng = np.random.default_rng(int(snr))
         tare = np.mean([add_noise(dev.reference, dev.reference, snr, rng) for _ in range(n_tare)], axis=0)

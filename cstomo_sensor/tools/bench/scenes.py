@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...angles import angle_between, force_from_angles
-from ...model.geometry import load_sensor
+from ...model.geometry import load_sensor, noise_std
 from ...model.material import conductivity_of_theta
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
 from ...settings import DEFAULT_SENSOR
@@ -84,7 +84,7 @@ class SceneSet:
     def noisy(self, clean: np.ndarray, reps: int, snr_db: float | None, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """(noisy reference, (len(clean) * reps, n_meas) noisy frames), rounded as written."""
         rng = np.random.default_rng(seed)
-        std = 0.0 if snr_db is None else self.rms * 10 ** (-snr_db / 20)
+        std = 0.0 if snr_db is None else noise_std(self.ref_clean, snr_db)
         ref = self.ref_clean + rng.normal(0, std, self.ref_clean.shape)
         frames = np.repeat(np.atleast_2d(clean), reps, axis=0)
         frames = frames + rng.normal(0, std, frames.shape)
