@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError, FrameError
 from ..frames_io import check_frame, read_frames, write_frames
-from ..model.geometry import DEFAULT_SNR_DB
+from ..model.geometry import DEFAULT_SNR_DB, noise_std
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,7 @@ def check_noise(noise: np.ndarray, reference: np.ndarray, what: str = "noise") -
     rms = float(np.sqrt(np.mean(np.asarray(reference, float) ** 2)))
     level = float(np.sqrt(np.mean(n**2)))
     lo, hi = NOISE_DB_RANGE
-    if not rms * 10 ** (-hi / 20) <= level <= rms * 10 ** (-lo / 20):
+    if not noise_std(reference, hi) <= level <= noise_std(reference, lo):
         snr = 20 * np.log10(rms / level) if level > 0 else float("inf")
         raise ConfigError.bad_value(what, f"rms {level:.3g} V (SNR {snr:.1f} dB)",
                                     f"a board's noise, SNR within {lo:g}..{hi:g} dB of the reference rms {rms:.3g} V")
