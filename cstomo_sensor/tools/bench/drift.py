@@ -49,13 +49,13 @@ from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, te
 from ...settings import DEFAULT_SENSOR, ESTIMATORS
 from ...sources import ArraySource
 from .report import write_rows
+from .scenes import SNR_DB
 from .timing import one_core
 
 RATE = 100.0            # frames per second
 RAMP_S = 300.0          # the change happens over this long after the tare (unloaded; 10 %: 2.5 K a minute)
 REST_S, HOLD_S = 1.0, 1.0
 N_LOADS = 12
-SNR_DB = 60.0
 SEED = 31
 UNIFORM = (-0.10, -0.05, -0.01, 0.01, 0.05, 0.10)
 DRIVE = (-0.005, 0.005)

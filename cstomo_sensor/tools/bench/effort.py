@@ -20,7 +20,7 @@ from ...force.device import reference_of
 from ...force.pipeline import Pipeline
 from ...model.simulate import Load, Scene, add_noise
 from .report import write_csv
-from .scenes import quantile, random_forces
+from .scenes import SNRS, quantile, random_forces
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[3] / "scenes" / "cuboid_device_a_60db.yaml"
 COUNTS = (0, 3, 5, 10, 20, 40)
@@ -40,7 +40,7 @@ def calibration_effort(out: str | os.PathLike, n_held: int = 40, scene: str | os
     say(f"device {truth.geometry.name}: {len(F_cal)} calibration + {n_held} held-out loads simulated in "
         f"{time.perf_counter() - t:.0f} s")
     rows = []
-    for snr in (60.0, 40.0):
+    for snr in SNRS:
         rng = np.random.default_rng(int(snr))
         tare = add_noise(np.repeat(ref[None], 50, 0), ref, snr, rng)
         cal_frames = add_noise(np.repeat(clean_cal, FRAMES_PER_LOAD, 0), ref, snr, rng)
@@ -84,7 +84,7 @@ def plot(rows: list[dict], path: Path, device: str, n_held: int) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     x = np.arange(len(COUNTS))
-    for snr, ls in ((60.0, "-"), (40.0, "--")):
+    for snr, ls in zip(SNRS, ("-", "--")):
         for name, color in (("linear", "C0"), ("model", "C1")):
             rs = [r for r in rows if r["snr_db"] == snr and r["estimator"] == name]
             for ax, key in zip(axes, ("angle_med", "mag_pct_med")):

@@ -19,7 +19,7 @@ import numpy as np
 from ...force.filter import LowPass
 from .models import Builder, Setting
 from .report import write_rows
-from .scenes import NOISE_SEED, SceneSet
+from .scenes import NOISE_SEED, SNRS, SceneSet
 from .timing import run_frames
 
 CUTOFFS_HZ = (5.0, 20.0, 50.0)
@@ -36,7 +36,7 @@ def filter_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict
     scenes = SceneSet(N_LOADS, cache_dir, say)
     builder = Builder(cache_dir, say)
     rows = []
-    for snr in (60.0, 40.0):
+    for snr in SNRS:
         for name in ("linear", "model"):
             pipe, *_ = builder.pipeline(Setting(name, "estimator", estimator=name))
             for fs in RATES_HZ:

@@ -15,7 +15,7 @@ from ...model.pattern import pattern_for
 from ...model.simulate import Load, add_noise
 from .models import PLAIN
 from .report import write_csv
-from .scenes import NOISE_SEED, SceneSet
+from .scenes import NOISE_SEED, SNR_DB, SceneSet
 
 #: Inclusion centres (m, body frame): under the socket (deep and shallow), off centre, near the
 #: upper electrode layer, near a bottom corner, and on the other side.
@@ -59,10 +59,10 @@ def greit(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     before = build_model(geometry, replace(ReconSpec(), **PLAIN), cache_dir)
     jac = _pyeit_imager(geometry, cache_dir, say)
     rng = np.random.default_rng(NOISE_SEED)
-    ref = add_noise(truth.reference, truth.reference, 60.0, rng)
+    ref = add_noise(truth.reference, truth.reference, SNR_DB, rng)
     rows = []
     for c in CENTRES:
-        v = add_noise(truth.voltages(Load("inclusion", inclusion=(*c, RADIUS, CONTRAST))), truth.reference, 60.0, rng)
+        v = add_noise(truth.voltages(Load("inclusion", inclusion=(*c, RADIUS, CONTRAST))), truth.reference, SNR_DB, rng)
         images = [(f"ours p={m.weight_power:g} k={m.iterations}", m.reconstruct(v, ref) / m.sigma0, m.centers, m.volumes)
                   for m in (before, after)]
         if jac is not None:

@@ -14,7 +14,7 @@ from ...force.calibration import DeviceCalibration
 from ...force.device import reference_of
 from .models import Builder, Setting
 from .report import write_rows
-from .scenes import NOISE_SEED, SceneSet, errors, quantile
+from .scenes import NOISE_SEED, SNR_DB, SNRS, SceneSet, errors, quantile
 from .timing import run_frames, time_frames
 
 TARE_FRAMES = 50
@@ -30,7 +30,7 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibrati
     _, el, _ = force_angles(scenes.forces)
     low = np.degrees(el) < 32.0
     rows = []
-    for snr in (60.0, 40.0):
+    for snr in SNRS:
         _, frames = scenes.noisy(scenes.clean, 1, snr, NOISE_SEED + int(snr))
         _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, snr, NOISE_SEED + 1000 + int(snr))
         ref, noise = reference_of(tare)
@@ -96,7 +96,7 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
     forces = np.repeat(scenes.forces, HOLD_FRAMES, axis=0)
     true_mag = np.linalg.norm(forces, axis=1)
     rows = []
-    for snr in (60.0, 40.0):
+    for snr in SNRS:
         ref1, frames = scenes.noisy(scenes.clean, HOLD_FRAMES, snr, NOISE_SEED + int(snr))
         _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, snr, NOISE_SEED + 1000 + int(snr))
         ref50, noise50 = reference_of(tare)
@@ -149,7 +149,7 @@ def sigma_table(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> li
     rows = []
     for side, truth_seed in (("training", TRAIN_TRUTH_SEED), ("held-out", TRUTH_SEED)):
         scenes = SceneSet(n, cache_dir, say, truth_seed=truth_seed, force_seed=TRAIN_FORCE_SEED)
-        _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, 60.0, NOISE_SEED + 1060)
+        _, tare = scenes.noisy(scenes.ref_clean, TARE_FRAMES, SNR_DB, NOISE_SEED + 1060)
         noise = reference_of(tare)[1]
         f = scenes.forces
         el = np.degrees(force_angles(f)[1])

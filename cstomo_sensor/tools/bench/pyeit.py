@@ -43,7 +43,7 @@ from ...model.geometry import load_sensor
 from ...model.mesh import MeshSpec, build_mesh
 from ...settings import DEFAULT_SENSOR
 from .models import PLAIN
-from .scenes import NOISE_SEED, SceneSet, image_errors
+from .scenes import NOISE_SEED, SNR_DB, SceneSet, image_errors
 
 MESH_SIZE = 6.0e-3  # m
 
@@ -158,7 +158,7 @@ def run(out, cache_dir=None, n_scenes: int = 8, reps: int = 2, say=print) -> dic
 
     # honest data (the bench's held-out device and loads)
     scenes = SceneSet(n_scenes, cache_dir, say)
-    ref, frames = scenes.noisy(scenes.clean, reps, 60.0, NOISE_SEED)
+    ref, frames = scenes.noisy(scenes.clean, reps, SNR_DB, NOISE_SEED)
     # relative difference signals of the truth loads' conductivity, on this mesh, both solvers
 
     _, near = cKDTree(scenes.truth.forward.mesh.centers).query(mesh.centers)

@@ -24,7 +24,7 @@ from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Scene, Truth, add_noise, simulate
 from .report import write_csv
-from .scenes import TRUTH_SEED, random_forces
+from .scenes import SNRS, TRUTH_SEED, random_forces
 
 SCENES = Path(__file__).resolve().parents[3] / "scenes"
 SIDE = Load.from_dict({"patches": [{"shape": "circle", "radius": 0.004, "center": [0.005, 0.010], "face": "+y"}],
@@ -101,7 +101,7 @@ def run_scene(out: str | os.PathLike, cache_dir=None, n_loads: int = 300, say=pr
     clean = {"socket": [dev.voltages(ld) for ld in socket], "side": [dev.voltages(SIDE)],
              "top + socket": [dev.voltages((ld, TOP)) for ld in socket]}
     elasticity.release()
-    for snr in (60.0, 40.0):
+    for snr in SNRS:
         noise = change_noise(pipe.model.snr_noise(snr), n_tare)
         check = Consistency(np.asarray(pipe.estimator.y), noise, mismatch_allowance(pipe.model))
         rng = np.random.default_rng(int(snr))

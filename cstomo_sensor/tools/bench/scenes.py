@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...angles import angle_between, force_from_angles
-from ...model.geometry import load_sensor, noise_std
+from ...model.geometry import DEFAULT_SNR_DB, load_sensor, noise_std
 from ...model.material import conductivity_of_theta
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
 from ...settings import DEFAULT_SENSOR
@@ -19,6 +19,10 @@ FORCE_SEED = 20261121
 TRAIN_TRUTH_SEED, TRAIN_FORCE_SEED = 77, 555  # the training side: parameter choice only (weight.py)
 NOISE_SEED = 4242
 BOUND_N = 400.0  # an estimate above this (10x the range) counts as unbounded
+#: dB: the benchmarks' board, the default scene's noise (model/geometry.py DEFAULT_SNR_DB); SNRS: it and the
+#: noisier board every estimator is judged at too.
+SNR_DB = DEFAULT_SNR_DB
+SNRS = (SNR_DB, 40.0)
 
 
 

@@ -48,7 +48,7 @@ from ...frames_io import write_forces, write_frames
 from ...model.pattern import MeasurementPattern
 from .models import Builder, Setting, settings_for
 from .report import markdown, plot_tradeoff, write_csv
-from .scenes import BOUND_N, FORCE_SEED, NOISE_SEED, TRUTH_SEED, SceneSet, errors, image_errors, quantile
+from .scenes import BOUND_N, FORCE_SEED, NOISE_SEED, SNR_DB, TRUTH_SEED, SceneSet, errors, image_errors, quantile
 from .timing import run_frames, time_frames
 
 MODES = {
@@ -120,14 +120,14 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
     record("force_N noise-free (frame == reference)", 0.0, ref, ref[None].copy(), np.zeros((1, 3)))
     for m in mags:
         v, _ = scenes.frame_of(m * d)
-        ref, fr = scenes.noisy(v, reps, 60.0, NOISE_SEED + 10 + int(m))
+        ref, fr = scenes.noisy(v, reps, SNR_DB, NOISE_SEED + 10 + int(m))
         record("force_N (60 dB)", m, ref, fr, np.repeat((m * d)[None], len(fr), 0))
     # elevation at 20 N, azimuth 0
     els = [15.0, 90.0] if mode == "smoke" else [15.0, 20.0, 25.0, 32.0, 45.0, 60.0, 75.0, 90.0]
     for e in els:
         f = force_from_angles(20.0, np.radians(e), 0.0)
         v, _ = scenes.frame_of(f)
-        ref, fr = scenes.noisy(v, reps, 60.0, NOISE_SEED + 100 + int(e))
+        ref, fr = scenes.noisy(v, reps, SNR_DB, NOISE_SEED + 100 + int(e))
         record("elevation_deg (20 N)", e, ref, fr, np.repeat(f[None], len(fr), 0))
     # SNR on the held-out scenes
     true = np.repeat(scenes.forces, reps, 0)
@@ -136,7 +136,7 @@ def stability(s: Setting, builder: Builder, scenes: SceneSet, mode: str, say=pri
         record("snr_db", snr, ref, fr, true)
     # dead electrode: its values read 0 V in the loaded frames
     pat = MeasurementPattern(16, 2)
-    ref, fr = scenes.noisy(scenes.clean, reps, 60.0, NOISE_SEED)
+    ref, fr = scenes.noisy(scenes.clean, reps, SNR_DB, NOISE_SEED)
     for e in ([0] if mode == "smoke" else [0, 5, 10]):
         bad = pat.electrode_rows(e)
         dead = fr.copy()
@@ -155,7 +155,7 @@ def run(mode: str, out: str | os.PathLike, cache_dir=None, say=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     scenes = SceneSet(n_scenes, cache_dir, say)
-    ref, frames = scenes.noisy(scenes.clean, reps, 60.0, NOISE_SEED)
+    ref, frames = scenes.noisy(scenes.clean, reps, SNR_DB, NOISE_SEED)
     true = np.repeat(scenes.forces, reps, axis=0)
     note = (f"cstomo bench --{mode}: held-out scenes, truth seed {TRUTH_SEED}, forces seed {FORCE_SEED}, "
             f"noise seed {NOISE_SEED}, 60 dB")

@@ -29,7 +29,7 @@ from ...inverse.reconstruction import ReconSpec, discrepancy_iterations
 from ...model.simulate import Load, add_noise
 from .models import Builder
 from .report import write_csv
-from .scenes import NOISE_SEED, TRAIN_FORCE_SEED, TRAIN_TRUTH_SEED, SceneSet, image_errors
+from .scenes import NOISE_SEED, SNR_DB, TRAIN_FORCE_SEED, TRAIN_TRUTH_SEED, SceneSet, image_errors
 
 POWERS = np.round(np.arange(0.0, 1.5001, 0.05), 2)
 TAUS = (1.1, 0.9, 0.7, 0.5, 0.3)
@@ -41,7 +41,7 @@ INCLUSION_LIMIT_MM = 8.0
 
 
 def _figures(model, R, scenes: SceneSet, reps: int = 2) -> tuple[float, float]:
-    ref, frames = scenes.noisy(scenes.clean, reps, 60.0, NOISE_SEED)
+    ref, frames = scenes.noisy(scenes.clean, reps, SNR_DB, NOISE_SEED)
     images = model.normalise(frames, ref) @ R.T
     tv = np.repeat(scenes.truth_on_voxels(model.centers), reps, axis=0)
     corr, dist = image_errors(images, tv, model.centers)
@@ -53,8 +53,8 @@ def choose_weight(out: str | os.PathLike, cache_dir=None, say=print) -> tuple[tu
     train = SceneSet(16, cache_dir, say, truth_seed=TRAIN_TRUTH_SEED, force_seed=TRAIN_FORCE_SEED)
     held = SceneSet(16, cache_dir, say)
     rng = np.random.default_rng(NOISE_SEED)
-    ref = add_noise(train.ref_clean, train.ref_clean, 60.0, rng)
-    inclusions = [add_noise(train.truth.voltages(Load("inclusion", inclusion=(*c, 4e-3, 1.0))), train.ref_clean, 60.0,
+    ref = add_noise(train.ref_clean, train.ref_clean, SNR_DB, rng)
+    inclusions = [add_noise(train.truth.voltages(Load("inclusion", inclusion=(*c, 4e-3, 1.0))), train.ref_clean, SNR_DB,
                             rng) for c in INCLUSIONS]
     rows = []
     for basis in BASES:
