@@ -153,6 +153,15 @@ def noise_level(frames: np.ndarray, keep: np.ndarray | None = None) -> tuple[flo
     return level, est.count, agree
 
 
+def is_time_series(pairs: int, agree: float) -> bool:
+    """Whether ``pairs`` consecutive frame pairs, the fraction ``agree`` of them differing by noise alone
+    (:func:`noise_level`, :meth:`NoiseEstimate.level`), are a time series of one device: at least
+    :data:`MIN_PAIRS` pairs, at least :data:`AGREE_FRACTION` of them agreeing. The one rule of the
+    stream's noise estimate (force/noise_state.py), ``cstomo calibrate``'s recorded noise and ``cstomo
+    estimate``'s creep (which acts on a history in time)."""
+    return pairs >= MIN_PAIRS and agree >= AGREE_FRACTION
+
+
 def snr_db(level: float, reference: np.ndarray) -> float:
     """The SNR (dB) of a noise ``level`` (volts) against the reference's rms (docs/physics.md#noise)."""
     rms = float(np.sqrt(np.mean(np.asarray(reference, float) ** 2)))

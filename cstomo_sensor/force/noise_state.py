@@ -14,7 +14,7 @@ import logging
 import numpy as np
 
 from ..errors import ConfigError
-from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, noise_level, snr_db
+from .noise import AGREE_FRACTION, MIN_PAIRS, RETUNE, SAMPLE_EVERY, UPDATE_EVERY, NoiseEstimate, is_time_series, noise_level, snr_db
 from .pipeline import NOISE_ASSUMED
 
 log = logging.getLogger(__name__)
@@ -46,14 +46,14 @@ class NoiseState:
     def _usable(self, level: float, pairs: int, agree: float, where: str = "") -> bool:
         """Whether an estimate of ``level`` volts from ``pairs`` pairs, ``agree`` of them agreeing, may
         be used (force/noise.py); if not, :meth:`text` says why."""
+        if is_time_series(pairs, agree):
+            return True
         if pairs < MIN_PAIRS:
             self._note = f"not estimated: {pairs} frame pairs {where}, fewer than {MIN_PAIRS}".replace("  ", " ")
-        elif not agree >= AGREE_FRACTION:
+        else:
             self._note = (f"not estimated: only {agree:.0%} of {pairs} consecutive frame pairs {where} "
                           f"differ by noise alone (at least {AGREE_FRACTION:.0%} needed): frames of "
                           "distinct loads, not a time series?").replace("  ", " ")
-        else:
-            return True
         return False
 
     def from_frames(self, frames: np.ndarray, keep: np.ndarray, source: str) -> tuple[float, str] | None:

@@ -236,12 +236,12 @@ def recorded_noise(frames: np.ndarray, ref: np.ndarray) -> np.ndarray | None:
     """The per-channel noise (volts, one level for all) of a recording's consecutive frames, by the
     stream's rules (force/noise.py), or None (the estimators assume 60 dB) when its frame pairs do not
     differ by noise alone; prints which."""
-    from ..force.device import DEFAULT_NOISE_DB
-    from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level, snr_db
+    from ..force.device import DEFAULT_NOISE_DB, NOISE_DB_RANGE
+    from ..force.noise import is_time_series, noise_level, snr_db
 
     level, pairs, agree = noise_level(frames)
     db = snr_db(level, ref) if level == level else float("nan")
-    if pairs >= MIN_PAIRS and agree >= AGREE_FRACTION and 10.0 <= db <= 120.0:
+    if is_time_series(pairs, agree) and NOISE_DB_RANGE[0] <= db <= NOISE_DB_RANGE[1]:
         print(f"noise: estimated from {pairs} consecutive frame pairs ({db:.1f} dB): the reference has one frame")
         return np.full(len(ref), level)
     print(f"noise: assumed {DEFAULT_NOISE_DB:g} dB: the reference has one frame and {agree:.0%} of the "

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import ConfigError, CstomoError
 from ..force.config import StreamConfig
 from ..force.device import read_reference
-from ..force.noise import AGREE_FRACTION, MIN_PAIRS, noise_level
+from ..force.noise import MIN_PAIRS, is_time_series, noise_level
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..frames_io import atomic_write, check_out_file, read_frames, write_frames
@@ -107,7 +107,7 @@ def cmd_estimate(a) -> int:
     frames = read_frames(a.frames)
     creep = a.creep_per_decade
     _, pairs, agree = noise_level(frames)
-    if creep and not (pairs >= MIN_PAIRS and agree >= AGREE_FRACTION):  # creep acts on a history in time
+    if creep and not is_time_series(pairs, agree):  # creep acts on a history in time
         why = (f"{pairs} consecutive frame pairs, fewer than {MIN_PAIRS}" if pairs < MIN_PAIRS else
                f"only {agree:.0%} of its {pairs} consecutive frame pairs differ by noise alone")
         print(f"creep: not compensated: {a.frames} does not look like one recording in time ({why}: frames of "
