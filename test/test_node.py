@@ -145,13 +145,13 @@ def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refus
         assert h.node.get_parameter("rate_hz").type_ == Parameter.Type.DOUBLE
         assert h.node.get_parameter("rate_hz").value == 200.0
         assert h.node.trigger_configure() == TransitionCallbackReturn.SUCCESS
-        assert h.node.config.rate_hz == 200.0 and h.node.config.stale_timeout == 1.0
+        assert h.node.config.rate_hz == 200.0 and h.node.config.stream.stale_timeout == 1.0
         (ok,) = h.node.set_parameters([Parameter("stale_timeout", value=2)])
-        assert ok.successful and h.node.config.stale_timeout == 2.0
+        assert ok.successful and h.node.config.stream.stale_timeout == 2.0
         (bad,) = h.node.set_parameters([Parameter("rate_hz", value=50.0)])
         assert not bad.successful and "read-only" in bad.reason and "rate_hz" in bad.reason
         (bad,) = h.node.set_parameters([Parameter("stale_timeout", value=-1.0)])
-        assert not bad.successful and h.node.config.stale_timeout == 2.0
+        assert not bad.successful and h.node.config.stream.stale_timeout == 2.0
     finally:
         h.close()
 

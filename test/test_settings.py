@@ -41,7 +41,7 @@ def test_the_parameter_file_and_the_docs_table_are_written_from_the_settings():
 def test_the_config_dataclasses_take_their_defaults_from_the_settings():
     pytest.importorskip("rclpy")
     from cstomo_sensor.force.config import PipelineConfig, StreamConfig
-    from cstomo_sensor.ros.params import NodeConfig
+    from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
 
     seen = set()
     for cls in (PipelineConfig, StreamConfig, NodeConfig):
@@ -50,9 +50,11 @@ def test_the_config_dataclasses_take_their_defaults_from_the_settings():
                 assert f.default == SETTING[f.name].default, (cls.__name__, f.name, f.default)
                 seen.add(f.name)
     assert seen == set(SETTING)  # every setting is one of a config's fields
-    stream = {f.name for f in fields(StreamConfig)} & set(SETTING)
-    cfg = NodeConfig(pipeline=PipelineConfig(), tare_frames=7, max_sigma_n=2.5, drift_tracking=False)
-    assert {n: getattr(cfg.stream, n) for n in stream} == {n: getattr(cfg, n) for n in stream}
+    # the stream's settings are the node's nested StreamConfig (no copies): parameters -> one frozen config
+    assert not {f.name for f in fields(StreamConfig)} & {f.name for f in fields(NodeConfig)}
+    given = {"tare_frames": 7, "max_sigma_n": 2.5, "drift_tracking": False}
+    cfg = NodeConfig.from_parameters(lambda n: given.get(n, PARAMETERS[n][0]))
+    assert cfg.stream == StreamConfig(**given)
     assert (cfg.stream.tare_frames, cfg.stream.max_sigma_n, cfg.stream.drift_tracking) == (7, 2.5, False)
 
 
@@ -63,11 +65,10 @@ def test_the_config_dataclasses_take_their_defaults_from_the_settings():
 def test_the_node_config_refuses_a_value_outside_the_declared_range_naming_it(name, value, why):
     pytest.importorskip("rclpy")
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.ros.params import NodeConfig
+    from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
 
     with pytest.raises(ConfigError, match=re.escape(f"parameter '{name}'={value!r}: expected {why}")):
-        NodeConfig(pipeline=PipelineConfig(), **{name: value})
+        NodeConfig.from_parameters(lambda n: value if n == name else PARAMETERS[n][0])
 
 
 @pytest.mark.parametrize("cls, name, value, why", [

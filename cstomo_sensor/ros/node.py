@@ -106,7 +106,7 @@ class CstomoSensorNode(LifecycleNode):
         for p in params:
             self._sim_time = p.value is True if p.name == "use_sim_time" else self._sim_time
             if p.name == "stale_timeout" and self.config is not None:
-                self.config = replace(self.config, stale_timeout=p.value)
+                self.config = replace(self.config, stream=replace(self.config.stream, stale_timeout=p.value))
                 if self.stream is not None:
                     self.stream.with_config(stale_timeout=p.value)
                 self.get_logger().info(f"stale_timeout is now {p.value} s")
@@ -158,12 +158,12 @@ class CstomoSensorNode(LifecycleNode):
         if why:
             elapsed = time.monotonic() - self._t_start  # a slow first model build delays the tare: say so
             (log.info if cfg.tare_on_start and elapsed < 10.0 else log.warning)(
-                f"{why}: taring on the first {cfg.tare_frames} frames from now, {elapsed:.0f} s after start (the "
+                f"{why}: taring on the first {cfg.stream.tare_frames} frames from now, {elapsed:.0f} s after start (the "
                 "joint must be unloaded); no force is published before the tare is taken")
         qos = cfg.qos()
         serial = cfg.input == "serial"
         self._pubs = Publishers(self, self.stream.outputs + ((RAW_TOPIC,) if serial else ()), pipe.centers,
-                                cfg.frame_id, qos, self.stream, lambda: self._active)
+                                cfg.stream.frame_id, qos, self.stream, lambda: self._active)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
@@ -180,7 +180,7 @@ class CstomoSensorNode(LifecycleNode):
             now_ns = lambda: clock.now().nanoseconds if self._sim_time else time.time_ns()  # noqa: E731
             self._source = SerialSource(cfg.port, now_ns=now_ns, clock_window=cfg.clock_window,
                                         protocol=cfg.protocol, baudrate=cfg.baudrate, rate_hz=cfg.rate_hz or None,
-                                        queue_size=FRAME_QUEUE, stall_timeout=max(cfg.stale_timeout, 0.2))
+                                        queue_size=FRAME_QUEUE, stall_timeout=max(cfg.stream.stale_timeout, 0.2))
             self._thread = threading.Thread(target=self._serial_loop, name=FRAME_THREAD, daemon=True)
             self._thread.start()
         else:

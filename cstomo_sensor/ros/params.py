@@ -3,7 +3,7 @@
 :class:`NodeConfig` the node builds from them at configure."""
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -30,31 +30,23 @@ def descriptor(s: Setting) -> ParameterDescriptor:
 
 @dataclass(frozen=True)
 class NodeConfig:
-    """Every setting of the node, built once from its parameters and validated here (ranges and
-    choices: :data:`~cstomo_sensor.settings.SETTINGS`); those of the frame stream are passed on
-    by name (:attr:`stream`)."""
+    """Every setting of the node, built once from its parameters and validated (ranges and choices:
+    :data:`~cstomo_sensor.settings.SETTINGS`): those of the per-frame path in :attr:`pipeline`, those
+    of the frame stream in :attr:`stream` (each config checks its own), the node's own here."""
 
     pipeline: PipelineConfig
+    stream: StreamConfig = field(default_factory=StreamConfig)
     input: str = default("input")
     port: str = default("port")
     baudrate: int = default("baudrate")
     protocol: str = default("protocol")
     rate_hz: float = default("rate_hz")
-    tare_frames: int = default("tare_frames")
     tare_file: str = default("tare_file")
     tare_on_start: bool = default("tare_on_start")
-    frame_id: str = default("frame_id")
     autostart: bool = default("autostart")
-    stress_field_every: int = default("stress_field_every")
-    wrench_filter_hz: float = default("wrench_filter_hz")
-    drift_tracking: bool = default("drift_tracking")
-    creep_per_decade: float = default("creep_per_decade")
-    max_sigma_n: float = default("max_sigma_n")
     expected_wrench_sigma: float = default("expected_wrench_sigma")
-    expected_wrench_tolerance: float = default("expected_wrench_tolerance")
     qos_depth: int = default("qos_depth")
     qos_reliability: str = default("qos_reliability")
-    stale_timeout: float = default("stale_timeout")
     clock_window: float = default("clock_window")
 
     def __post_init__(self) -> None:
@@ -63,25 +55,23 @@ class NodeConfig:
                 SETTING[f.name].check(getattr(self, f.name))
         if self.input == "serial" and not self.port:
             raise ConfigError("parameter 'port'='': expected a serial URL")
-        if not self.frame_id:
+        if not self.stream.frame_id:
             raise ConfigError("parameter 'frame_id'='': expected a frame name")
 
     @classmethod
     def from_parameters(cls, get) -> NodeConfig:
         """Build from ``get(name) -> value``; a bad value raises ConfigError naming the parameter."""
-        try:
-            pipe = PipelineConfig(**{n: get(n) for n in PipelineConfig.__dataclass_fields__})
-        except ConfigError as err:
-            if err.key is None:
-                raise ConfigError(f"parameter {err}") from err
-            raise ConfigError(f"parameter '{err.key}'={err.value!r}: expected {err.expected}") from err
-        names = [n for n in cls.__dataclass_fields__ if n != "pipeline"]
-        return cls(pipeline=pipe, **{n: get(n) for n in names})
+        def build(kind):
+            try:
+                return kind(**{f.name: get(f.name) for f in fields(kind) if f.name in SETTING})
+            except ConfigError as err:
+                if err.key is None:
+                    raise ConfigError(f"parameter {err}") from err
+                raise ConfigError(f"parameter '{err.key}'={err.value!r}: expected {err.expected}") from err
 
-    @property
-    def stream(self) -> StreamConfig:
-        """The frame stream's settings."""
-        return StreamConfig(**{f.name: getattr(self, f.name) for f in fields(StreamConfig) if f.name in SETTING})
+        pipe, stream = build(PipelineConfig), build(StreamConfig)
+        names = [n for n in cls.__dataclass_fields__ if n not in ("pipeline", "stream")]
+        return cls(pipeline=pipe, stream=stream, **{n: get(n) for n in names})
 
     @property
     def cache_path(self) -> Path:

@@ -16,9 +16,9 @@ def stale_reason(cfg, stream, source) -> str:
         return "not configured"
     last = stream.counts.last_frame
     age = math.inf if last is None else time.monotonic() - last
-    if age <= cfg.stale_timeout:
+    if age <= cfg.stream.stale_timeout:
         return ""
-    what = "no frames yet" if last is None else f"no frames for {age:.1f} s (stale_timeout {cfg.stale_timeout} s)"
+    what = "no frames yet" if last is None else f"no frames for {age:.1f} s (stale_timeout {cfg.stream.stale_timeout} s)"
     driver = getattr(source, "driver", None)
     if driver is not None:
         ds = driver.stats()
@@ -72,7 +72,7 @@ def diagnostics(node) -> DiagnosticStatus:
 def tare_answer(node, outcome, taken: int, wait: float, forced: bool) -> tuple[bool, str]:
     """(success, message) of a tare service (``~/tare``, ``~/tare_forced``) whose transaction ended
     with ``outcome`` (None: cancelled after ``wait`` s, ``taken`` frames in)."""
-    stream, n = node.stream, node.config.tare_frames
+    stream, n = node.stream, node.config.stream.tare_frames
     unchanged = f"the reference ({node.reference_source}) and {node.tare_path} are unchanged"
     name = "~/tare_forced" if forced else "~/tare"
     if outcome is None:
