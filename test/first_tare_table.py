@@ -92,7 +92,7 @@ def run_stream(pipe, frames, tare_file):
 
     Path(tare_file).unlink(missing_ok=True)  # a first start: no saved tare, no reference
     pipe.reference = None
-    s = FrameStream(pipe, StreamConfig(tare_frames=TARE_FRAMES, stress_field_every=0), tare_file=tare_file)
+    s = FrameStream(pipe, StreamConfig.offline(tare_frames=TARE_FRAMES), tare_file=tare_file)
     s.init_reference(tare_on_start=False)
     dropped, forces = None, np.full((len(frames), 3), np.nan)
     for i, v in enumerate(frames):

@@ -88,7 +88,7 @@ def _magnitudes(pipe, held, creep, tracking=True):
     from cstomo_sensor.force.stream import FrameStream
 
     times, frames, tare = held
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking, creep_per_decade=creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1) if tare.std() > 0 else None, 20, "tare")
     mag = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):
@@ -270,7 +270,7 @@ def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int
     rng = np.random.default_rng(seed)
     frames = add_noise(tl.voltages(times), tl.reference, snr_db, rng)
     tare = tl.tare(50, rng)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=comp))
+    stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=comp))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1) if snr_db else None, 50, "tare")
     mag = np.full(len(times), np.nan)
     for k, (t, v) in enumerate(zip(times, frames)):

@@ -37,7 +37,7 @@ def _stream(pipe, ref, tracking, rng):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.force.stream import FrameStream
 
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
     return stream
@@ -160,7 +160,7 @@ def test_a_drifting_device_over_time_is_followed(warm_model):
     tare = tl.tare(20, rng)
     zero = {}
     for tracking in (False, True):
-        stream = FrameStream(warm_model, StreamConfig(stress_field_every=0, drift_tracking=tracking))
+        stream = FrameStream(warm_model, StreamConfig.offline(drift_tracking=tracking))
         stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
         scale, forces = [], []
         for t, v in zip(times, frames):

@@ -47,7 +47,7 @@ def _run(pipe, down_, profile, seconds, tracking=True, expected=None):
 
     ref, volts = down_
     rng = np.random.default_rng(11)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=0.0))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking, creep_per_decade=0.0))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
     t = np.arange(int(seconds * RATE)) / RATE
@@ -129,7 +129,7 @@ def _restart_under_load(pipe, ref, loaded, expected, rng):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.force.stream import FrameStream
 
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
+    stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=0.0))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "saved tare", age_s=7200.0)
     force, v = loaded

@@ -127,7 +127,7 @@ def test_the_stream_hands_the_tracked_gradient_to_the_estimator(model_pipe, warm
 
     def run(pipe):
         rng = np.random.default_rng(9)
-        stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=True))
+        stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=True))
         tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
         stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
         k, out = 0, []

@@ -28,7 +28,7 @@ def _run(pipe, bag, n, message=None):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.force.stream import FrameStream
 
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
+    stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=0.0))
     rest = bag.frames[:20]
     stream.set_reference(rest.mean(axis=0), rest.std(axis=0, ddof=1), len(rest), "tare")
     load = bag.frames[70:120]

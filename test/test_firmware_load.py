@@ -52,7 +52,7 @@ def one_pass(device: str, n: int) -> list:
 
 
 def forces(pipe, frames, n_tare: int) -> np.ndarray:
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0))
+    stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0))
     tare = np.array([f.values for f in frames[:n_tare]])
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_tare, "tare")
     return np.array([stream.process(f.values, f.saturated, f.contact_ok).force for f in frames[n_tare:]])

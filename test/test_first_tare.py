@@ -61,7 +61,7 @@ def _run(pipe, frames, tare_file):
     from cstomo_sensor.force.stream import FrameStream
 
     pipe.reference = None
-    s = FrameStream(pipe, StreamConfig(tare_frames=TARE, stress_field_every=0), tare_file=tare_file)
+    s = FrameStream(pipe, StreamConfig.offline(tare_frames=TARE), tare_file=tare_file)
     s.init_reference(tare_on_start=False)
     forces, dropped = np.full((len(frames), 3), np.nan), None
     for i, v in enumerate(frames):

@@ -100,7 +100,7 @@ def tared_stream(pipe, seed: int, creep: float, age_s: float | None = None):
     rng = np.random.default_rng(seed)
     ref = pipe.model_reference
     noise = np.sqrt(np.mean(ref**2)) * 1e-3  # 60 dB
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=creep))
+    stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=creep))
     tare = ref + noise * rng.normal(size=(20, len(ref)))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare", age_s=age_s)
     return stream, ref, noise, rng

@@ -53,7 +53,7 @@ def _stream(pipe, estimation: bool):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.force.stream import FrameStream
 
-    return FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, noise_estimation=estimation))
+    return FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0, noise_estimation=estimation))
 
 
 def _run(stream, frames) -> list:

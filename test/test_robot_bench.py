@@ -274,7 +274,7 @@ def test_a_warm_up_at_1_5_pct_per_k_keeps_its_zero_and_never_locks(device_b):
     spec = type(spec)(**{**spec.__dict__, "resistivity_per_k": WARM_FAST, "duration": WARM_FAST_S})
     tl = Timeline(spec, snr_db=sc.snr_db, seed=robot.SEED, truth=truth).prepare()
     times, frames, forces, state = tl.frames(robot.LOADED_RATE, rng=np.random.default_rng(7))
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, creep_per_decade=spec.creep))
+    stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=spec.creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "tare")
     est, sigma, rest_frames = np.full((len(times), 3), np.nan), np.full(len(times), np.nan), np.zeros(len(times))
     for k, (t, v) in enumerate(zip(times, frames)):

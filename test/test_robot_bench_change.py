@@ -100,7 +100,7 @@ def test_a_restart_goes_through_the_nodes_start_on_a_tare_file_of_its_age(device
     from cstomo_sensor.force.stream import FrameStream, StreamConfig
 
     sc, truth, pipes, tare = device_c
-    pipe, config = pipes["model"], StreamConfig(stress_field_every=0)
+    pipe, config = pipes["model"], StreamConfig.offline()
     node = robot.restarted_stream(pipe, config, tare, rc.AGE_S)
     assert node.reference_source.startswith("saved tare ")
     aged, fresh = FrameStream(pipe, config), FrameStream(pipe, config)

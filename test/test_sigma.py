@@ -82,7 +82,7 @@ def test_the_stream_gives_every_force_a_sigma_and_says_when_it_exceeds_the_bound
     rng = np.random.default_rng(5)
     noise = 1e-3 * np.sqrt(np.mean(ref**2)) * np.ones_like(ref)
     for bound, warned in ((100.0, False), (1e-3, True)):
-        stream = FrameStream(pipe, StreamConfig(stress_field_every=0, max_sigma_n=bound))
+        stream = FrameStream(pipe, StreamConfig.offline(max_sigma_n=bound))
         stream.set_reference(ref, noise, 50, "test")
         outs = [stream.push(ref + rng.normal(size=ref.shape) * noise, stamp_ns=(k + 1) * 10_000_000) for k in range(20)]
         sig = np.array([o.result.sigma for o in outs])
@@ -139,7 +139,7 @@ def test_the_model_estimators_noise_term_is_its_own_scatter(model_pipe, cuboid_t
     rng = np.random.default_rng(11)
     ref, loaded = cuboid_truth.frames([Load("socket", force=(6.0, -4.0, -12.0))])
     tare = add_noise(np.repeat(ref[None], 50, 0), ref, 60.0, rng)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=False, creep_per_decade=0.0))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=False, creep_per_decade=0.0))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "test")
     frames = add_noise(np.repeat(loaded, 400, 0), ref, 60.0, rng)
     outs = [stream.push(v, stamp_ns=(k + 1) * 10_000_000) for k, v in enumerate(frames)]
@@ -171,7 +171,7 @@ def test_a_restart_from_an_old_tare_on_a_device_that_changed_unevenly_covers_its
                         load_forces=(load,) if load else ())
     tl = Timeline(spec, snr_db=60.0, seed=5, truth=cuboid_truth).prepare()
     times, frames, forces, _ = tl.frames(100.0, rng=np.random.default_rng(2))
-    stream = FrameStream(model_pipe, StreamConfig(stress_field_every=0, creep_per_decade=0.0))
+    stream = FrameStream(model_pipe, StreamConfig.offline(creep_per_decade=0.0))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=8 * 3600.0)
     rs = [stream.push(v, stamp_ns=1_000_000_000 + k * 10_000_000).result for k, v in enumerate(frames[:10])]
     err = np.array([np.linalg.norm(r.force - f) for r, f in zip(rs, forces)])

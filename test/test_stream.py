@@ -140,7 +140,7 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
     from cstomo_sensor.force.health import WARN
     from cstomo_sensor.force.stream import FrameStream
 
-    stream = FrameStream(warm_model, StreamConfig(stress_field_every=0))
+    stream = FrameStream(warm_model, StreamConfig.offline())
     ref = warm_model.model_reference
     stream.set_reference(ref, None, 1, "test")
     for k in range(5):

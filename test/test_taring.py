@@ -51,7 +51,7 @@ def test_a_tare_file_whose_write_blocks_does_not_stop_the_frames(pipe, unloaded,
     fifo = tmp_path / f".tare.noise.csv.tmp{os.getpid()}"  # frames_io.atomic_write's temporary name
     os.mkfifo(fifo)
     ended = []
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0), on_tare=ended.append, tare_file=tare_file)
+    stream = FrameStream(pipe, StreamConfig.offline(), on_tare=ended.append, tare_file=tare_file)
     stream.start_tare(10)
     outs, stamps = [], iter(range(1, 10**6))
 
@@ -88,7 +88,7 @@ def test_a_50_frame_tare_on_a_1_frame_per_s_board_completes(pipe, unloaded):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.force.stream import FrameStream
 
-    cfg = StreamConfig(stress_field_every=0)
+    cfg = StreamConfig.offline()
     assert cfg.tare_frames == 50
     stream = FrameStream(pipe, cfg)
     stream.set_reference(unloaded.mean(axis=0), unloaded.std(axis=0, ddof=1), len(unloaded), "test")

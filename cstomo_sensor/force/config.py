@@ -53,6 +53,13 @@ class StreamConfig:
     frame_id: str = default("frame_id")  # the wrench's frame: an expected load in another is refused (force/expected.py)
     expected_wrench_tolerance: float = default("expected_wrench_tolerance")  # s: an expected load's stamp vs the frames'
 
+    @classmethod
+    def offline(cls, **settings) -> StreamConfig:
+        """The frame stream of a file, a bench or a test: the node's settings but no stress fields
+        (``stress_field_every`` 0: they cost a reconstruction each and no one reads them), ``settings``
+        overriding any (``cstomo replay --stress-field-every`` asks for them)."""
+        return cls(**{"stress_field_every": 0, **settings})
+
     def __post_init__(self) -> None:
         check_config(self)
         if not self.tare_max_spread > 0:  # no node setting

@@ -261,8 +261,8 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
 
     if not rate > 0:
         raise ConfigError.bad_value("--creep-rate", rate, "frames per second > 0")
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, drift_tracking=False,
-                                            creep_per_decade=0.0, noise_estimation=False))
+    stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0, drift_tracking=False,
+                                                    creep_per_decade=0.0, noise_estimation=False))
     rows = Results(stream, every_frame=True)
     run(ArraySource(frames, rate_hz=rate, start_s=1.0), stream, [rows])
     mags = np.array([r.magnitude if r.valid else np.nan for r in rows.results])

@@ -114,8 +114,8 @@ def cmd_estimate(a) -> int:
               "distinct loads?)", file=sys.stderr)
         creep = 0.0
     pipe = Pipeline.build(cfg)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0,  # the node's frame path
-                                            drift_tracking=a.drift_tracking, creep_per_decade=creep))
+    stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0,  # the node's frame path
+                                                    drift_tracking=a.drift_tracking, creep_per_decade=creep))
     message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}", age_s=a.reference_age)  # the node's restart
     noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "

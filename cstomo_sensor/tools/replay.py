@@ -34,7 +34,7 @@ import os
 import shutil
 import sys
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -71,11 +71,8 @@ class ReplaySummary:
 
 
 def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, reference: str | Path | None = None,
-           tare_frames: int = default("tare_frames"), stress_field_every: int = 0,
-           wrench_filter_hz: float = default("wrench_filter_hz"), drift_tracking: bool = default("drift_tracking"),
-           creep_per_decade: float = default("creep_per_decade"), frame_id: str = default("frame_id"),
            topic: str | None = None, storage: str = "sqlite3", pipeline=None, progress=None,
-           forces_file: str | Path | None = None, overwrite: bool = False) -> ReplaySummary:
+           forces_file: str | Path | None = None, overwrite: bool = False, **stream) -> ReplaySummary:
     """Replay ``in_bag`` into a new bag ``out_bag`` (must not exist, unless ``overwrite``: an existing
     rosbag2 there is replaced once the replay is complete).
 
@@ -85,14 +82,12 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         The reconstruction settings (as the node's parameters give them).
     reference : path or None
         Frames file whose mean is the reference (several rows: their spread is the noise); None tares on the first ``tare_frames`` frames.
-    stress_field_every : int
-        Write ``stress_field`` (and ``scene_stress_field``) for every N-th result (the first included); 0 = never.
-    wrench_filter_hz : float
-        Cutoff of ``wrench_filtered`` (the node's ``wrench_filter_hz``); 0 = no filtered wrench.
-    drift_tracking : bool
-        Follow the device's slow change after the tare, as the node's ``drift_tracking``.
-    creep_per_decade : float
-        The rubber's creep compensated (the node's ``creep_per_decade``; a calibration's wins; 0 = off).
+    **stream
+        The frame stream's settings by name, as the node's parameters (:class:`StreamConfig`:
+        ``tare_frames``, ``stress_field_every``: ``stress_field`` (and ``scene_stress_field``) for every
+        N-th result, 0 = never, the default here; ``wrench_filter_hz``, ``drift_tracking``,
+        ``creep_per_decade``, ``frame_id`` of the outputs, ...); the others as
+        :meth:`StreamConfig.offline` makes them.
     pipeline : Pipeline or None
         An already built pipeline for ``config`` (its reference and mask are reset here).
     storage : {'sqlite3', 'mcap'}
@@ -118,9 +113,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
     if forces_file is not None and not Path(forces_file).parent.is_dir():
         raise ConfigError(f"forces file {forces_file}: its directory {Path(forces_file).parent} does not exist")
     had_forces = forces_file is not None and Path(forces_file).exists()
-    stream_cfg = StreamConfig(tare_frames=tare_frames, stress_field_every=stress_field_every,
-                              wrench_filter_hz=wrench_filter_hz, drift_tracking=drift_tracking,
-                              creep_per_decade=creep_per_decade)
+    stream_cfg = StreamConfig.offline(**stream)
     source = BagSource(in_bag, topic)  # the inputs are checked before any model is loaded
     try:
         pipe = pipeline if pipeline is not None else Pipeline.build(config, progress=progress)
@@ -141,7 +134,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         partial = work / out_bag.name  # the bag's files are named after its directory
         try:
             with Writer(partial, version=9, storage_plugin=plugin) as writer:
-                bag = BagWriter(writer, names, prefix, pipe.centers, frame_id, bag_typestore())
+                bag = BagWriter(writer, names, prefix, pipe.centers, stream_cfg.frame_id, bag_typestore())
                 results = Results(path=forces_file)
                 run(source, stream, [bag, results])
             n_in = source.messages
@@ -151,7 +144,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                                   "no output written")
             if stream.taring:  # no reference ever: no result, not an empty bag and exit 0
                 raise ConfigError(f"{in_bag}: the bag ended during the tare ({n_in} frames, none taken as the "
-                                  f"reference: the tare needs {tare_frames} steady unloaded frames); give --reference "
+                                  f"reference: the tare needs {stream_cfg.tare_frames} steady unloaded frames); give --reference "
                                   "FILE (unloaded frames of this device), fewer --tare-frames (at most the unloaded "
                                   "frames it starts with) or a bag that starts unloaded for longer; no output written")
             if overwrite and out_bag.exists():
@@ -180,7 +173,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", metavar="FILE", help="frames file used as the reference; a saved tare older than "
                    "the bag: the node's restart at its age (else: tare on the first frames)")
     add_setting_arg(p, "tare_frames")
-    add_setting_arg(p, "stress_field_every", default=0,
+    add_setting_arg(p, "stress_field_every", default=StreamConfig.offline().stress_field_every,
                     note=f"here no stress fields unless asked (the node's default: {default('stress_field_every')})")
     add_setting_arg(p, "wrench_filter_hz")
     add_setting_arg(p, "drift_tracking")
@@ -199,12 +192,10 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(verbose=True, fmt="%(message)s")
     try:
         cfg = pipeline_config(args)
-        s = replay(args.in_bag, args.out, cfg, reference=args.reference, tare_frames=args.tare_frames,
-                   stress_field_every=args.stress_field_every, wrench_filter_hz=args.wrench_filter_hz,
-                   drift_tracking=args.drift_tracking, creep_per_decade=args.creep_per_decade,
-                   frame_id=args.frame_id, topic=args.topic, storage=args.storage, forces_file=args.forces,
-                   overwrite=args.force,
-                   progress=lambda m: print(f"model: {m}", file=sys.stderr))
+        stream = {f.name: getattr(args, f.name) for f in fields(StreamConfig) if hasattr(args, f.name)}  # its flags
+        s = replay(args.in_bag, args.out, cfg, reference=args.reference, topic=args.topic, storage=args.storage,
+                   forces_file=args.forces, overwrite=args.force,
+                   progress=lambda m: print(f"model: {m}", file=sys.stderr), **stream)
     except (CstomoError, OSError, ReaderError, WriterError) as err:
         print(f"cstomo replay: error: {err}", file=sys.stderr)
         return 2

@@ -86,7 +86,7 @@ def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | 
     creep_per_decade: the truth has no creep, so by default neither has the stream; the timelines'
     streams take their truth's)."""
     rng = np.random.default_rng(seed)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking, creep_per_decade=creep))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, SNR_DB, rng)
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
     plan = [(ref + (v_unloaded - ref) * k / (ramp_s * RATE), None, False) for k in range(int(ramp_s * RATE))]
@@ -169,8 +169,8 @@ def _timeline_stream(pipe, tl: Timeline, tracking: bool, rate: float, seed: int 
     rng = np.random.default_rng(seed)
     times, frames, forces, state = tl.frames(rate, rng=rng)
     tare = tl.tare(20, rng)
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0, drift_tracking=tracking,
-                                            creep_per_decade=tl.spec.creep if creep is None else creep))
+    stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking,
+                                                    creep_per_decade=tl.spec.creep if creep is None else creep))
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), 20, "tare")
     trace = Trace(lambda: stream.slow.scale)
     run(ArraySource(frames, (1e9 * (1 + np.asarray(times))).astype(np.int64)), stream, [trace])

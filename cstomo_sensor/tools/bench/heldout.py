@@ -105,8 +105,8 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
             pipe.set_calibration(DeviceCalibration.load(calibration) if calibration else None)
             for (case, n_ref, given, estimation), tracking in itertools.product(ONE_FRAME_CASES, (True, False)):
                 # the held-out truth does not creep: neither does the stream
-                stream = FrameStream(pipe, StreamConfig(stress_field_every=0, wrench_filter_hz=0.0, creep_per_decade=0.0,
-                                                        noise_estimation=estimation, drift_tracking=tracking))
+                stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0, creep_per_decade=0.0,
+                                                                noise_estimation=estimation, drift_tracking=tracking))
                 stream.set_reference(ref50 if n_ref > 1 else ref1, noise50 if given else None, n_ref, case)
                 got = Results()
                 run(ArraySource(frames, rate_hz=RATE_HZ), stream, [got])

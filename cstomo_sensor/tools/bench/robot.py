@@ -151,7 +151,7 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
     ``streams``: a list that gets the stream."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
-    config = StreamConfig(stress_field_every=0, drift_tracking=tracking, creep_per_decade=creep)
+    config = StreamConfig.offline(drift_tracking=tracking, creep_per_decade=creep)
     if tare_file_age is None:
         stream = FrameStream(pipe, config)
         stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=tare_age)
