@@ -6,11 +6,14 @@ has as parameters are declared once in cstomo_sensor/settings.py and checked fro
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from ..errors import ConfigError
-from ..inverse.reconstruction import ReconSpec
 from ..settings import check_config, default
 from .tare import TARE_MAX_SPREAD
+
+if TYPE_CHECKING:
+    from ..inverse.reconstruction import ReconSpec
 
 
 @dataclass(frozen=True)
@@ -33,6 +36,8 @@ class PipelineConfig:
 
     @property
     def recon_spec(self) -> ReconSpec:
+        from ..inverse.reconstruction import ReconSpec  # here: a config (a command's --help) loads no model code
+
         return ReconSpec(mesh_size=self.mesh_size, grid=tuple(self.grid),
                          iterations=self.iterations or None, damping=self.damping)
 

@@ -16,21 +16,9 @@ from importlib import import_module
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.config import StreamConfig
-from ..force.device import read_reference
-from ..force.noise import MIN_PAIRS, is_time_series, noise_level
-from ..force.pipeline import Pipeline
-from ..force.stream import FrameStream
 from ..frames_io import atomic_write, check_out_file, read_frames, write_frames
-from ..inverse.reconstruction import build_model
-from ..loop import Results, run
-from ..model.cem import ForwardModel
 from ..model.geometry import load_sensor
-from ..model.mesh import MeshSpec, build_mesh
-from ..model.simulate import Scene, simulate_scene_files
-from ..model.timeline import is_timeline_scene, simulate_timeline_files
 from ..settings import DEFAULT_SENSOR
-from ..sources import ArraySource
 from .common import MAX_REPEATS, ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -43,7 +31,13 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+# The commands import the model, the inverse and the frame path when they run: ``cstomo --help`` and
+# a command's --help load none of it.
+
+
 def cmd_model_build(a) -> int:
+    from ..model.cem import ForwardModel
+    from ..model.mesh import MeshSpec, build_mesh
 
     g = load_sensor(a.sensor)
     t = time.perf_counter()
@@ -72,6 +66,8 @@ def cmd_model_build(a) -> int:
 
 
 def cmd_model_voltages(a) -> int:
+    from ..model.cem import ForwardModel
+    from ..model.mesh import MeshSpec, build_mesh
 
     g = load_sensor(a.sensor)
     fm = ForwardModel(g, build_mesh(g, MeshSpec(h=pipeline_config(a).mesh_size), a.cache_dir or None))
@@ -81,6 +77,7 @@ def cmd_model_voltages(a) -> int:
 
 
 def cmd_reconstruct(a) -> int:
+    from ..inverse.reconstruction import build_model
 
     cfg = pipeline_config(a)
     g = load_sensor(cfg.sensor)
@@ -96,6 +93,13 @@ def cmd_reconstruct(a) -> int:
 
 
 def cmd_estimate(a) -> int:
+    from ..force.config import StreamConfig
+    from ..force.device import read_reference
+    from ..force.noise import MIN_PAIRS, is_time_series, noise_level
+    from ..force.pipeline import Pipeline
+    from ..force.stream import FrameStream
+    from ..loop import Results, run
+    from ..sources import ArraySource
 
     cfg = pipeline_config(a)
     if not a.rate > 0:
@@ -140,6 +144,8 @@ def cmd_estimate(a) -> int:
 
 
 def cmd_simulate(a) -> int:
+    from ..model.simulate import simulate_scene_files
+    from ..model.timeline import is_timeline_scene, simulate_timeline_files
 
     simulate = simulate_timeline_files if is_timeline_scene(a.scene) else simulate_scene_files
     simulate(a.scene, a.out, cache_dir=a.cache_dir or None)
@@ -147,9 +153,12 @@ def cmd_simulate(a) -> int:
     return 0
 
 
-#: ``cstomo simulate --help``: the scene file's keys (the table: docs/formats.md#scene-file),
-#: with the defaults of :class:`~cstomo_sensor.model.simulate.Scene`.
-SIMULATE_HELP = f"""\
+def simulate_help() -> str:
+    """``cstomo simulate --help``: the scene file's keys (the table: docs/formats.md#scene-file), with
+    the defaults of :class:`~cstomo_sensor.model.simulate.Scene` (imported here: when the help is asked for)."""
+    from ..model.simulate import Scene
+
+    return f"""\
 Frames of an honestly simulated device (docs/physics.md#honest-simulation): the truth on an independent
 mesh, electrodes and contact impedances mismatched (seeded), white noise. Writes, under --out,
 reference.csv (the unloaded frame), frames.csv (frames_per_load frames per load, in order) and
@@ -210,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     for q in (b, v, r):
         add_pipeline_args(q, estimator=False)
     add_pipeline_args(e)
-    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=SIMULATE_HELP)
+    s = sub.add_parser("simulate", help="honestly simulated frames of a scene file", description=simulate_help)
     s.add_argument("--scene", required=True, metavar="FILE",
                    help="scene YAML file (keys above; examples in scenes/, e.g. cuboid_planar_60db.yaml)")
     s.add_argument("--out", required=True, metavar="DIR",

@@ -56,11 +56,18 @@ def _shown(value: object) -> str:
 
 class ToolParser(argparse.ArgumentParser):
     """The argument parser of a ``cstomo`` command: :class:`HelpFormatter`, and :meth:`fail`, the one
-    error line of every command, ``PROG: error: ...`` as argparse's own (its subparsers are ToolParsers too)."""
+    error line of every command, ``PROG: error: ...`` as argparse's own (its subparsers are ToolParsers too).
+    A ``description`` given as a function is written when the help is asked for: building the parser
+    loads nothing that only the help needs."""
 
     def __init__(self, *args, **kwargs) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
+
+    def format_help(self) -> str:
+        if callable(self.description):
+            self.description = self.description()
+        return super().format_help()
 
     def error(self, message: str):
         """A bad command line: one line, ``PROG: error: MESSAGE``, exit 2 (argparse's own adds the usage)."""
