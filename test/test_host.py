@@ -72,6 +72,32 @@ def test_a_refused_sensor_stops_the_host_and_is_named(tmp_path, warm_model):
     assert "Traceback" not in r.stderr, r.stderr
 
 
+def test_the_package_log_propagates_again_once_the_last_bridge_is_detached():
+    """Before: detach restored propagation only when the package's logger had no handler at all; a
+    handler of someone else's on it (pytest adds one to every logger that does not propagate) kept it
+    off for the rest of the process, and a command's log run after a node in the same process printed
+    nothing (CI: test_tools' log tests, after test_launch's node)."""
+    import logging
+
+    import rclpy.logging
+
+    from cstomo_sensor.ros import log as ros_log
+
+    pkg = logging.getLogger("cstomo_sensor")
+    other = logging.NullHandler()  # another party's handler on the package's logger
+    pkg.addHandler(other)
+    try:
+        first = ros_log.attach(rclpy.logging.get_logger("first"))
+        second = ros_log.attach(rclpy.logging.get_logger("second"))
+        assert pkg.propagate is False  # bridged: not printed a second time
+        ros_log.detach(first)
+        assert pkg.propagate is False  # one bridge is left
+        ros_log.detach(second)
+        assert pkg.propagate is True and pkg.level == logging.NOTSET
+    finally:
+        pkg.removeHandler(other)
+
+
 def test_the_hosts_log_names_the_sensor_of_each_tare_line(capfd):
     """In one process of several sensors, a library record (the tare's lines, the frame path's) logged
     while a sensor's frames or tare service are handled names that sensor (before: 'force.taring: tare

@@ -84,7 +84,10 @@ def attach(ros_logger: RcutilsLogger, context_ok=lambda: True, label=None) -> Ro
 
 
 def detach(handler: RosLogHandler) -> None:
+    """Undo :func:`attach`: once no node's bridge is left, the package's records propagate again (to a
+    program's or a command's own handlers), whatever other handlers the package's logger carries (a
+    test harness adds its own to every logger that does not propagate)."""
     ROOT.removeHandler(handler)
-    if not ROOT.handlers:
+    if not any(isinstance(h, RosLogHandler) for h in ROOT.handlers):
         ROOT.propagate = True
         ROOT.setLevel(logging.NOTSET)
