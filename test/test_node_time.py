@@ -47,7 +47,7 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
         board.start()
-        assert wait_for(lambda: len(wr) > 50, 10.0), len(wr)
+        assert wait_for(lambda: len(wr) > 50, 30.0), len(wr)
         step["at"] = t_step = time.monotonic() + 0.2
         assert wait_for(lambda: time.monotonic() > t_step, 5.0)
         frames_at_step = h.node.stream.counts.frames
@@ -101,7 +101,7 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
         board.start()
-        assert wait_for(lambda: len(wr) > 50, 10.0)
+        assert wait_for(lambda: len(wr) > 50, 30.0)
         if how == "replug":
             assert wait_for(lambda: len(board.stats().generation_opened) == 2, 10.0)
             back = board.stats().generation_opened[1]
