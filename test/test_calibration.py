@@ -169,6 +169,13 @@ def test_a_rosbag_with_load_changes_calibrates_as_the_csv_files(tmp_path, device
     common = ["--mesh-size", str(MODEL_H), "--estimator", "linear"]
     assert main([*common, "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--forces", str(tmp_path / "forces.csv"), "--out", str(tmp_path / "csv.yaml")]) == 0
+    # the device's unloaded reference beside the calibration, stamped with the time its frames were recorded
+    from cstomo_sensor.force.device import read_reference, saved_at
+
+    written, _, n_written = read_reference(tmp_path / "csv.reference.csv")
+    assert n_written == len(tare)
+    np.testing.assert_allclose(written, tare.mean(axis=0), rtol=1e-6, atol=0)
+    assert abs(saved_at(tmp_path / "csv.reference.csv") - (tmp_path / "ref.csv").stat().st_mtime) < 1.5
     rng = np.random.default_rng(4)
     store = get_typestore(getattr(Stores, "ROS2_KILTED", Stores.LATEST))
     t0 = 1_700_000_000 * 10**9
@@ -262,3 +269,59 @@ def test_a_one_frame_reference_takes_the_recordings_noise(tmp_path, device, caps
     db = float(said[0].split("(")[1].split(" dB")[0])
     assert 39.0 < db < 41.0, out
     assert "noise: assumed 60 dB" in out, out
+
+
+def test_a_first_start_under_a_load_reads_it_from_the_calibrations_reference(ros, tmp_path, device):
+    """A node started for the first time (no saved tare) on a joint already loaded: with the device's
+    calibration (its unloaded reference beside it, as `cstomo calibrate` writes it) it starts from that
+    reference as from a saved tare and reads the load; no tare is taken. Without it the first tare is
+    taken under the load and the load reads as zero (the contrast that makes this test able to fail)."""
+    import time
+
+    from conftest import PIPE, Harness, wait_for
+    from geometry_msgs.msg import WrenchStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from cstomo_sensor.force.calibration import reference_path_of
+    from cstomo_sensor.force.device import write_reference
+    from cstomo_sensor.ros.messages import raw_voltages_msg
+
+    tare, frames, forces, held, held_forces = device
+    cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
+    pipe = Pipeline.build(cfg)
+    ref, noise = reference_of(tare)
+    pipe.set_reference(ref, noise, len(tare))
+    path = tmp_path / "device.yaml"
+    calibrate(pipe, frames, forces).save(path)
+    k = int(np.argmax(np.linalg.norm(held_forces, axis=1)))  # the largest held-out load, from the first frame
+    rng = np.random.default_rng(5)
+    loaded = add_noise(np.repeat(held[k][None], 80, 0), tare.mean(axis=0), 60.0, rng)
+
+    def first_start(name):
+        params = dict(PIPE, input="topic", calibration_file=str(path), tare_file=str(tmp_path / f"{name}.csv"),
+                      tare_frames=10, qos_reliability="reliable", qos_depth=100, stale_timeout=5.0)
+        h = Harness(ros, params, name=name)
+        try:
+            wrench = h.record(f"/{name}/wrench", WrenchStamped)
+            pub = h.probe.create_publisher(Image, f"/{name}/raw_voltages_in",
+                                           QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+            assert wait_for(lambda: h.state() == "active" and pub.get_subscription_count() == 1, 30.0)
+            for v in loaded:
+                pub.publish(raw_voltages_msg(v))
+                time.sleep(0.01)
+            assert wait_for(lambda: len(wrench) >= 40, 15.0), len(wrench)
+            f = np.array([[m.wrench.force.x, m.wrench.force.y, m.wrench.force.z] for _, m in wrench[-30:]])
+            return f.mean(axis=0), h.node.stream.tares.taken, h.node.reference_source
+        finally:
+            h.close()
+
+    write_reference(reference_path_of(path), ref, noise, frames=len(tare),
+                    comment=f"unloaded reference of {path.name}: {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+    read, taken, source = first_start("calref")
+    truth = held_forces[k]
+    assert "the calibration's unloaded reference" in source and not taken, (source, taken)
+    assert np.linalg.norm(read - truth) < 0.15 * np.linalg.norm(truth), (read, truth)
+    reference_path_of(path).unlink()  # the same start without it: the first tare is taken under the load
+    read, taken, source = first_start("noref")
+    assert taken and np.linalg.norm(read) < 0.2 * np.linalg.norm(truth), (read, truth, taken, source)

@@ -131,6 +131,13 @@ def summary(est: np.ndarray, true: np.ndarray) -> dict:
             "magnitude_pct_median": q(m, 0.5), "magnitude_pct_p90": q(m, 0.9)}
 
 
+def reference_path_of(calibration_path: str | Path) -> Path:
+    """Where the unloaded reference of the calibration ``calibration_path`` is kept: ``<stem>.reference.csv``
+    beside it (its noise beside that, force/device.py noise_path)."""
+    p = Path(calibration_path)
+    return p.with_name(p.stem + ".reference.csv")
+
+
 @dataclass(frozen=True)
 class DeviceCalibration:
     """A fitted correction D for one model (module docstring); ``cv`` the cross-validated table."""
@@ -161,6 +168,14 @@ class DeviceCalibration:
         return (f"{self.cv['method']}: angle {a['angle_deg_median']:.2f}/{a['angle_deg_p90']:.2f} deg, magnitude "
                 f"{a['magnitude_pct_median']:.2f}/{a['magnitude_pct_p90']:.2f} % (median/p90; uncalibrated "
                 f"{b['angle_deg_median']:.2f} deg, {b['magnitude_pct_median']:.2f} %)")
+
+    @property
+    def reference_path(self) -> Path | None:
+        """The device's unloaded reference of the calibration's recording, beside its file
+        (``DEVICE.reference.csv``, written by ``cstomo calibrate``, the time it was recorded in its
+        comment): a start without a saved tare starts from it, as from a saved tare of its age
+        (:meth:`~.stream.FrameStream.init_reference`). None when the calibration has no file."""
+        return reference_path_of(self.path) if self.path else None
 
     def check_model(self, model) -> None:
         """Refuse a model other than the one this calibration was fitted against."""

@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, CstomoError
 from ..frames_io import check_frame
 from ..outputs import FrameOutput, output_set
 from .config import StreamConfig
-from .device import tare_age
+from .device import read_reference, tare_age
 from .filter import LowPass
 from .first_tare import FirstTareWatch
 from .health import Health
@@ -115,10 +115,24 @@ class FrameStream:
         force against the model's own reference (a phantom force of newtons at zero load). Returns ''
         when the saved tare is used, else why a tare is pending."""
         saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
+        path = self.tare_file
+        if saved is None:
+            # no saved tare of this device: its calibration's own unloaded reference, if it has one (a
+            # first start under a load is then read as a restart, not taken as the zero)
+            cal = self.pipe.calibration
+            ref = cal.reference_path if cal is not None else None
+            if ref is not None and ref.is_file():
+                try:
+                    saved, path = read_reference(ref, self.pipe.n_meas), ref
+                except (CstomoError, OSError) as err:
+                    log.warning("the calibration's reference %s is unusable (%s): a tare on the first frames", ref, err)
         if saved is not None:
             try:
                 # the device moved since the tare was saved: its age (force/device.py tare_age) widens the slow states
-                self.set_reference(*saved, source=f"saved tare {self.tare_file}", age_s=tare_age(self.tare_file, time.time()) or 0.0)
+                kind = "saved tare" if path == self.tare_file else "the calibration's unloaded reference"
+                self.set_reference(*saved, source=f"{kind} {path}", age_s=tare_age(path, time.time()) or 0.0)
+                if tare_on_start:  # a tare at start is checked against it: not taken under a load
+                    self.start_tare()
                 return ""
             except ConfigError as err:
                 why = str(err)

@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.calibration import calibrate
+from ..force.calibration import calibrate, reference_path_of
 from ..force.creep import HELD_FOR, MIN_HELD
-from ..force.device import read_reference, reference_of
+from ..force.device import read_reference, reference_of, saved_at, write_reference
 from ..force.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
 from .common import ToolParser, add_pipeline_args, help_text, pipeline_config, positive
@@ -325,6 +325,7 @@ def run(a) -> int:
         elif unloaded.sum() >= 1:
             ref, noise = reference_of(frames[unloaded])
             n_ref = int(unloaded.sum())
+            recorded = float(np.max(loads.times[unloaded]))  # the bag's stamps: when the device was unloaded
             source["reference"] = f"{int(unloaded.sum())} paired frames under {a.unloaded_below:g} N"
         else:
             raise ConfigError(f"no --reference and no paired frame under {a.unloaded_below:g} N to tare on")
@@ -344,6 +345,7 @@ def run(a) -> int:
         source = {"frames": str(a.frames), "forces": str(a.forces)}
     if a.reference:
         source["reference"] = str(a.reference)
+        recorded = saved_at(a.reference) or Path(a.reference).stat().st_mtime  # as a saved tare's age is read
     if noise is None:  # a one-frame reference: the noise from the recording, as the node estimates it
         noise = recorded_noise(all_frames if not a.bag else frames, ref)
     pipe = Pipeline.build(cfg, progress=lambda m: print(f"model: {m}", file=sys.stderr))
@@ -363,6 +365,10 @@ def run(a) -> int:
         cal = replace(cal, creep_per_decade=float(creep))
     out = Path(a.out)
     cal.save(out)
+    # the device's unloaded reference beside it: a first start without a saved tare starts from it
+    write_reference(reference_path_of(out), ref, noise, frames=n_ref,
+                    comment=f"cstomo_sensor unloaded reference of the calibration {out.name}: mean of {n_ref} frames, "
+                            f"{time.strftime('%Y-%m-%dT%H:%M:%S%z', time.localtime(recorded))}")
     table = cv_table(cal)
     with atomic_write(out.with_suffix(".cv.csv")) as f:
         f.write(table.encode())
@@ -376,7 +382,8 @@ def run(a) -> int:
             continue
         print(f"  {name:12s}  {s['angle_deg_median']:7.2f} / {s['angle_deg_p90']:6.2f}    "
               f"{s['magnitude_pct_median']:7.2f} / {s['magnitude_pct_p90']:6.2f}")
-    print(f"wrote {out} and {out.with_suffix('.cv.csv')} in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {out}, {out.with_suffix('.cv.csv')} and {reference_path_of(out)} (the unloaded reference: "
+          f"a node started without a saved tare starts from it) in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
