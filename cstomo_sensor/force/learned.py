@@ -11,15 +11,17 @@ slope against the scale, widened at a restart).
 
 How. Each rest frame's change, whitened by its noise, less its least-squares fit by every tracked
 direction (its **residual**: what the tracked states cannot explain whatever their values), goes into
-running sums (the residuals' sum and second moment, and their products with the tracked scale); every
-:data:`EVERY` rest frames (not per frame: the per-frame cost is one rank-1 update of a batch) the
-residuals' covariance about their mean (the reference's own noise is constant over the frames: not
-learned) is decomposed. Its leading component is learned when its variance exceeds :data:`LEARN_RATIO`
-times what the noise alone gives the largest component of a covariance of that many frames: the noise's
-own second moment per dimension (the covariance's trace over its dimensions) times the Marchenko-Pastur
-edge ``(1 + sqrt(p / n))^2`` (``p`` dimensions, ``n`` frames). A device whose change is the model's leaves
-noise only: nothing is learned. At most :data:`MAX_DIRECTIONS` are learned; after one, the sums are
-projected off it and the next is sought among what is left.
+running sums (the residuals' sum and second moment, and their products with the tracked scale), a batch of
+:data:`EVERY` frames at a time; every :data:`DECIDE` rest frames (not per frame: a rest frame costs its
+residual and a share of a batch's product) the residuals' covariance about their mean is decomposed (the
+reference's own noise is constant over the frames: not learned). It is first normalised by its own
+diagonal: each channel's noise as these frames measure it (a tare of 20 frames measures a channel's noise
+to within a factor 0.6..1.6, and a channel whose noise it underestimated would otherwise lead). Its
+leading component is learned when it exceeds :data:`LEARN_RATIO` times the noise's own edge, read from the
+same covariance as its :data:`BULK`-th largest component (no direction, learned or to be learned, reaches
+it). A device whose change is the model's leaves noise only: nothing is learned. At most
+:data:`MAX_DIRECTIONS` are learned; after one, the sums are projected off it and the next is sought among
+what is left.
 
 A learned direction is kept in the tracker's units (the normalised change ``y``, scaled so that one unit of
 its state is as large, whitened, as a uniform change of one), with its slope against the scale over the
@@ -44,11 +46,12 @@ from ..errors import FrameError
 from ..frames_io import read_frames, write_frames
 from .rest import FOLLOW_SPAN
 
-#: Rest frames per decomposition of the residuals' covariance (1 s at 100 frames/s: the eigen-decomposition
-#: of a 208 x 208 matrix, a few ms, once per EVERY rest frames).
+#: Rest frames per batch folded into the sums (one 208 x 100 product: 2 ms on a loaded host, 20 us a frame).
 EVERY = 100
-#: Rest frames before the first decomposition: a covariance of fewer frames is mostly its own noise.
-MIN_FRAMES = 500
+#: Rest frames per decomposition of the residuals' covariance, and before the first (10 s of rest at 100
+#: frames/s): the eigen-decomposition of a 208 x 208 matrix takes 10-40 ms (a loaded host), 0.01-0.04 ms a
+#: rest frame; a covariance of fewer frames is mostly its own noise.
+DECIDE = 1000
 #: The leading component is learned when its variance exceeds this many times the noise's largest component
 #: (module docstring), read as the BULK-th largest component of the same covariance: no learned direction
 #: reaches it (at most MAX_DIRECTIONS, and the tracked ones are projected off), so it is the noise's own edge,
@@ -161,6 +164,8 @@ class DirectionLearner:
 
     def add(self, tracker, y: np.ndarray) -> tuple[np.ndarray, float] | None:
         """A rest frame's change ``y`` (n_meas,) as ``tracker`` took it, at its scale now."""
+        if self.learned >= MAX_DIRECTIONS:  # all learned: nothing more to look for
+            return None
         if self._for is not tracker:
             self._projection(tracker)
         yw = y * self._w
@@ -180,7 +185,7 @@ class DirectionLearner:
         self._Ss[1] += s.dot(s)
         self.n += EVERY
         self._k = 0
-        if self.n < MIN_FRAMES or self.learned >= MAX_DIRECTIONS:
+        if self.n % DECIDE:
             return None
         return self._decide(tracker)
 
