@@ -11,9 +11,10 @@ slope against the scale, widened at a restart).
 
 How. Each rest frame's change, whitened by its noise, less its least-squares fit by every tracked
 direction (its **residual**: what the tracked states cannot explain whatever their values), goes into
-running sums (the residuals' sum and second moment, and their products with the tracked scale), a batch of
-:data:`EVERY` frames at a time; every :data:`DECIDE` rest frames (not per frame: a rest frame costs its
-residual and a share of a batch's product) the residuals' covariance about their mean is decomposed (the
+running sums (the residuals' sum and second moment, and their products with the tracked scale), as means
+of :data:`AVG` rest frames (the device changes slowly: the mean keeps its change and a tenth of the noise),
+a batch of :data:`EVERY` means at a time; every :data:`DECIDE` means (not per frame: a rest frame costs a
+sum of its change, a tenth of a residual and a share of a batch's product) the residuals' covariance about their mean is decomposed (the
 reference's own noise is constant over the frames: not learned). It is first normalised by its own
 diagonal: each channel's noise as these frames measure it (a tare of 20 frames measures a channel's noise
 to within a factor 0.6..1.6, and a channel whose noise it underestimated would otherwise lead). Its
@@ -41,17 +42,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg import eigh
 
 from ..errors import FrameError
 from ..frames_io import read_frames, write_frames
 from .rest import FOLLOW_SPAN
 
-#: Rest frames per batch folded into the sums (one 208 x 100 product: 2 ms on a loaded host, 20 us a frame).
-EVERY = 100
-#: Rest frames per decomposition of the residuals' covariance, and before the first (10 s of rest at 100
-#: frames/s): the eigen-decomposition of a 208 x 208 matrix takes 10-40 ms (a loaded host), 0.01-0.04 ms a
-#: rest frame; a covariance of fewer frames is mostly its own noise.
-DECIDE = 1000
+#: Rest frames averaged into one sample of the residuals (0.1 s at 100 frames/s): the device changes over
+#: minutes, so the mean of AVG rest frames keeps all of its change and a tenth of their noise (a direction is
+#: found sqrt(AVG) times smaller than from single frames: the covariance's spike threshold, sqrt(p / n)); the
+#: residual is computed once per sample (its projection is linear), a rest frame costs a sum of 208 numbers.
+AVG = 10
+#: Samples per batch folded into the sums (one 208 x 50 product, 1-3 ms).
+EVERY = 50
+#: Samples per decomposition of the residuals' covariance, and before the first (2000 rest frames: 20 s of
+#: rest at 100 frames/s): the BULK largest components of a 208 x 208 matrix take 5-25 ms (quiet to loaded
+#: host), 3-12 us a rest frame.
+DECIDE = 200
 #: The leading component is learned when its variance exceeds this many times the noise's largest component
 #: (module docstring), read as the BULK-th largest component of the same covariance: no learned direction
 #: reaches it (at most MAX_DIRECTIONS, and the tracked ones are projected off), so it is the noise's own edge,
@@ -143,7 +150,8 @@ class DirectionLearner:
         self._batch = np.zeros((EVERY, n_meas))
         self._s = np.zeros(EVERY)
         self._k = 0
-        self.n = 0
+        self._ysum, self._ssum, self._j = np.zeros(n_meas), 0.0, 0  # the sample being averaged (AVG)
+        self.n = 0  # samples (AVG rest frames each) in the sums
         self._S1 = np.zeros(n_meas)
         self._S2 = np.zeros((n_meas, n_meas))
         self._Ss = np.zeros(3)  # sum of s, s^2 (and unused)
@@ -166,14 +174,21 @@ class DirectionLearner:
         """A rest frame's change ``y`` (n_meas,) as ``tracker`` took it, at its scale now."""
         if self.learned >= MAX_DIRECTIONS:  # all learned: nothing more to look for
             return None
+        self._ysum += y
+        self._ssum += tracker.scale - 1.0
+        self._j += 1
+        if self._j < AVG:
+            return None
         if self._for is not tracker:
             self._projection(tracker)
-        yw = y * self._w
+        yw = self._ysum * (self._w / AVG)
+        s_mean = self._ssum / AVG
+        self._ysum[:], self._ssum, self._j = 0.0, 0.0, 0
         res = yw - np.dot(np.dot(self._A, yw), self._Dw)
         if not np.isfinite(res).all():
             return None
         self._batch[self._k] = res
-        self._s[self._k] = tracker.scale - 1.0
+        self._s[self._k] = s_mean
         self._k += 1
         if self._k < EVERY:
             return None
@@ -199,7 +214,10 @@ class DirectionLearner:
         # noise the tare underestimated would lead); a signal shared by channels stands out of it
         d = np.sqrt(np.maximum(C.diagonal(), 1e-300))
         Cn = C / np.outer(d, d)
-        lam, vec = np.linalg.eigh(Cn)
+        k = len(Cn)
+        if k <= BULK:
+            return None
+        lam, vec = eigh(Cn, subset_by_index=[k - BULK, k - 1])  # the BULK largest only: half a full one's time
         # the noise's own largest components: the bulk's edge, read where no direction can reach (BULK-th largest)
         bulk = float(lam[-BULK])
         self.last_ratio = float(lam[-1] / bulk) if bulk > 0 else 0.0
