@@ -27,11 +27,11 @@ what is left.
 A learned direction is kept in the tracker's units (the normalised change ``y``, scaled so that one unit of
 its state is as large, whitened, as a uniform change of one), with its slope against the scale over the
 rests that learned it (``per_scale``): a restart from an old tare (:meth:`~.drift.DriftTracker.widen`)
-widens its state by that slope times the scale's restart 1-sigma (:data:`~.drift.RESTART_CONTACT` when the
-scale did not span :data:`~.rest.FOLLOW_SPAN` while it was learned). The directions are saved beside the
-tare (:func:`write_directions`, ``<tare>.directions.csv``) each time one is learned, and read back at a
-restart (the node's start, ``cstomo estimate --reference``, ``cstomo replay --reference``): a restart starts
-with them. A tare file without one (older, or a device that learned none) starts with the model's only.
+widens its state by that slope (at least :data:`~.drift.RESTART_GRADIENT`; :data:`UNKNOWN_PER_SCALE` when
+the scale did not span :data:`~.rest.FOLLOW_SPAN` while it was learned) times the scale's restart 1-sigma.
+The directions are saved beside the tare (:func:`write_directions`, ``<tare>.directions.csv``) each time
+one is learned, and read back at a restart (the node's start, ``cstomo estimate --reference``, ``cstomo
+replay --reference``): a restart starts with them. A tare file without one (older, or a device that learned none) starts with the model's only.
 docs/node.md, *The device's own directions*.
 """
 from __future__ import annotations

@@ -22,7 +22,7 @@ from .creep import CreepCompensator
 from .drift import DriftTracker
 from .expected import ExpectedLoad, bounded
 from .joint import JointScale, gradient_directions
-from .learned import DirectionLearner, Directions, empty
+from .learned import AVG, DirectionLearner, Directions, empty
 from .scene_field import change_noise
 from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, misfit, relative_error
 
@@ -200,13 +200,13 @@ class SlowStates:
         self.drift = self.drift.with_directions(row, [per_scale], max(abs(self.drift.change), 1e-3))
         self.learned_new = True
         log.info("learned a direction of the device's own change from %d rest frames (%.1f x the noise's; "
-                 "restart 1-sigma %.2f x the scale's): tracked as state %d", self.learner.n, self.learner.last_ratio,
+                 "restart 1-sigma %.2f x the scale's): tracked as state %d", self.learner.n * AVG, self.learner.last_ratio,
                  per_scale, self.drift.m - 1)
 
     def _offsets(self) -> None:
         # the tracker's other states are the contacts', then the resistivity gradients' (see reset), then the
         # device's own directions (force/learned.py)
-        n = len(self.directions) if self.drift is not None else 0
+        n = len(self.drift.learned) if self.drift is not None else 0
         self.gradient = self.drift.gradient[len(self.drift.gradient) - n - 3:len(self.drift.gradient) - n].tolist() \
             if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
