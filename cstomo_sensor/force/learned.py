@@ -31,7 +31,8 @@ widens its state by that slope (at least :data:`~.drift.RESTART_GRADIENT`; :data
 the scale did not span :data:`~.rest.FOLLOW_SPAN` while it was learned) times the scale's restart 1-sigma.
 The directions are saved beside the tare (:func:`write_directions`, ``<tare>.directions.csv``) each time
 one is learned, and read back at a restart (the node's start, ``cstomo estimate --reference``, ``cstomo
-replay --reference``): a restart starts with them. A tare file without one (older, or a device that learned none) starts with the model's only.
+replay --reference``): a restart starts with them. A tare file without one (older, or a device that
+learned none) starts with the model's only.
 docs/node.md, *The device's own directions*.
 """
 from __future__ import annotations
