@@ -57,8 +57,8 @@ AVG = 10
 #: Samples per batch folded into the sums (one 208 x 50 product, 1-3 ms).
 EVERY = 50
 #: Samples per decomposition of the residuals' covariance, and before the first (2000 rest frames: 20 s of
-#: rest at 100 frames/s): the BULK largest components of a 208 x 208 matrix take 5-25 ms (quiet to loaded
-#: host), 3-12 us a rest frame.
+#: rest at 100 frames/s): the BULK largest components of a 208 x 208 matrix take 15-25 ms on a loaded host;
+#: the whole learner 28-32 us a rest frame amortized at host load 5.
 DECIDE = 200
 #: The leading component is learned when its variance exceeds this many times the noise's largest component
 #: (module docstring), read as the BULK-th largest component of the same covariance: no learned direction
