@@ -79,6 +79,9 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     tare = tmp_path / "tare.csv"
     _saved_tare(tare, frames[:TARE].astype(float), saved)
     assert saved_at(tare) == saved
+    # and a direction the device learned (force/learned.py) beside it: each reader starts with it
+    from cstomo_sensor.force.learned import Directions, write_directions
+    write_directions(tare, Directions(np.random.default_rng(4).normal(0.0, 0.01, (1, frames.shape[1])), np.array([0.5])))
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     params = dict(PIPE, estimator="model", input="topic", tare_on_start=False, tare_file=str(tare), creep_per_decade=0.0,
@@ -94,6 +97,7 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
                         and h.probe.count_publishers("/cstomo_restart/wrench_sigma"), 30.0)
         age = h.node.stream.slow.age_s
         assert age == pytest.approx(AGE_H * 3600, abs=60)  # the node's restart: its saved tare, 8 h old
+        assert len(h.node.stream.slow.directions) == 1 and h.node.stream.drift.m == 9  # ... and its learned direction
         # the frames stamped as measured after the restart, the first at the moment the node took the age at
         t0 = int(round((saved + age) * 1e9))
         inputs = [(t0 + int(dt), raw_voltages_msg(f, t0 + int(dt))) for dt, f in zip(bag_t, frames)]

@@ -135,6 +135,7 @@ class DriftTracker:
                  force_map: np.ndarray | None = None, contacts: int = 0) -> None:
         self._args = (r, gradients, noise, keep, force_map)
         self.contacts = int(contacts)  # the first this many other states are the contacts' (widen)
+        self.learned = np.zeros(0)  # the last this many other states are learned (force/learned.py): each one's restart per scale
         # each other state's slope against the scale before a rest measured it: section 9's range (FOLLOW_SIGMA)
         self._unfitted2 = np.full(0 if gradients is None else len(gradients), RESTART_GRADIENT ** 2)
         self._unfitted2[:min(self.contacts, len(self._unfitted2))] = RESTART_CONTACT ** 2
@@ -194,6 +195,7 @@ class DriftTracker:
         r, gradients, noise0, keep0, map0 = self._args
         new = DriftTracker(r, gradients, noise0 if noise is None else noise, keep0 if keep is None else keep,
                            map0 if force_map is None else force_map, self.contacts)
+        new.learned = self.learned
         new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
         new._set_gradient(self.gradient)
         new._follow = self._follow.copy()
@@ -202,6 +204,37 @@ class DriftTracker:
         new._obias = None if self._obias is None else [a.copy() for a in self._obias]
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
+            q, o = new._quiet, self._quiet
+            q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
+        return new
+
+    def with_directions(self, rows: np.ndarray, per_scale: np.ndarray, sigma: float) -> DriftTracker:
+        """The same tracker, its state kept, with ``rows`` (k, n_meas) more directions (the device's own,
+        force/learned.py; ``per_scale``: each one's restart 1-sigma per unit of the scale's, :meth:`widen`),
+        their states 0 of 1-sigma ``sigma`` (the next rest frames measure them)."""
+        r, gradients, noise, keep, fmap = self._args
+        rows = np.atleast_2d(np.asarray(rows, float))
+        k = len(rows)
+        new = DriftTracker(r, rows if gradients is None else np.vstack([gradients, rows]), noise, keep, fmap,
+                           self.contacts)
+        new.learned = np.append(self.learned, np.asarray(per_scale, float))
+        m, m1 = self.m, new.m
+
+        def pad(a, axis):  # zeros for the new states, inserted before the rate (the last state)
+            return np.insert(a, [m] * k, 0.0, axis=axis)
+
+        P = pad(pad(self.P, 0), 1)
+        P[m:m1, m:m1] = np.eye(k) * sigma * sigma
+        new.P, new.scale, new.rate, new.rest_frames, new._t = P, self.scale, self.rate, self.rest_frames, self._t
+        new._set_gradient(np.append(self.gradient, np.zeros(k)))
+        new._follow._fit[:, :m] = self._follow._fit
+        new._follow.slope[:m - 1] = self._follow.slope
+        new._follow.fitted = self._follow.fitted
+        new.follow = new._follow.slope
+        new._bias = self._bias.copy()
+        new._bias.c = pad(self._bias.c, 0)
+        new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
+        if self._W is not None and new._W is not None:
             q, o = new._quiet, self._quiet
             q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
         return new
@@ -399,6 +432,9 @@ class DriftTracker:
             nc = min(self.contacts, m - 1)
             other[:nc] = math.hypot(RESTART_CONTACT * so, RESTART_CONTACT_DRIFT
                                     * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
+            nl = min(len(self.learned), m - 1 - nc)
+            if nl:  # the device's own directions (force/learned.py): by their slope against the scale
+                other[m - 1 - nl:] = np.maximum(self.learned[-nl:], RESTART_GRADIENT) * so
             add[1:m] = other ** 2
             if self._W is not None:
                 add[1:m] = np.maximum(add[1:m], (RESTART_OTHER_N / self._other_n) ** 2)

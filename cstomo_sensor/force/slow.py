@@ -12,6 +12,7 @@ estimator, the mask, the calibration) when the stream tells it one of them chang
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -21,8 +22,11 @@ from .creep import CreepCompensator
 from .drift import DriftTracker
 from .expected import ExpectedLoad, bounded
 from .joint import JointScale, gradient_directions
+from .learned import AVG, DirectionLearner, Directions, empty
 from .scene_field import change_noise
 from .sigma import CREEP_REL_ASSUMED, CREEP_REL_FITTED, ForceSigma, misfit, relative_error
+
+log = logging.getLogger(__name__)
 
 #: The drift tracker's change (``|s - 1|``) beyond which a re-tare is advised, and beyond which it is
 #: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
@@ -67,6 +71,11 @@ class SlowStates:
         self.expected = ExpectedLoad(max_force, config.expected_wrench_tolerance, config.frame_id)
         self._frame_sigma: tuple | None = None
         self.age_s: float | None = None  # the reference is a saved tare this old (reset)
+        # the device's own directions (force/learned.py): learned from its rests, or read with a saved tare; the
+        # device's, so kept over a re-tare; learned_new: a direction learned since the stream last saved them
+        self.directions: Directions = empty(n_meas)
+        self.learner: DirectionLearner | None = None
+        self.learned_new = False
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -76,10 +85,14 @@ class SlowStates:
         fitted = getattr(calibration, "creep_per_decade", None) if calibration is not None else None
         return float(fitted) if fitted is not None else self.creep_setting
 
-    def reset(self, pipe, age_s: float | None = None) -> None:
+    def reset(self, pipe, age_s: float | None = None, directions: Directions | None = None) -> None:
         """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
-        ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states."""
+        ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states;
+        ``directions``: the device's own directions saved with it (force/learned.py; None: those learned so far)."""
+        if directions is not None:
+            self.directions = directions
         self.drift = self.creep = None
+        self.learner = None
         self._frame_sigma = None  # the previous reference's frames' sigma is not this one's (expected load)
         self.age_s = age_s  # the reference's age (a restart), for the diagnostics and the tests
         if pipe.reference is not None:
@@ -92,6 +105,9 @@ class SlowStates:
                                           change_noise(pipe.estimator.noise, pipe.reference_frames),
                                           ~pipe.bad_channels, force_map(pipe),
                                           contacts=0 if pipe.model.contact is None else len(pipe.model.contact))
+                if len(self.directions):  # the device's own directions: states after the model's
+                    self.drift = self.drift.with_directions(self.directions.rows, self.directions.per_scale, 0.0)
+                self.learner = DirectionLearner(pipe.n_meas, len(self.directions))
                 if age_s is not None:
                     self.drift.widen(age_s)
             c = self.creep_per_decade(pipe.calibration)
@@ -129,7 +145,11 @@ class SlowStates:
             if drift is not None:
                 # every frame measures the scale jointly with its force (force/joint.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
-                drift.observe(y, t, self._joint_scale(pipe, t, result))
+                if drift.observe(y, t, self._joint_scale(pipe, t, result)) and self.learner is not None:
+                    self._learn(y)
+                    if drift is not self.drift:  # one more state: its sigma too
+                        drift = self.drift
+                        sig = self._sigma_model(pipe) if sig is not None else None
                 self.scale = drift.scale
                 if drift.force_step is not None and result.valid:
                     result.force = result.force + drift.force_step
@@ -169,9 +189,26 @@ class SlowStates:
         of the force in the joint fit of the device's scale for frames within the tolerance of its stamp."""
         return self.expected.offer(force, sigma, stamp_ns, frame_id, source)
 
+    def _learn(self, y: np.ndarray) -> None:
+        """A rest frame's change ``y`` into the learner (force/learned.py); a direction learned: one more state."""
+        new = self.learner.add(self.drift, y)
+        if new is None:
+            return
+        row, per_scale = new
+        self.directions = self.directions.plus(row, per_scale)
+        # its state unknown as yet: 1-sigma the change the scale made (the next rest frames measure it)
+        self.drift = self.drift.with_directions(row, [per_scale], max(abs(self.drift.change), 1e-3))
+        self.learned_new = True
+        log.info("learned a direction of the device's own change from %d rest frames (%.1f x the noise's; "
+                 "restart 1-sigma %.2f x the scale's): tracked as state %d", self.learner.n * AVG, self.learner.last_ratio,
+                 per_scale, self.drift.m - 1)
+
     def _offsets(self) -> None:
-        # the tracker's other states are the contacts', then the resistivity gradients' (see reset)
-        self.gradient = self.drift.gradient[-3:].tolist() if self.drift is not None else None
+        # the tracker's other states are the contacts', then the resistivity gradients' (see reset), then the
+        # device's own directions (force/learned.py)
+        n = len(self.drift.learned) if self.drift is not None else 0
+        self.gradient = self.drift.gradient[len(self.drift.gradient) - n - 3:len(self.drift.gradient) - n].tolist() \
+            if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)

@@ -32,6 +32,7 @@ from .device import read_reference, tare_age
 from .filter import LowPass
 from .first_tare import FirstTareWatch
 from .health import Health
+from .learned import Directions, read_directions, write_directions
 from .mask import ChannelMask
 from .noise_state import NoiseState
 from .pipeline import FrameResult, Pipeline
@@ -90,24 +91,26 @@ class FrameStream:
     # --- reference and tare ----------------------------------------------------------------------
 
     def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str,
-                      age_s: float | None = None) -> str:
+                      age_s: float | None = None, directions: Directions | None = None) -> str:
         """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
         (None: assumed) if plausible (:func:`~.tare.tare_problem`, else :class:`ConfigError` naming
-        ``source``); returns the tare report's message."""
+        ``source``); returns the tare report's message. ``age_s``: a saved tare this old (a restart);
+        ``directions``: the device's own directions saved with it (force/learned.py :func:`~.learned.read_directions`)."""
         why = tare_problem(ref, self.pipe.model_reference)
         if why:
             raise ConfigError(f"{source} not used: {why}")
-        report = self._new_reference(ref, noise, n_frames, age_s)
+        report = self._new_reference(ref, noise, n_frames, age_s, directions)
         self.tares.reference_from(source)
         (log.warning if report.warn else log.info)("%s: mean of %d frame(s), noise %s; %s", source, n_frames,
                                                    self.noise_text, report.message)
         return report.message
 
-    def _new_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, age_s: float | None = None):
+    def _new_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, age_s: float | None = None,
+                       directions: Directions | None = None):
         report = self.pipe.set_reference(ref, noise, n_frames)
         self.first_tare = None  # a first tare's watch is set by _end_tare (force/first_tare.py)
         self._use_noise(self.noise_state.kept(self.pipe))  # an estimated noise stays in use
-        self.slow.reset(self.pipe, age_s)
+        self.slow.reset(self.pipe, age_s, directions)
         return report
 
     def init_reference(self, tare_on_start: bool) -> str:
@@ -128,9 +131,11 @@ class FrameStream:
                     log.warning("the calibration's reference %s is unusable (%s): a tare on the first frames", ref, err)
         if saved is not None:
             try:
-                # the device moved since the tare was saved: its age (force/device.py tare_age) widens the slow states
+                # the device moved since the tare was saved: its age (force/device.py tare_age) widens the slow states;
+                # the device's own directions saved beside a saved tare (force/learned.py) are tracked from the first frame
                 kind = "saved tare" if path == self.tare_file else "the calibration's unloaded reference"
-                self.set_reference(*saved, source=f"{kind} {path}", age_s=tare_age(path, time.time()) or 0.0)
+                self.set_reference(*saved, source=f"{kind} {path}", age_s=tare_age(path, time.time()) or 0.0,
+                                   directions=self._saved_directions() if path == self.tare_file else None)
                 if tare_on_start:  # a tare at start is checked against it: not taken under a load
                     self.start_tare()
                 return ""
@@ -139,6 +144,31 @@ class FrameStream:
         self.start_tare()
         self.tares.reference_from("tare pending")
         return why
+
+    def _saved_directions(self) -> Directions | None:
+        """The learned directions saved beside the tare file (None: none, or unreadable: said once, the model's only)."""
+        try:
+            return read_directions(self.tare_file, self.pipe.n_meas)
+        except (CstomoError, OSError) as err:
+            log.warning("the device's learned directions not used (%s): the model's directions only", err)
+            return None
+
+    def _save_directions(self) -> None:
+        """A direction learned (force/learned.py): the device's directions saved beside its tare file, by a
+        thread of its own (frames keep flowing while a slow disk writes it)."""
+        self.slow.learned_new = False
+        path, directions = self.tare_file, self.slow.directions
+        if path is None:
+            return
+
+        def write():
+            try:
+                write_directions(path, directions, comment=self.tares.comment)
+                log.info("the device's %d learned direction(s) saved beside %s", len(directions), path)
+            except OSError as err:
+                log.error("the device's learned directions not saved beside %s (%s)", path, err)
+
+        threading.Thread(target=write, name="cstomo_directions_save", daemon=True).start()
 
     def start_tare(self, n_frames: int | None = None) -> None:
         """Average the next ``n_frames`` (default ``tare_frames``) frames into the reference."""
@@ -272,6 +302,8 @@ class FrameStream:
         if self.noise_state.estimate is not None and not pipe.noise_measured:
             self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
         slow.observe(pipe, result, t, self.channels.frozen)
+        if slow.learned_new:
+            self._save_directions()
         if (self.first_tare is not None and result.valid and not result.foreign_load  # a press elsewhere: no pull
                 and self.first_tare.observe(pipe.last_y)):
             # the first tare carried a load (force/first_tare.py): dropped, nothing published until a tare

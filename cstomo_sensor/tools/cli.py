@@ -95,6 +95,7 @@ def cmd_reconstruct(a) -> int:
 def cmd_estimate(a) -> int:
     from ..force.config import StreamConfig
     from ..force.device import read_reference
+    from ..force.learned import read_directions
     from ..force.noise import MIN_PAIRS, is_time_series, noise_level
     from ..force.pipeline import Pipeline
     from ..force.stream import FrameStream
@@ -108,6 +109,7 @@ def cmd_estimate(a) -> int:
         raise ConfigError.bad_value("--reference-age", a.reference_age, "seconds >= 0 (how old the saved tare is)")
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
+    directions = read_directions(a.reference)  # the device's own directions saved beside it (force/learned.py)
     frames = read_frames(a.frames)
     creep = a.creep_per_decade
     _, pairs, agree = noise_level(frames)
@@ -120,7 +122,8 @@ def cmd_estimate(a) -> int:
     pipe = Pipeline.build(cfg)
     stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0,  # the node's frame path
                                                     drift_tracking=a.drift_tracking, creep_per_decade=creep))
-    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}", age_s=a.reference_age)  # the node's restart
+    message = stream.set_reference(ref, noise, n_ref, f"reference {a.reference}", age_s=a.reference_age,  # the node's restart
+                                   directions=directions)
     noise_text = stream.estimate_noise(frames, a.frames)  # a one-frame reference: the noise from the frames
     print(f"reference: {n_ref} frame(s), noise {'measured' if noise is not None else noise_text}; "
           f"{'WARNING: ' if pipe.scale_report.warn else ''}{message}", file=sys.stderr)

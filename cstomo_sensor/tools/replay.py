@@ -42,6 +42,7 @@ import numpy as np
 from ..errors import ConfigError, CstomoError
 from ..force.config import PipelineConfig, StreamConfig
 from ..force.device import read_reference, tare_age
+from ..force.learned import read_directions
 from ..force.pipeline import Pipeline
 from ..force.stream import FrameStream
 from ..loop import Results, run
@@ -122,7 +123,8 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
         if reference is not None:  # a saved tare: the node's restart, its age taken at the bag's first frame
             first = source.peek()
             age = None if first is None else tare_age(reference, first.stamp_ns * 1e-9, file_time=False)
-            stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}", age_s=age)
+            stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}", age_s=age,
+                                 directions=read_directions(reference, pipe.n_meas))  # the device's own (force/learned.py)
             log.info("reference %s: %s", reference, "a tare just taken (it records no time before the bag's first frame)"
                      if age is None else f"a saved tare {age:.0f} s old at the bag's first frame: the node's restart")
         else:

@@ -61,6 +61,7 @@ from ...angles import angle_between
 from ...force.calibration import calibrate
 from ...force.config import PipelineConfig, StreamConfig
 from ...force.device import write_reference
+from ...force.learned import write_directions
 from ...force.pipeline import Pipeline
 from ...force.stream import FrameStream
 from ...loop import Trace, run, step
@@ -143,11 +144,12 @@ def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print, estimators
 
 def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float, creep: float, seed: int = 7,
                tare_age: float | None = None, expected_sigma: float | None = None, tare_file_age: float | None = None,
-               streams: list | None = None):
+               streams: list | None = None, directions=None):
     """A fresh stream given ``tare`` (frames of the device's tare state) as its reference, then the
     timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale,
     sigma_n (NaN when refused)). ``tare_file_age``: the tare is saved as the node saves it and the stream
-    starts as the node does (:meth:`FrameStream.init_reference` on a tare file of that age: a restart);
+    starts as the node does (:meth:`FrameStream.init_reference` on a tare file of that age: a restart), with
+    the device's learned ``directions`` saved beside it (force/learned.py; None: none);
     ``streams``: a list that gets the stream."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
@@ -156,7 +158,7 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
         stream = FrameStream(pipe, config)
         stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "saved tare", age_s=tare_age)
     else:
-        stream = restarted_stream(pipe, config, tare, tare_file_age)
+        stream = restarted_stream(pipe, config, tare, tare_file_age, directions)
     if streams is not None:
         streams.append(stream)
     trace = Trace(lambda: stream.slow.scale)
@@ -172,14 +174,17 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
     return times, np.array(trace.forces, float).reshape(-1, 3), forces, np.array(trace.probed), np.array(trace.sigma_n)
 
 
-def restarted_stream(pipe, config: StreamConfig, tare: np.ndarray, age_s: float) -> FrameStream:
+def restarted_stream(pipe, config: StreamConfig, tare: np.ndarray, age_s: float, directions=None) -> FrameStream:
     """A stream started as the node starts (ros/node.py): ``tare`` (frames) saved to a tare file as
-    :class:`~cstomo_sensor.force.taring.Taring` saves an accepted tare, the file ``age_s`` seconds old,
-    then :meth:`FrameStream.init_reference` without a tare on start (``tare_on_start`` false)."""
+    :class:`~cstomo_sensor.force.taring.Taring` saves an accepted tare (and the device's learned
+    ``directions`` beside it, force/learned.py), the file ``age_s`` seconds old, then
+    :meth:`FrameStream.init_reference` without a tare on start (``tare_on_start`` false)."""
     with tempfile.TemporaryDirectory(prefix="cstomo_robot_") as tmp:
         path = Path(tmp) / "tare.csv"
         write_reference(path, tare.mean(axis=0), tare.std(axis=0, ddof=1), comment="robot bench: saved tare",
                         frames=len(tare))
+        if directions is not None:
+            write_directions(path, directions)
         stamp = time.time() - age_s
         os.utime(path, (stamp, stamp))
         stream = FrameStream(pipe, config, tare_file=path)

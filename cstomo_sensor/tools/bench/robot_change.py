@@ -66,13 +66,13 @@ def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]
     return _bench(out, robot.DEVICE_SCENES, "robot", cache_dir, say)
 
 
-def full_change_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
+def full_change_bench(out: str | os.PathLike, cache_dir=None, say=print, learn_s: float = 0.0) -> list[dict]:
     """This module's rows only (the lines of robot.md's last table, a third of the bench's time): writes
-    robot_change.csv and robot_change.md in ``out``."""
-    return _bench(out, (), "robot_change", cache_dir, say)
+    robot_change.csv and robot_change.md in ``out``; ``learn_s``: :func:`full_change_rows`'s learning session."""
+    return _bench(out, (), "robot_change", cache_dir, say, learn_s)
 
 
-def _bench(out, robot_scenes, name: str, cache_dir, say) -> list[dict]:
+def _bench(out, robot_scenes, name: str, cache_dir, say, learn_s: float = 0.0) -> list[dict]:
     t_start = time.perf_counter()
     rows = []
     for scene in dict.fromkeys((*robot_scenes, *FULL_SCENES)):
@@ -81,7 +81,7 @@ def _bench(out, robot_scenes, name: str, cache_dir, say) -> list[dict]:
             rows += robot.device_rows(scene, cache_dir, say, device)
         if scene in FULL_SCENES:
             t0 = time.perf_counter()
-            rows += full_change_rows(device, cache_dir, say)
+            rows += full_change_rows(device, cache_dir, say, learn_s=learn_s)
             say(f"robot bench: the full change on {device[1].geometry.name}, {time.perf_counter() - t0:.0f} s")
         del device
     Path(out).mkdir(parents=True, exist_ok=True)
@@ -100,10 +100,14 @@ def change_spec(change: float, ramp_s: float, duration: float, tasks) -> object:
 
 
 def full_change_rows(device, cache_dir=None, say=print, estimators=ESTIMATORS, warm_s: float = robot.WARM_S,
-                     restart_s: float = robot.RESTART_S, loaded_s: float = robot.RESTART_LOADED_S) -> list[dict]:
+                     restart_s: float = robot.RESTART_S, loaded_s: float = robot.RESTART_LOADED_S,
+                     learn_s: float = 0.0) -> list[dict]:
     """Every series of the module docstring on ``device`` (robot.py :func:`~.robot.prepare_device`'s
     (scene, truth, pipes, tare)); ``warm_s``, ``restart_s``, ``loaded_s``: the scenarios' durations (a
-    shorter run for the tests)."""
+    shorter run for the tests). ``learn_s`` > 0: before the restarts, a session of that many seconds from
+    the tare at rest while the device takes the full change (+:data:`CHANGE`, reached at 2/3 of it) learns
+    the device's own directions (force/learned.py), and the restarts' tare file carries them (the node
+    that ran before its restart); 0: none (a tare file without them)."""
     sc, truth, pipes, tare = device
     dev = truth.geometry.name
     rows = []
@@ -128,11 +132,20 @@ def full_change_rows(device, cache_dir=None, say=print, estimators=ESTIMATORS, w
                     else _with_duration(robot.restart(0.0, loaded), duration))  # unchanged: robot.py's own timeline
             series.append((f"full restart {'loaded' if loaded else 'at rest'} {100 * change:+.1f} %", spec, AGE_S,
                            robot.RATE, restart_windows(after)))
+    learned = {name: None for name in estimators}
+    if learn_s > 0:
+        tl = timeline(change_spec(CHANGE, learn_s * 2 / 3, learn_s, None))
+        for name in estimators:
+            streams = []
+            robot.run_stream(pipes[name], tl, tare, True, robot.RATE, 0.0, streams=streams)
+            learned[name] = streams[0].slow.directions
+            say(f"robot bench: {dev}, {name}: {len(learned[name])} direction(s) learned in {learn_s:g} s at rest")
     for scenario, spec, age, rate, windows in series:
         tl = timeline(spec)
         for name in estimators:
             times, est, forces, scale, sigma = robot.run_stream(pipes[name], tl, tare, True, rate, 0.0,
-                                                                tare_file_age=age)
+                                                                tare_file_age=age,
+                                                                directions=learned[name] if age else None)
             for label, sel in windows(times):
                 rows.append({"scenario": scenario, "device": dev, "estimator": name, "tracking": True, "window": label,
                              **robot.window_errors(est, forces, scale, sel, sigma)})

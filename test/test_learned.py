@@ -1,0 +1,165 @@
+"""The device's own directions (issue 34 item 1; cstomo_sensor/force/learned.py): a device whose change after
+its tare is not the model's learns the part its rests leave unexplained, tracks it as a state, and keeps it
+across a restart (saved beside the tare and read back); a device whose change is the model's learns nothing.
+
+Judged on a device outside the estimator's model (device_c's own mesh, coarse here: the test judges the
+mechanism, not a mesh; 60 dB), with the honest simulator's own change (model/timeline.py): the rubber warming
+by 2.4 % with a 30 % gradient along a diagonal of the block and the contacts -1 %/K (docs/physics.md#device-changes),
+and besides one electrode's contact loosening alone (+90 %: a change none of the model's directions describe).
+Expected figures come from the truth, never from the code under test: a restart's zero p99 from 1 s with the
+learned directions against without them and against the same restart of the device unchanged."""
+import os
+import time
+
+import numpy as np
+import pytest
+
+from cstomo_sensor.errors import FrameError
+from cstomo_sensor.force.config import PipelineConfig, StreamConfig
+from cstomo_sensor.force.device import write_reference
+from cstomo_sensor.force.learned import AVG, LEARN_RATIO, Directions, directions_path, read_directions, write_directions
+from cstomo_sensor.force.pipeline import Pipeline
+from cstomo_sensor.force.stream import FrameStream
+from cstomo_sensor.loop import Trace, run
+from cstomo_sensor.model.simulate import Truth
+from cstomo_sensor.model.timeline import ContactDrift, Profile, Timeline, TimelineSpec, full_change
+from cstomo_sensor.sources import ArraySource
+from cstomo_sensor.tools.bench import robot
+from cstomo_sensor.tools.bench import robot_change as rc
+
+SNR_DB = 60.0
+LOOSE = 0.9          # one electrode's contact, +90 % (electrode 3)
+LEARN_S, RAMP_S, RESTART_S = 90.0, 60.0, 20.0
+AGE_S = 8 * 3600.0
+CONFIG = StreamConfig(stress_field_every=0, creep_per_decade=0.0)
+
+
+def local_change(ramp_s: float, duration: float) -> TimelineSpec:
+    """The non-uniform change (module docstring), reached at ``ramp_s`` (0: there from the first frame)."""
+    spec = full_change(0.024, 0.3, -0.01, 0.008, ramp_s=ramp_s, duration=duration, axis=(1.0, 1.0, 0.0))
+    values = [0.0] * 16
+    values[2] = LOOSE
+    return TimelineSpec(**{**spec.__dict__, "contact_drift": ContactDrift(kind="linear", values=tuple(values),
+                                                                          over_s=ramp_s or 1e-3)})
+
+
+def uniform_change(ramp_s: float, duration: float) -> TimelineSpec:
+    """The model's own change: every impedance of the device alike, +2.4 % (the rubber's resistivity and the
+    contacts' impedance warming by the same 0.8 %/K: every voltage scales by it, the tracker's scale)."""
+    temp = Profile(((0.0, 0.0), (ramp_s, 3.0))) if ramp_s else Profile(((0.0, 3.0),))
+    return TimelineSpec(duration=duration, temperature=temp, resistivity_per_k=0.008, contact_per_k=0.008)
+
+
+@pytest.fixture(scope="module")
+def device():
+    from conftest import PIPE
+
+    sc, fine = robot.device_truth(scene=rc.FULL_SCENES[1])
+    truth = Truth(fine.geometry, truth_h=4.0e-3, z_rel=sc.z_rel, jitter=sc.jitter, seed=sc.seed)
+    pipe = Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
+    tare = Timeline(TimelineSpec(duration=1.0), snr_db=SNR_DB, seed=3, truth=truth).tare(20, np.random.default_rng(22))
+    return truth, pipe, tare
+
+
+def run_frames(stream, truth, spec, seed):
+    """(times, forces read, true forces) of the timeline ``spec`` at 100 frames/s through ``stream``."""
+    tl = Timeline(spec, snr_db=SNR_DB, seed=seed, truth=truth).prepare()
+    times, frames, forces, _ = tl.frames(100.0, rng=np.random.default_rng(seed))
+    trace = Trace(lambda: stream.slow.scale)
+    run(ArraySource(frames, (1e9 * (1 + times)).astype(np.int64)), stream, [trace])
+    return times, np.array(trace.forces, float).reshape(-1, 3), forces
+
+
+def learning_session(device, tmp_path, spec):
+    """A session from a fresh tare saved to a tare file, the device changing at rest; returns the stream."""
+    truth, pipe, tare = device
+    path = tmp_path / "tare.csv"
+    write_reference(path, tare.mean(0), tare.std(0, ddof=1), "test: saved tare", len(tare))
+    stream = FrameStream(pipe, CONFIG, tare_file=path)
+    stream.set_reference(tare.mean(0), tare.std(0, ddof=1), len(tare), "tare")
+    run_frames(stream, truth, spec, seed=5)
+    return stream, path
+
+
+def restart_p99(device, path, spec) -> tuple[float, FrameStream]:
+    """The zero's p99 (N) from 1 s of a restart (the node's start) from the tare file ``path`` aged 8 hours."""
+    truth = device[0]
+    os.utime(path, (time.time() - AGE_S,) * 2)
+    stream = FrameStream(device[1], CONFIG, tare_file=path)
+    assert stream.init_reference(tare_on_start=False) == ""
+    times, est, forces = run_frames(stream, truth, spec, seed=9)
+    assert not forces.any()  # at rest
+    err = np.linalg.norm(est - forces, axis=1)[times >= 1.0]
+    assert np.isfinite(err).all()
+    return float(np.percentile(err, 99)), stream
+
+
+@pytest.mark.slow
+def test_a_non_uniform_change_is_learned_from_rests_and_kept_across_a_restart(device, tmp_path):
+    stream, path = learning_session(device, tmp_path, local_change(RAMP_S, LEARN_S))
+    learned = stream.slow.directions
+    print(f"learned {len(learned)}, the covariance's largest ratio {stream.slow.learner.max_ratio:.3f}")
+    assert 1 <= len(learned) <= 2
+    assert stream.drift.m == 1 + 7 + len(learned)  # the scale, 4 contacts and 3 gradients, then the learned
+    side = directions_path(path)
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and not side.is_file():  # saved by a thread of its own
+        time.sleep(0.05)
+    back = read_directions(path)
+    assert back is not None and len(back) == len(learned)
+    scale = np.abs(learned.rows).max()
+    assert np.allclose(back.rows, learned.rows, rtol=1e-6, atol=1e-9 * scale)
+    assert np.allclose(back.per_scale, learned.per_scale, rtol=1e-5)
+
+    restart = local_change(0.0, RESTART_S)
+    with_p99, node = restart_p99(device, path, restart)
+    assert len(node.slow.directions) == len(learned) and node.drift.m == stream.drift.m  # it starts with them
+    side.rename(tmp_path / "aside.csv")
+    without_p99, node = restart_p99(device, path, restart)
+    assert len(node.slow.directions) == 0 and node.drift.m == 8  # an old tare file: the model's directions only
+    unchanged_p99, _ = restart_p99(device, path, TimelineSpec(duration=RESTART_S, contact_per_k=0.0))
+    # without the device's direction its loose contact reads as a force for the whole restart; with it, the
+    # zero is the unchanged device's (issue 34's aim: within 1.25 x)
+    assert without_p99 > 2.0 * unchanged_p99, (without_p99, unchanged_p99)
+    assert with_p99 < 0.5 * without_p99, (with_p99, without_p99)
+    assert with_p99 < 1.25 * unchanged_p99, (with_p99, unchanged_p99)
+    print(f"restart zero p99 from 1 s: {with_p99:.3f} N learned, {without_p99:.3f} N without, {unchanged_p99:.3f} N unchanged")
+
+
+@pytest.mark.slow
+def test_a_device_whose_change_is_the_models_learns_nothing(device, tmp_path):
+    stream, path = learning_session(device, tmp_path, uniform_change(RAMP_S, LEARN_S))
+    print(f"uniform: learned {len(stream.slow.directions)}, the covariance's largest ratio {stream.slow.learner.max_ratio:.3f}")
+    assert stream.slow.learner.n * AVG > 5000  # its rests were looked at (AVG rest frames a sample)
+    assert len(stream.slow.directions) == 0 and stream.drift.m == 8
+    assert stream.slow.learner.max_ratio < LEARN_RATIO, stream.slow.learner.max_ratio  # the noise's own bulk: nothing stands out
+    assert not directions_path(path).exists()
+
+
+def test_the_directions_file_round_trips_and_a_bad_one_is_refused_with_its_name(tmp_path):
+    path = tmp_path / "tare.csv"
+    assert read_directions(path) is None  # an older tare: none
+    rng = np.random.default_rng(1)
+    d = Directions(rng.normal(size=(2, 208)), np.array([0.5, 1.9]))
+    write_directions(path, d, comment="test")
+    back = read_directions(path)
+    assert np.allclose(back.rows, d.rows, rtol=1e-8) and np.allclose(back.per_scale, d.per_scale)
+    text = directions_path(path).read_text()
+    directions_path(path).write_text(text.replace("restart per scale: 0.5 1.9", "restart per scale: 0.5"))
+    with pytest.raises(FrameError, match="directions.csv"):
+        read_directions(path)
+    write_directions(path, Directions(np.zeros((0, 208)), np.zeros(0)))
+    assert not directions_path(path).exists()  # none learned: no file
+
+
+def test_a_saved_tare_with_an_unreadable_directions_file_still_starts(tmp_path, caplog):
+    from conftest import PIPE
+
+    pipe = Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"])}))
+    path = tmp_path / "tare.csv"
+    write_reference(path, pipe.model_reference, None, "test: saved tare", 1)
+    directions_path(path).write_text("1,2,3\n")
+    stream = FrameStream(pipe, StreamConfig(stress_field_every=0), tare_file=path)
+    assert stream.init_reference(tare_on_start=False) == ""
+    assert len(stream.slow.directions) == 0
+    assert "learned directions not used" in caplog.text and "directions.csv" in caplog.text
