@@ -31,7 +31,7 @@ SNR_DB = 60.0
 LOOSE = 0.9          # one electrode's contact, +90 % (electrode 3)
 LEARN_S, RAMP_S, RESTART_S = 90.0, 60.0, 20.0
 AGE_S = 8 * 3600.0
-CONFIG = StreamConfig(stress_field_every=0, creep_per_decade=0.0)
+CONFIG = StreamConfig.offline(creep_per_decade=0.0)
 
 
 def local_change(ramp_s: float, duration: float) -> TimelineSpec:
@@ -159,7 +159,7 @@ def test_a_saved_tare_with_an_unreadable_directions_file_still_starts(tmp_path, 
     path = tmp_path / "tare.csv"
     write_reference(path, pipe.model_reference, None, "test: saved tare", 1)
     directions_path(path).write_text("1,2,3\n")
-    stream = FrameStream(pipe, StreamConfig(stress_field_every=0), tare_file=path)
+    stream = FrameStream(pipe, StreamConfig.offline(), tare_file=path)
     assert stream.init_reference(tare_on_start=False) == ""
     assert len(stream.slow.directions) == 0
     assert "learned directions not used" in caplog.text and "directions.csv" in caplog.text
