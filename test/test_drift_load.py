@@ -172,6 +172,7 @@ def test_an_expected_load_is_checked(model_pipe):
         stream.expect_load((0.0, -2.0), 1.0)
 
 
+@pytest.mark.slow  # starts a node
 def test_the_node_takes_a_controllers_expected_wrench(ros, tmp_path, source, warm_model):
     """``~/expected_wrench`` (geometry_msgs/WrenchStamped) reaches the stream as an expected load with
     the node's ``expected_wrench_sigma`` and the message's stamp (docs/node.md); its checks: test_expected.py."""

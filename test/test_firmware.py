@@ -91,6 +91,7 @@ def doc_examples() -> dict[str, bytes]:
     return out
 
 
+@pytest.mark.slow  # starts a process
 def test_the_worked_examples_come_out_byte_for_byte(fw):
     import subprocess
 

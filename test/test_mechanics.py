@@ -251,6 +251,7 @@ def test_patch_errors(coarse):
         solve(p, t, GEOM, {"type": "push"})
 
 
+@pytest.mark.slow  # starts a process
 def test_package_does_not_import_skfem():
     code = "import sys, cstomo_sensor, cstomo_sensor.model.material; assert 'skfem' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)

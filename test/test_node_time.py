@@ -14,6 +14,7 @@ from conftest import diag, diag_records, start, wait_for
 rclpy = pytest.importorskip("rclpy")
 
 
+@pytest.mark.slow  # starts a node
 def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_path, source, warm_model):
     """The node's ROS clock (use_sim_time, driven by /clock here as ntp or a user would step the wall
     clock) jumps 30 s forward, far beyond stale_timeout (1 s): wrenches go on within half a second,

@@ -407,6 +407,7 @@ def test_a_bag_that_never_tares_is_an_error_and_writes_nothing(tmp_path, capsys)
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # starts a process
 def test_the_documented_replay_example_runs_as_written(tmp_path):
     """docs/node.md's replay example (and README's copy of it), run line by line as written from a
     folder that holds the repository's test/ (so out/ lands in tmp_path): a newcomer's first replay.
