@@ -13,6 +13,8 @@ from conftest import PIPE
 
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
+pytestmark = pytest.mark.slow  # the honest device's frames (~27 s set-up on a fresh clone) and the model estimator
+
 RATE = 100.0  # frames per second
 
 
@@ -172,7 +174,6 @@ def test_an_expected_load_is_checked(model_pipe):
         stream.expect_load((0.0, -2.0), 1.0)
 
 
-@pytest.mark.slow  # starts a node
 def test_the_node_takes_a_controllers_expected_wrench(ros, tmp_path, source, warm_model):
     """``~/expected_wrench`` (geometry_msgs/WrenchStamped) reaches the stream as an expected load with
     the node's ``expected_wrench_sigma`` and the message's stamp (docs/node.md); its checks: test_expected.py."""

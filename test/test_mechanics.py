@@ -216,6 +216,7 @@ def test_bad_force_shape_is_refused(coarse):
         solve_socket_load(p, t, GEOM, [0.0, 0.0, np.nan])
 
 
+@pytest.mark.slow  # seconds of computation
 def test_socket_strain_energy_converges():
     energies = []
     for n in (1, 2, 3):

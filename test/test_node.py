@@ -163,6 +163,7 @@ def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refus
 
 # --- end to end: simulated board (virtual link; once a pty) -> node -> subscriber ---------------------
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("pty", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "pty"])
 def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model, pty):
     """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared

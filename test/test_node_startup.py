@@ -261,6 +261,7 @@ def test_help_says_what_the_node_is_in_a_full_sentence():
     assert first.startswith("cstomo_sensor_node: ") and first.endswith("."), first
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("ros_args, said", [
     (["--params-file", "config/no_such.yaml"], "--params-file config/no_such.yaml: no such readable file in "),
     (["--params-file", "."], "--params-file .: no such readable file in "),  # a directory is no file

@@ -134,6 +134,7 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
     assert int(v["reconnects"]) >= 1
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("drop, level", [pytest.param(0.0, 0, marks=pytest.mark.slow), (0.05, 1),
                                          pytest.param(0.4, 2, marks=pytest.mark.slow)])
 def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, source, warm_model, drop, level):

@@ -123,6 +123,7 @@ def test_a_bag_of_the_recording_yields_the_same_frames(recording, tmp_path):
     assert len(corrupt) == 1 and "frame 60" in str(corrupt[0]) and src.exhausted
 
 
+@pytest.mark.slow  # starts a node
 def test_a_topic_of_the_recording_yields_the_same_frames(recording):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node

@@ -96,6 +96,7 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow  # runs the bench on three forces (~50 s)
 def test_bench_heldout_on_three_forces(tmp_path):
     assert cstomo(["bench", "--heldout", "3", "--out", str(tmp_path)]) == 0
     rows = _rows(tmp_path / "heldout.csv")
