@@ -117,6 +117,7 @@ _bytes = st.one_of(st.binary(max_size=300), _csv_text.map(lambda t: t.encode("ut
                                               "frame,fx,fy,fz,valid", ROW]), _csv_text))
 
 
+@pytest.mark.slow  # seconds of computation
 @settings(max_examples=300, deadline=None)
 @given(raw=_bytes)
 def test_fuzz_readers_raise_only_package_errors(tmp_path_factory, raw):

@@ -152,6 +152,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow  # seconds of computation
 @pytest.mark.parametrize("name", list(CASES))
 def test_socket_tractions_add_up_to_the_force(medium, name):
     p, t = medium
@@ -268,6 +269,7 @@ def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
 
 
 # -- one factorisation for many loads, exact to rounding --------------------------------------
+@pytest.mark.slow  # seconds of computation
 def test_many_socket_loads_share_one_factorisation_and_solve_exactly(medium, monkeypatch):
     """Every direction is one solve with the same factor (the pressure law depends on the ball's
     displacement only), and each solution satisfies K u = f on the free dofs to rounding: K and f

@@ -300,6 +300,7 @@ def _bag(path, msgtype, messages, topic="/cstomo_sensor/raw_voltages"):
             w.write(c, 1000 * (k + 1), raw)
 
 
+@pytest.mark.slow  # seconds of computation
 def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tmp_path, capsys):
     """A raw_voltages topic of another type, or whose every message is garbage CDR: one line, exit 2,
     no output bag (before: an RMWError traceback and a half-written bag). A single garbage message

@@ -156,6 +156,7 @@ def test_consistency_extremes(pipe):
     assert cm(spike) == 0.0 and c(spike) > 0
 
 
+@pytest.mark.slow  # seconds of computation
 def test_patch_faces_are_checked(cuboid):
     from cstomo_sensor.model.geometry import load_sensor
 
