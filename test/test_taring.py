@@ -80,7 +80,6 @@ def test_a_tare_file_whose_write_blocks_does_not_stop_the_frames(pipe, unloaded,
     assert stream.close(timeout=5.0) == []
 
 
-@pytest.mark.slow
 @pytest.mark.slow  # 10 s of a real clock
 def test_a_50_frame_tare_on_a_5_frame_per_s_board_completes(pipe, unloaded):
     """A ~/tare transaction of the default 50 frames on a board that sends five frames per second: its
