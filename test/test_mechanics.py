@@ -259,6 +259,7 @@ def test_package_does_not_import_skfem():
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow  # seconds of computation
 def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
     # flat facets tilt the rim's normals: the coarse mesh cannot carry 15 deg exactly, the medium can
     F = force_from(elevation_deg=15.0, azimuth_deg=20.0)
