@@ -17,6 +17,61 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 CALLER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")  # a domain the caller chose: every test and tool keeps it
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 
+# --- the two tiers (docs/design.md#tests) ----------------------------------------------------------
+# The fast tier (`make test-fast`, `pytest -m "not slow"`) is pure computation in this process: a test
+# not marked `slow` that starts a process (subprocess, fork, multiprocessing, a pty's child) or a ROS
+# context (hence a node) fails here, in both tiers, with one line naming what it started. Mark it
+# `@pytest.mark.slow` (or the module: `pytestmark = pytest.mark.slow`) or make it start nothing.
+
+
+class FastTierError(AssertionError):
+    """A test of the fast tier (not marked ``slow``) started a process or a ROS context."""
+
+
+_FAST_TEST: list[str | None] = [None]  # the node id of the fast test running now (None: a slow one, or none)
+
+
+def _guard(what: str, original):
+    def guarded(*args, **kwargs):
+        if _FAST_TEST[0] is not None:
+            raise FastTierError(f"{_FAST_TEST[0]} is in the fast tier (not marked slow) and started {what}: "
+                                f"mark it @pytest.mark.slow or start nothing (test/conftest.py)")
+        return original(*args, **kwargs)
+
+    guarded.__wrapped__ = original
+    return guarded
+
+
+def _install_guards() -> None:
+    import multiprocessing.process
+    import subprocess
+
+    subprocess.Popen._execute_child = _guard("a process", subprocess.Popen._execute_child)
+    multiprocessing.process.BaseProcess.start = _guard("a process", multiprocessing.process.BaseProcess.start)
+    for name in ("fork", "forkpty", "posix_spawn", "posix_spawnp"):
+        if hasattr(os, name):
+            setattr(os, name, _guard(f"a process (os.{name})", getattr(os, name)))
+    try:
+        from rclpy.context import Context
+    except ImportError:  # no rclpy here: the tests that need it skip
+        return
+    Context.init = _guard("a ROS context (rclpy.init: a node needs one)", Context.init)
+
+
+_install_guards()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """The fast tier's guard is on through the set-up, the call and the tear-down of a test not marked
+    slow (so a fixture that starts a node counts too)."""
+    _FAST_TEST[0] = None if item.get_closest_marker("slow") else item.nodeid
+    try:
+        yield
+    finally:
+        _FAST_TEST[0] = None
+
+
 # Mesh sizes of the test suite (metres): the model that reconstructs, and an independent finer
 # mesh that simulates the truth (docs/physics.md#honest-simulation).
 MODEL_H = 4.0e-3

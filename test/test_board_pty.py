@@ -135,6 +135,7 @@ def test_stall_reopens_and_resumes(tmp_path):
     check_values(frames, src)
 
 
+@pytest.mark.slow  # seconds of a real clock
 def test_a_board_back_from_a_stall_is_identified_once_not_once_per_reopen(tmp_path, caplog):
     """While a board is silent the driver reopens the pty every stall, each time sending IDENTIFY; the
     pty keeps them, and the board answers them all at once when it is back: one identity line (it was
@@ -274,6 +275,7 @@ def test_a_one_frame_per_second_board_is_not_reopened(tmp_path):
     assert st.period == pytest.approx(1.0, rel=0.05) and st.last_error == ""
 
 
+@pytest.mark.slow  # seconds of a real clock
 def test_replugged_board_is_read_again_within_a_quarter_second(tmp_path):
     """Unplugged for 2.5 s (the old doubling backoff reached 2 s by then): the driver retries the
     port every 0.25 s at most, so the first frame after the board is back comes within 0.3 s; the

@@ -45,6 +45,7 @@ def test_a_damaged_entry_is_rebuilt_not_used_or_crashed_on(entry, caplog, damage
     assert str(entry) in caplog.text and "rebuilding" in caplog.text, caplog.text
 
 
+@pytest.mark.slow  # seconds of computation
 def test_every_single_bit_flip_is_either_harmless_or_refused(entry):
     """No flip of any byte of the file escapes as an exception, and none gives different arrays."""
     raw = entry.read_bytes()
@@ -69,6 +70,7 @@ def test_an_entry_holding_non_finite_floats_is_refused(tmp_path, caplog, value):
     assert "non-finite" in caplog.text and "'R'" in caplog.text, caplog.text
 
 
+@pytest.mark.slow  # seconds of computation
 def test_the_simulated_devices_frames_are_cached_keyed_by_every_input(tmp_path):
     """``Truth.frames`` (the simulated board's scripted loads): a second device with the same inputs
     reads the first one's frames (bit-identical, without building its forward model); another seed,

@@ -289,19 +289,22 @@ def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int
     return first, late / first - 1, at(HOLD_OFF + 1.0, 0.5), at(HOLD_OFF + 5.0, 0.5), at(HOLD_ON + 60.0, 2.0) / first - 1
 
 
+@pytest.mark.slow  # 38 000 frames through the default stream (~25 s)
 def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default_pipe):
     """Issue 26's creep aim without noise (what the compensation does; the drift tracking on, as by
     default): 20 N held 10 minutes on a rubber at 4 % per decade compensated at 4 % reads within 0.7 %
     of its reading 1 s after it was applied (aim 1 %; measured -0.08 % before the drift tracker measured
     the scale under load, +0.53 % since: the joint fit takes 0.5 % of this load's misfit for the device
     within the first minute, force/joint.py JointScale), and 5 s after its removal the
-    rest reads below 0.1 N (aim 0.5 N; measured 0.03 N), the same within 0.1 % and 0.02 N at 10 and 100
+    rest reads below 0.1 N (aim 0.5 N; measured 0.03 N), the same within 0.1 % and 0.02 N at 10
     frames/s and at 100 frames/s near the changes with 1 frame/s in the hold (before the frame period
     was the median of the last steps, the 1/s hold read +0.5 % at 60 s against -0.05 %). A
     rubber at 2 or 6 % compensated at its own coefficient holds the same; uncompensated it reads
-    +10.9 % and 0.28 N (1.5 N with the tracking off)."""
+    +10.9 % and 0.28 N (1.5 N with the tracking off). A constant 100 frames/s (63 100 frames, two
+    thirds of this test's cost before) is test_issue_26s_creep_aim_at_60_db's schedule, against the aim
+    at three noise draws; here the periods 0.01, 0.1 and 1 s meet in the two schedules compared."""
     rows = {}
-    for rubber, comp, sched in [(0.04, 0.04, "10/s"), (0.04, 0.04, "100/s"), (0.04, 0.04, "hold at 1/s"),
+    for rubber, comp, sched in [(0.04, 0.04, "10/s"), (0.04, 0.04, "hold at 1/s"),
                                 (0.02, 0.02, "hold at 1/s"), (0.06, 0.06, "hold at 1/s"), (0.04, 0.0, "hold at 1/s")]:
         rows[rubber, comp, sched] = r = _hold(default_pipe, rubber, comp, _schedule(sched), None)
         print(f"rubber {rubber:.0%}, compensated at {comp:.0%}, {sched}: {r[0]:.3f} N at 1 s, {100 * r[1]:+.2f} % "
@@ -311,11 +314,9 @@ def test_a_held_load_reads_within_a_tenth_of_the_aim_at_any_frame_period(default
             assert abs(drift) < 0.007 and rest5 < 0.1, (rubber, comp, sched, rows)
         else:
             assert drift > 0.08 and rest5 > 0.2, rows  # the tracker takes part of the recovery for the device
-    ref = rows[0.04, 0.04, "100/s"]
-    for sched in ("10/s", "hold at 1/s"):
-        r = rows[0.04, 0.04, sched]
-        assert abs(r[1] - ref[1]) < 0.001 and abs(r[4] - ref[4]) < 0.001, (sched, rows)
-        assert abs(r[2] - ref[2]) < 0.02 and abs(r[3] - ref[3]) < 0.02, (sched, rows)
+    ref, r = rows[0.04, 0.04, "10/s"], rows[0.04, 0.04, "hold at 1/s"]
+    assert abs(r[1] - ref[1]) < 0.001 and abs(r[4] - ref[4]) < 0.001, rows
+    assert abs(r[2] - ref[2]) < 0.02 and abs(r[3] - ref[3]) < 0.02, rows
 
 
 @pytest.mark.slow

@@ -13,6 +13,8 @@ from conftest import PIPE
 
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
+pytestmark = pytest.mark.slow  # the honest device's frames (~27 s set-up on a fresh clone) and the model estimator
+
 RATE = 100.0  # frames per second
 
 

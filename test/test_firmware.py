@@ -91,6 +91,7 @@ def doc_examples() -> dict[str, bytes]:
     return out
 
 
+@pytest.mark.slow  # starts a process
 def test_the_worked_examples_come_out_byte_for_byte(fw):
     import subprocess
 
@@ -140,6 +141,7 @@ def packet(version: int, kind: int, payload: bytes, length: int | None = None, c
     return b"\0" + wire.cobs_encode(body + struct.pack("<I", crc)) + b"\0"
 
 
+@pytest.mark.slow  # starts the firmware as a process
 def test_every_command_and_error_code_is_answered_as_documented(fw, rows):
     with Process([str(fw), "--frames", str(rows[1]), "--patterns", "2"]) as board:
         link = Link(board.device)
@@ -173,6 +175,7 @@ def test_every_command_and_error_code_is_answered_as_documented(fw, rows):
             link.close()
 
 
+@pytest.mark.slow  # starts the firmware as a process
 def test_both_patterns_measure_in_docs_physics_order(fw, rows):
     """After SET_PATTERN 1 the values come in the one-ring order: the front-end answers each value by its
     electrodes from the file (two-ring order), so value i of a one-ring frame is the file's value of the
@@ -220,6 +223,7 @@ def read_driver(device: str, rate: float, seconds: float, protocol: str = "binar
         driver.close()
 
 
+@pytest.mark.slow  # starts the firmware as a process
 @pytest.mark.parametrize("rate,seconds", [(100.0, 3.0), (1000.0, 1.5)])
 def test_the_driver_reads_every_frame_in_order(fw, rows, rate, seconds):
     r, path = rows
@@ -244,6 +248,7 @@ def test_the_driver_reads_every_frame_in_order(fw, rows, rate, seconds):
     assert "not sent for want of room 0" in said, said
 
 
+@pytest.mark.slow  # starts the firmware as a process
 def test_text_mode_streams_the_frames_from_power_up(fw, rows):
     r, path = rows
     with Process([str(fw), "--frames", str(path), "--protocol", "text", "--rate", "50"]) as board:
@@ -255,6 +260,7 @@ def test_text_mode_streams_the_frames_from_power_up(fw, rows):
     assert np.abs(got - want).max() <= 0.51e-9  # the float32 volts in integer nanovolts on the line
 
 
+@pytest.mark.slow  # starts the firmware as a process
 def test_faults_show_as_the_driver_counts_them(fw, rows):
     """board-sim's faults: frames measured and not sent are sequence gaps (their seq used), flipped bits
     and cut frames are corrupt, a dead electrode clears its contact bit, a saturated channel its flag."""
@@ -281,6 +287,7 @@ def test_faults_show_as_the_driver_counts_them(fw, rows):
     assert np.abs(f.values[dead]).max() < 0.01  # the open electrode's rows read noise (1 mV)
 
 
+@pytest.mark.slow  # starts the firmware as a process
 def test_board_check_identifies_the_firmware_and_reports_rate_gaps_and_noise(fw, tmp_path, capsys):
     """`cstomo board-check` on the host firmware: a held frame (one row) with 100 uV of noise."""
     from cstomo_sensor.tools.cli import main

@@ -20,6 +20,7 @@ from cstomo_sensor.board.wire import Identity
 FLASH, RAM = 64 * 1024, 16 * 1024
 
 
+@pytest.mark.slow  # runs the cross-compiler
 @pytest.mark.parametrize("table", [True, False], ids=["emulated", "hardware"])
 def test_the_image_fits_a_64k_flash_16k_ram_part(tmp_path, table):
     text, data, bss = elf_size(build_stm32(tmp_path, table=table))  # the linker script is 64k/16k as well

@@ -72,6 +72,7 @@ def test_planar_cases_image_maximum_near_socket_axis_on_pushed_side(cuboid_model
         assert np.sign(c[0]) == np.sign(forces[case][0]), (forces[case], c)
 
 
+@pytest.mark.slow  # seconds of computation
 def test_held_out_random_forces(pipe):
     rng = np.random.default_rng(2024)  # no calibration sees these seeds, meshes or mismatch
     truth = Truth(pipe.geometry, truth_h=TRUTH_H, seed=99)

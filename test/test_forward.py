@@ -169,6 +169,7 @@ def test_meshing_leaves_nothing_in_the_working_directory(tmp_path, monkeypatch):
     assert list(cwd.iterdir()) == [] and list(tmp.iterdir()) == []
 
 
+@pytest.mark.slow  # runs the mesher's child
 @pytest.mark.parametrize("child,exc,match", [
     ("import sys; print('tetwild: boom', file=sys.stderr); sys.exit(5)", MeshError, "exit status 5.*boom"),
     ("import sys; sys.exit(3)", ModuleNotFoundError, "pytetwild"),

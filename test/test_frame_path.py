@@ -106,6 +106,7 @@ def tared_stream(pipe, seed: int, creep: float, age_s: float | None = None):
     return stream, ref, noise, rng
 
 
+@pytest.mark.slow  # seconds of computation
 @pytest.mark.parametrize("masked", [False, True])
 def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
     """The tracker's update (the prediction's diagonal as a strided view, LAPACK's solve at rest, its

@@ -117,6 +117,7 @@ _bytes = st.one_of(st.binary(max_size=300), _csv_text.map(lambda t: t.encode("ut
                                               "frame,fx,fy,fz,valid", ROW]), _csv_text))
 
 
+@pytest.mark.slow  # seconds of computation
 @settings(max_examples=300, deadline=None)
 @given(raw=_bytes)
 def test_fuzz_readers_raise_only_package_errors(tmp_path_factory, raw):
@@ -139,6 +140,7 @@ def _cstomo(*args: str) -> subprocess.CompletedProcess:
                           env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
 
 
+@pytest.mark.slow  # runs cstomo as a process
 @pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
 def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
     good = _write(tmp_path, f"{ROW}\n", "ref.csv")
@@ -153,6 +155,7 @@ def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
     assert not (tmp_path / "cache").exists()  # the input was read before any model was built
 
 
+@pytest.mark.slow  # runs cstomo as a process
 @pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
 def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, cmd):
     """Before: the model was built and the command then failed with '[Errno 2] No such file or
@@ -172,6 +175,7 @@ def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, c
             f.write(b"x")
 
 
+@pytest.mark.slow  # runs cstomo as a process
 def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
     script = _write(tmp_path, "0,0,0,0\n1.5,0,0,-20\n", "load.csv")
     for args in (["board-sim", "--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "10"],
@@ -191,6 +195,7 @@ def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
             f"cstomo demo: error: argument {flag}: {value}: expected {what}"], r.stderr
 
 
+@pytest.mark.slow  # runs cstomo as a process
 def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(tmp_path):
     """2000 N is 50 x the rated 40 N (docs/physics.md): one line naming the load, its time and the
     accepted range, before board-sim's 'computing' line (nothing simulated)."""

@@ -133,6 +133,7 @@ def _paths(d, prefix=()):
             yield from _paths(v, prefix + (i,))
 
 
+@pytest.mark.slow  # seconds of computation
 @settings(max_examples=200, deadline=None)
 @given(data=st.data())
 def test_fuzz_mutated_sensor_dicts_raise_only_package_errors(data):
@@ -159,6 +160,7 @@ def test_fuzz_mutated_sensor_dicts_raise_only_package_errors(data):
 _PRESET_TEXTS = [p.read_bytes() for d in preset_dirs() if d.is_dir() for p in sorted(d.glob("*.yaml"))][:3]
 
 
+@pytest.mark.slow  # seconds of computation
 @settings(max_examples=300, deadline=None)
 @given(raw=st.one_of(st.binary(max_size=200), st.text(max_size=200).map(lambda t: t.encode("utf-8", "surrogatepass")),
                      st.builds(lambda base, cut, extra: base[:cut] + extra.encode("utf-8", "surrogatepass"),

@@ -37,6 +37,7 @@ def test_namespaces_are_checked():
             namespaces_of(bad)
 
 
+@pytest.mark.slow  # starts a process
 def test_help_and_a_bad_namespace():
     r = subprocess.run(HOST + ["--help"], capture_output=True, text=True, timeout=60, env=ENV)
     assert r.returncode == 0 and r.stdout.startswith("usage: cstomo_sensor_host NAMESPACE"), r.stdout + r.stderr
@@ -44,6 +45,7 @@ def test_help_and_a_bad_namespace():
     assert r.returncode == 2 and "given twice" in r.stderr, r.stderr
 
 
+@pytest.mark.slow  # starts a node
 def test_two_sensors_in_one_process_each_report_under_its_namespace(ros, tmp_path, warm_model):
     """Two sensors with their parameters from one file (a section each, one for both), each with its
     diagnostics named by its namespace; Ctrl-C ends the host cleanly."""
@@ -62,6 +64,7 @@ def test_two_sensors_in_one_process_each_report_under_its_namespace(ros, tmp_pat
     assert code == 0 and "Traceback" not in err, err
 
 
+@pytest.mark.slow  # starts a process
 def test_a_refused_sensor_stops_the_host_and_is_named(tmp_path, warm_model):
     params = _params_file(tmp_path, {"/good": {"tare_file": str(tmp_path / "good.csv")},
                                      "/bad": {"sensor": str(tmp_path / "missing.yaml")}})

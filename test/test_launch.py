@@ -55,6 +55,7 @@ def _arguments() -> dict:
     return ARGUMENTS
 
 
+@pytest.mark.slow  # starts a node
 def test_every_launch_argument_is_a_declared_parameter_and_defaults_to_the_file(declared):
     from cstomo_sensor.tools.launching import NODE_ARGUMENTS, SENSOR_ARGUMENTS
 
@@ -306,6 +307,7 @@ def test_executables_are_found_in_a_colcon_prefix(tmp_path, monkeypatch):
         executable("no_such_tool")
 
 
+@pytest.mark.slow  # starts a node
 def test_parameter_file_applies_under_any_namespace(tmp_path):
     from rclpy.parameter import Parameter
 
@@ -327,6 +329,7 @@ def test_parameter_file_applies_under_any_namespace(tmp_path):
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.slow  # starts a node
 def test_parameter_file_lists_every_parameter_with_the_declared_type(declared):
     params = yaml.safe_load(CONFIG.read_text())["/**/cstomo_sensor"]["ros__parameters"]
     assert set(params) == set(declared), set(params) ^ set(declared)
@@ -357,6 +360,7 @@ def _displays(doc: dict) -> dict:
     return out
 
 
+@pytest.mark.slow  # starts a node
 def test_the_rviz_config_parses_and_shows_what_the_node_publishes(declared):
     from cstomo_sensor.ros.messages import CLOUD_FIELDS, TOPIC_TYPES
 

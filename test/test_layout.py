@@ -121,6 +121,7 @@ def test_pyserial_is_imported_only_by_the_driver_and_its_url_handler():
     assert users == ["cstomo_sensor.board.driver", "cstomo_sensor.board.protocol_virtual"], users
 
 
+@pytest.mark.slow  # starts a process
 def test_core_modules_load_no_heavy_or_ros_package_at_import():
     """Importing every core module loads neither rclpy nor pyvista, pytetwild or scikit-fem (they
     load only in the code that meshes, renders, solves elasticity or runs the node)."""
@@ -161,6 +162,7 @@ def test_node_parameter_defaults_are_the_config_defaults():
     assert cfg.protocol == PROTOCOLS[0]
 
 
+@pytest.mark.slow  # starts a process
 def test_ruff_finds_nothing():
     out = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "."], capture_output=True, text=True,
                          cwd=ROOT)

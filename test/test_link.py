@@ -19,6 +19,7 @@ def test_data_frames_on_the_wire_are_at_most_data_wire_bytes():
     assert 104 < link_frame_rate(921600) < 105 and link_frame_rate(12_000_000) > 1000 > link_frame_rate(8_000_000)
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("rate, baud, warned", [(1000.0, 921600, True), (100.0, 921600, False),
                                                  (1000.0, 12_000_000, False)])
 def test_the_node_warns_when_the_rate_exceeds_the_baud_rate(ros, capfd, tmp_path, warm_model, rate, baud, warned):

@@ -152,6 +152,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow  # seconds of computation
 @pytest.mark.parametrize("name", list(CASES))
 def test_socket_tractions_add_up_to_the_force(medium, name):
     p, t = medium
@@ -216,6 +217,7 @@ def test_bad_force_shape_is_refused(coarse):
         solve_socket_load(p, t, GEOM, [0.0, 0.0, np.nan])
 
 
+@pytest.mark.slow  # seconds of computation
 def test_socket_strain_energy_converges():
     energies = []
     for n in (1, 2, 3):
@@ -251,11 +253,13 @@ def test_patch_errors(coarse):
         solve(p, t, GEOM, {"type": "push"})
 
 
+@pytest.mark.slow  # starts a process
 def test_package_does_not_import_skfem():
     code = "import sys, cstomo_sensor, cstomo_sensor.model.material; assert 'skfem' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
+@pytest.mark.slow  # seconds of computation
 def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
     # flat facets tilt the rim's normals: the coarse mesh cannot carry 15 deg exactly, the medium can
     F = force_from(elevation_deg=15.0, azimuth_deg=20.0)
@@ -266,6 +270,7 @@ def test_low_elevation_needs_a_fine_enough_socket(coarse, medium):
 
 
 # -- one factorisation for many loads, exact to rounding --------------------------------------
+@pytest.mark.slow  # seconds of computation
 def test_many_socket_loads_share_one_factorisation_and_solve_exactly(medium, monkeypatch):
     """Every direction is one solve with the same factor (the pressure law depends on the ball's
     displacement only), and each solution satisfies K u = f on the free dofs to rounding: K and f

@@ -55,6 +55,7 @@ def test_clock_mapper_restarts_when_the_board_clock_jumps_back():
 # --- parameters ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("name, value", [
     ("protocol", "foo"), ("input", "bluetooth"), ("qos_reliability", "sometimes"),
     ("estimator", "magic"), ("grid", [8, 8]), ("frame_id", ""),
@@ -72,6 +73,7 @@ def test_bad_parameter_values_are_refused_at_configure(ros, capfd, name, value):
     assert f"parameter '{name}'=" in err and "expected" in err, err
 
 
+@pytest.mark.slow  # starts a node
 def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
     """rclpy refuses them at declaration; the node says so as it says every refusal, naming the
     parameter, the value and what it takes (before: rclpy's 'Invalid parameter value (-1.0) for
@@ -86,6 +88,7 @@ def test_out_of_range_and_wrong_type_values_are_refused_at_declaration(ros):
         CstomoSensorNode("bad_type", context=ros, parameter_overrides=[Parameter("tare_frames", value="many")])
 
 
+@pytest.mark.slow  # starts a node
 def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_restart_is_needed(ros):
     from cstomo_sensor.ros.node import CstomoSensorNode
     from cstomo_sensor.ros.params import PARAMETERS
@@ -103,6 +106,7 @@ def test_parameters_are_declared_once_with_descriptions_and_read_only_where_a_re
         node.destroy_node()
 
 
+@pytest.mark.slow  # starts a node
 def test_an_unknown_parameter_is_refused_with_the_nearest_name(ros, tmp_path):
     """A misspelt parameter from a file, a launch or -p is refused at start (it was silently ignored):
     in-process a ConfigError, from the command line one line and exit status 2."""
@@ -133,6 +137,7 @@ def test_an_unknown_parameter_is_refused_with_the_nearest_name(ros, tmp_path):
     assert r.stderr.strip().splitlines() == ["cstomo_sensor_node: parameter 'rate_hz'=-5.0: expected 0..10000 frames/s"]
 
 
+@pytest.mark.slow  # starts a node
 def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refused(ros, warm_model):
     """rate_hz:=200 (an integer) is 200.0 (it was refused as the wrong type); at run time
     stale_timeout is applied to the running node (an integer too), a read-only parameter is refused
@@ -158,6 +163,7 @@ def test_integers_are_taken_for_floats_and_run_time_changes_are_applied_or_refus
 
 # --- end to end: simulated board (virtual link; once a pty) -> node -> subscriber ---------------------
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("pty", [False, pytest.param(True, marks=pytest.mark.slow)], ids=["virtual", "pty"])
 def test_wrenches_follow_the_scripted_load(ros, tmp_path, source, warm_model, pty):
     """Board at the bag's own rate, tare on the first (unloaded) frames; every wrench is compared
@@ -254,6 +260,7 @@ class Unloaded:
         return np.zeros(3)
 
 
+@pytest.mark.slow  # starts a node
 def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source, warm_model):
     # a tare needs a steady joint (issue 14): the bag's load steps at 0.4 s, inside a 50-frame tare
     h, board = start(ros, tmp_path, Unloaded(source), rate=100.0)
@@ -289,6 +296,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         h.close()
 
 
+@pytest.mark.slow  # starts a node
 def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, source, warm_model, monkeypatch):
     """Issue 27 item 3: the tare file is written outside the frame lock. Its write hangs (a hung disk:
     the real writer, held until released): the new reference is in use and the wrenches keep coming
@@ -395,6 +403,7 @@ def test_stale_data_stops_the_force_topics_and_diagnostics_say_why(ros, tmp_path
     assert level >= 1 and "no frames for" in values["stale_reason"]
 
 
+@pytest.mark.slow  # starts a node
 def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, warm_model):
     """The board disappears and returns, flips bits, sends garbage, saturates a channel and loses an
     electrode: diagnostics report each, the node recovers without a restart and keeps publishing, and
@@ -456,6 +465,7 @@ class ZeroBurstSource(BagSource):
         return np.zeros(208) if 1.0 <= t < 2.0 else super().frame(t, rng)
 
 
+@pytest.mark.slow  # starts a node
 def test_all_zero_frames_are_not_published_and_diagnostics_say_implausible(ros, tmp_path, source, warm_model):
     from geometry_msgs.msg import WrenchStamped
     from std_msgs.msg import Float64

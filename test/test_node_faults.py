@@ -268,6 +268,7 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
     assert np.median(np.linalg.norm(force, axis=1)) > 15.0  # the 20 N load, not a zeroed wrench
 
 
+@pytest.mark.slow  # starts a node
 def test_tare_on_a_moving_joint_is_refused_and_changes_nothing(ros, tmp_path, source, warm_model):
     from cstomo_sensor.force.tare import TARE_MAX_SPREAD
 

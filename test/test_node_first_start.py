@@ -27,6 +27,7 @@ class Unloaded:
         return np.zeros(3)
 
 
+@pytest.mark.slow  # starts a node
 def test_first_start_without_a_saved_tare_tares_before_any_force(ros, tmp_path, source, warm_model, capfd):
     from geometry_msgs.msg import WrenchStamped
 
@@ -64,6 +65,7 @@ def test_first_start_without_a_saved_tare_tares_before_any_force(ros, tmp_path, 
     assert any("tare taken at" in ln and "INFO" in ln for ln in err.splitlines()), err
 
 
+@pytest.mark.slow  # starts a node
 def test_a_refused_tare_at_start_is_logged_and_taken_again(ros, tmp_path, source, warm_model, capfd):
     """A joint that moves during the tare at start: the tare is refused with the reason (WARN), no
     force is published, and it is taken again on the next frames."""

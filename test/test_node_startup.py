@@ -32,6 +32,7 @@ def configure(ros, capfd, name: str, **params):
 
 # --- failures at configure name their cause ---------------------------------------------------------
 
+@pytest.mark.slow  # starts a node
 def test_an_unwritable_cache_directory_is_named_before_any_build(ros, capfd, tmp_path):
     from rclpy.lifecycle import TransitionCallbackReturn
 
@@ -44,6 +45,7 @@ def test_an_unwritable_cache_directory_is_named_before_any_build(ros, capfd, tmp
     assert "ERROR" in line and str(cache) in line and "not writable" in line and "cache_dir" in line, err
 
 
+@pytest.mark.slow  # starts a node
 def test_an_unwritable_tare_file_is_named_before_any_build(ros, capfd, tmp_path):
     """A tare the node cannot save would be taken again, under whatever load, at every restart."""
     from rclpy.lifecycle import TransitionCallbackReturn
@@ -58,6 +60,7 @@ def test_an_unwritable_tare_file_is_named_before_any_build(ros, capfd, tmp_path)
     assert not (tmp_path / "cache" / "models").exists()  # refused before the model was built
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("kind", ["a regular file", "a directory"])
 def test_a_port_that_is_a_file_or_a_directory_is_refused_once(ros, capfd, tmp_path, warm_model, kind):
     from rclpy.lifecycle import TransitionCallbackReturn
@@ -72,6 +75,7 @@ def test_a_port_that_is_a_file_or_a_directory_is_refused_once(ros, capfd, tmp_pa
     assert err.count(str(port)) == 1, err  # said once, not retried
 
 
+@pytest.mark.slow  # starts a node
 def test_a_virtual_port_no_board_of_this_process_holds_is_refused(ros, capfd, tmp_path, warm_model):
     """virtual:// serves a board made in the node's own process; none can appear from outside."""
     from rclpy.lifecycle import TransitionCallbackReturn
@@ -83,6 +87,7 @@ def test_a_virtual_port_no_board_of_this_process_holds_is_refused(ros, capfd, tm
     assert "virtual://nobody" in line and "no simulated board of this process" in line, err
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("text, what", [
     (b"name: cuboid_joint\nbody: {shape: cuboid, size: [0.04, 0.04\n", "malformed YAML"),
     (b"name: caf\xe9\n", "not UTF-8"),
@@ -108,6 +113,7 @@ def test_the_cause_of_a_missing_optional_dependency_is_named():
     assert "cstomo_no_such_optional_module" in msg and "install" in msg
 
 
+@pytest.mark.slow  # starts a process
 def test_main_exits_non_zero_with_the_cause(tmp_path):
     import os
     import subprocess
@@ -133,6 +139,7 @@ def _tare_file(tmp_path, frame) -> str:
     return str(p)
 
 
+@pytest.mark.slow  # starts a node
 def test_a_non_utf8_tare_file_falls_back_with_a_warning(ros, capfd, tmp_path, warm_model):
     from rclpy.lifecycle import TransitionCallbackReturn
 
@@ -144,6 +151,7 @@ def test_a_non_utf8_tare_file_falls_back_with_a_warning(ros, capfd, tmp_path, wa
     assert "WARN" in line and str(p) in line and "UTF-8" in line and "taring on the first" in line, err
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("scale, why", [(0.0, "zero"), (10.0, "rms"), (0.1, "rms")])
 def test_an_implausible_saved_tare_is_not_used(ros, capfd, tmp_path, warm_model, scale, why):
     from rclpy.lifecycle import TransitionCallbackReturn
@@ -155,12 +163,14 @@ def test_an_implausible_saved_tare_is_not_used(ros, capfd, tmp_path, warm_model,
     assert "WARN" in line and p in line and why in line and "not used" in line and "taring on the first" in line, err
 
 
+@pytest.mark.slow  # starts a node
 def test_a_plausible_saved_tare_is_used(ros, capfd, tmp_path, warm_model):
     p = _tare_file(tmp_path, warm_model.model_reference * 2.5)  # a rubber 2.5 times as resistive
     _, source, _, _ = configure(ros, capfd, "tare_ok", tare_file=p)
     assert source == f"saved tare {p}"
 
 
+@pytest.mark.slow  # starts a node
 def test_the_default_tare_file_is_keyed_by_the_sensor_geometry(ros, capfd, tmp_path, warm_model):
     import yaml
 
@@ -229,6 +239,7 @@ def test_ctrl_c_twice_at_shutdown_prints_no_traceback(warm_model):
         assert p.wait(30) == 0 and "Traceback" not in err and "configured:" in err, err
 
 
+@pytest.mark.slow  # starts a process
 def test_help_prints_usage_and_every_parameter_instead_of_starting():
     import subprocess
     import sys
@@ -250,6 +261,7 @@ def test_help_says_what_the_node_is_in_a_full_sentence():
     assert first.startswith("cstomo_sensor_node: ") and first.endswith("."), first
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("ros_args, said", [
     (["--params-file", "config/no_such.yaml"], "--params-file config/no_such.yaml: no such readable file in "),
     (["--params-file", "."], "--params-file .: no such readable file in "),  # a directory is no file
@@ -269,6 +281,7 @@ def test_a_command_line_rcl_refuses_fails_in_one_line(monkeypatch, tmp_path, cap
             assert err.count("\n") == 1 and startup.INSTALLED_CONFIG in err, err
 
 
+@pytest.mark.slow  # starts a process
 def test_sigint_during_the_first_model_build_ends_the_node_at_once_and_quietly(tmp_path):
     """Before: the build ran on to its end (25 s) after Ctrl-C, each of its lines followed by 'Failed to
     publish log message to rosout', and ended in 'refusing to start: InvalidHandle: ... (unexpected:

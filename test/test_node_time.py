@@ -14,6 +14,7 @@ from conftest import diag, diag_records, start, wait_for
 rclpy = pytest.importorskip("rclpy")
 
 
+@pytest.mark.slow  # starts a node
 def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_path, source, warm_model):
     """The node's ROS clock (use_sim_time, driven by /clock here as ntp or a user would step the wall
     clock) jumps 30 s forward, far beyond stale_timeout (1 s): wrenches go on within half a second,
@@ -133,6 +134,7 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
     assert int(v["reconnects"]) >= 1
 
 
+@pytest.mark.slow  # starts a node
 @pytest.mark.parametrize("drop, level", [pytest.param(0.0, 0, marks=pytest.mark.slow), (0.05, 1),
                                          pytest.param(0.4, 2, marks=pytest.mark.slow)])
 def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, source, warm_model, drop, level):

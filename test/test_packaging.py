@@ -49,6 +49,7 @@ def test_every_module_of_the_full_extra_has_its_key_in_package_xml_or_is_on_the_
     assert {k for _, k in OPTIONAL_MODULES.values() if k and k.endswith("-pip")} <= ROSDISTRO_PIP_KEYS
 
 
+@pytest.mark.slow  # starts a process
 @pytest.mark.parametrize("module, pip_name", [("skfem", "scikit-fem"), ("skfem.helpers", "scikit-fem"),
                                               ("pytetwild", "pytetwild")])
 def test_the_install_command_names_the_pip_package_of_the_module(monkeypatch, module, pip_name):

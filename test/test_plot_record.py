@@ -61,6 +61,7 @@ def one_error_line(capsys, argv: list[str], *words: str) -> str:
 
 # --- plot: a forces file ------------------------------------------------------------------------
 
+@pytest.mark.slow  # seconds of computation
 def test_plot_of_a_forces_file_draws_its_numbers_beside_the_truth(tmp_path):
     pytest.importorskip("matplotlib")
     from cstomo_sensor.frames_io import read_forces, write_forces
@@ -157,6 +158,7 @@ def read_topic(bag: Path, topic: str, msg_type) -> tuple[np.ndarray, np.ndarray,
     return np.array(stamps)[order], np.array(values).reshape(-1, 3)[order], start
 
 
+@pytest.mark.slow  # seconds of computation
 def test_plot_of_a_replayed_bag_draws_its_wrenches_and_their_sigma(tmp_path, replayed):
     pytest.importorskip("matplotlib")
     from geometry_msgs.msg import Vector3Stamped, WrenchStamped

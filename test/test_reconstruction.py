@@ -42,6 +42,7 @@ def test_adjoint_identity_tangent_against_geselowitz(cuboid_forward, cuboid_solu
     assert w @ Jv == pytest.approx(v @ (jac.T @ w), rel=1e-9)
 
 
+@pytest.mark.slow  # seconds of computation
 @pytest.mark.parametrize("p", [0.0, 0.7, 1.0])
 def test_closed_form_equals_iterations_on_the_real_sensitivity(cuboid_model, p):
     """The model's R (float32) against the weighted iteration g += step (W S^T (y - S g) - lam g) on

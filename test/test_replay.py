@@ -300,6 +300,7 @@ def _bag(path, msgtype, messages, topic="/cstomo_sensor/raw_voltages"):
             w.write(c, 1000 * (k + 1), raw)
 
 
+@pytest.mark.slow  # seconds of computation
 def test_a_bag_of_the_wrong_type_or_of_garbage_ends_in_one_line_and_no_output(tmp_path, capsys):
     """A raw_voltages topic of another type, or whose every message is garbage CDR: one line, exit 2,
     no output bag (before: an RMWError traceback and a half-written bag). A single garbage message
@@ -407,6 +408,7 @@ def test_a_bag_that_never_tares_is_an_error_and_writes_nothing(tmp_path, capsys)
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # starts a process
 def test_the_documented_replay_example_runs_as_written(tmp_path):
     """docs/node.md's replay example (and README's copy of it), run line by line as written from a
     folder that holds the repository's test/ (so out/ lands in tmp_path): a newcomer's first replay.

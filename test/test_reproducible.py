@@ -68,6 +68,7 @@ def test_a_shipped_mesh_for_other_inputs_is_not_used(cuboid, tmp_path, monkeypat
     assert np.array_equal(got.points, points)
 
 
+@pytest.mark.slow  # starts a process
 def test_the_default_meshes_need_no_pytetwild(tmp_path):
     code = ("import sys; sys.modules['pytetwild'] = None\n"
             "from cstomo_sensor.model.geometry import load_sensor\n"

@@ -262,6 +262,7 @@ WARM_FAST = 0.015   # resistivity per K: section 9's top
 WARM_FAST_S = 120.0
 
 
+@pytest.mark.slow  # an honest simulation over time and the model estimator (~60 s on a fresh clone)
 def test_a_warm_up_at_1_5_pct_per_k_keeps_its_zero_and_never_locks(device_b):
     from pathlib import Path
 

@@ -79,6 +79,7 @@ def test_scene_field_correlates_with_the_truth_on_the_planar_cases(pipe):
         assert 0.6 < sf.volumetric_compression.max() / true_theta.max() < 1.4
 
 
+@pytest.mark.slow  # seconds of computation
 def test_scene_field_is_exact_at_the_directions_and_homogeneous(pipe):
     sf = pipe.scene_field
     dirs = calibration_directions(CalibrationSpec.n_directions, CalibrationSpec.min_elevation_deg)
@@ -155,6 +156,7 @@ def test_consistency_extremes(pipe):
     assert cm(spike) == 0.0 and c(spike) > 0
 
 
+@pytest.mark.slow  # seconds of computation
 def test_patch_faces_are_checked(cuboid):
     from cstomo_sensor.model.geometry import load_sensor
 

@@ -85,6 +85,7 @@ def test_the_config_dataclasses_refuse_a_value_outside_the_declared_range_naming
     getattr(config, cls)(**{name: SETTING[name].default})  # the default is one of its values
 
 
+@pytest.mark.slow  # starts a node
 def test_the_node_declares_every_setting_with_its_default_range_and_description(ros):
     from rclpy.parameter import Parameter
 

@@ -127,6 +127,7 @@ def model_pipe():
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
 
+@pytest.mark.slow  # the model estimator's build and the honest device's frames (~40 s)
 def test_the_model_estimators_noise_term_is_its_own_scatter(model_pipe, cuboid_truth):
     """Issue 26, informative: the ``model`` estimator's sigma takes the noise through its own fit near the
     load, not through its linear part (the ridge map it starts from, 2x as sensitive: on main the noise
@@ -153,6 +154,7 @@ def test_the_model_estimators_noise_term_is_its_own_scatter(model_pipe, cuboid_t
     assert noise_part == pytest.approx(scatter, rel=0.25)
 
 
+@pytest.mark.slow  # the model estimator's build and the honest device's frames (~40 s)
 @pytest.mark.parametrize("load", [None, (10.0, 0.0, -10.0), (0.0, -8.0, -20.0)], ids=["at rest", "45 deg", "20 N"])
 def test_a_restart_from_an_old_tare_on_a_device_that_changed_unevenly_covers_its_first_frame(model_pipe, cuboid_truth,
                                                                                             load):

@@ -123,6 +123,7 @@ def test_a_bag_of_the_recording_yields_the_same_frames(recording, tmp_path):
     assert len(corrupt) == 1 and "frame 60" in str(corrupt[0]) and src.exhausted
 
 
+@pytest.mark.slow  # starts a node
 def test_a_topic_of_the_recording_yields_the_same_frames(recording):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
@@ -215,6 +216,7 @@ def test_estimate_and_replay_give_the_same_forces_through_the_loop(tmp_path, war
     np.testing.assert_allclose(rep, est, rtol=0, atol=1e-6 * scale)
 
 
+@pytest.mark.slow  # starts a node
 def test_a_topic_nobody_subscribes_to_is_not_built(ros, tmp_path, source, warm_model):
     """The node on the simulated board: with no subscriber it publishes (builds) nothing and computes
     no stress field; a subscriber to ~/wrench gets the wrench and nothing else is built; one to

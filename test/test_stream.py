@@ -48,6 +48,7 @@ def _nodes(namespaces_params: list[tuple[str, dict]]):
     return ctx, nodes, stop
 
 
+@pytest.mark.slow  # starts a node
 def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
     from cstomo_sensor.force.config import StreamConfig
     from cstomo_sensor.outputs import OUTPUTS, output_set
@@ -103,6 +104,7 @@ def test_help_lists_exactly_the_stream_outputs():
                                      "expected_wrench"}, listed
 
 
+@pytest.mark.slow  # starts a node
 def test_two_sensors_in_two_namespaces_have_distinct_diagnostics_names(tmp_path, warm_model):
     specs = [(ns, dict(PIPE, input="topic", tare_file=str(tmp_path / f"{ns.strip('/')}.csv")))
              for ns in ("/left_knee", "/right_knee")]

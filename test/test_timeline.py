@@ -86,6 +86,7 @@ def test_creep_of_a_held_20N_load_follows_the_log_law_and_recovers(truth):
     assert err["max"] < 0.2 * 10 ** (-60 / 20), err  # a fifth of the noise of a 60 dB board
 
 
+@pytest.mark.slow  # seconds of computation
 def test_the_timeline_is_deterministic_for_a_seed():
     a, b, other = Tasks(seed=3).steps(600), Tasks(seed=3).steps(600), Tasks(seed=4).steps(600)
     assert all(np.array_equal(x, y) for x, y in zip(a, b))
@@ -144,6 +145,7 @@ def test_cstomo_simulate_writes_a_timeline_scene_with_times_and_state(tmp_path):
     np.testing.assert_allclose(table[-1, names.index("rho_change")], 0.01 * 3 * 199 / 200, rtol=1e-6)
 
 
+@pytest.mark.slow  # seconds of a real clock
 def test_the_board_plays_a_timeline_scene_in_time(tmp_path):
     """``cstomo board-sim --scene`` with a timeline: the drive drifts by 10 % in 1 s (no noise), so
     every frame is the tare frame times one factor that grows with the frame's time."""

@@ -96,6 +96,7 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow  # runs the bench on three forces (~50 s)
 def test_bench_heldout_on_three_forces(tmp_path):
     assert cstomo(["bench", "--heldout", "3", "--out", str(tmp_path)]) == 0
     rows = _rows(tmp_path / "heldout.csv")
@@ -183,6 +184,7 @@ def test_a_scene_file_with_an_unknown_key_is_refused_naming_it(tmp_path, text, k
         Scene.load(f)
 
 
+@pytest.mark.slow  # starts a process
 @pytest.mark.parametrize("load,why", [("{socket: {force: [0, -10]}}", "socket force \\[0, -10\\] has 2 components, not 3"),
                                       ("{socket: {magnitude: 20}}", "missing 'elevation_deg'"),
                                       ("{inclusion: {center: [0, 0, 0.01]}}", "missing 'radius'")])
@@ -205,6 +207,7 @@ def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, wh
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 
 
+@pytest.mark.slow  # starts a process
 @pytest.mark.parametrize("text,why", [
     ("loads:\n  - {socket: {force: [0, 0, -20]}}\n  - {socket: {force: [0, 1200, -1600]}}\n",
      "loads[1] (socket) is 2000 N"),
