@@ -47,14 +47,19 @@ ACCEL = 2e-5
 #: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
 #: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
 RATE_MEMORY = 30.0
-#: ... and that slope is known only so well: while no rest measures them, each other state's variance
-#: grows by ``(FOLLOW_SIGMA a)^2``, ``a`` the scale's change at its tracked rate since the last rest frame
-#: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
-#: sigma says what a long task leaves unmeasured; the diagnostics warn when that reads more than
-#: :data:`~.slow.UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
-#: (:meth:`widen` covers it: a block off for hours has no gradient). Before a rest measured the slope
-#: (:class:`~.rest.FollowSlope`, 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT`
-#: and :data:`RESTART_CONTACT` (a loaded warm-up from the tare, no rest: the loaded frames then measure them).
+#: ... and that slope is known only so well: while no rest measures them, each other state moves on by
+#: ``e a``, ``a`` the scale's change at its tracked rate since the last rest frame and ``e`` the slope's own
+#: error, a state of the tracker of 1-sigma FOLLOW_SIGMA from each rest frame on (a slope anywhere in section
+#: 9's 0..30 % has a 1-sigma of 0.09 about its middle): unmeasured, each state's variance grows by
+#: ``(FOLLOW_SIGMA a)^2``, so the forces' sigma says what a long task leaves unmeasured (the diagnostics warn
+#: when that reads more than :data:`~.slow.UNMEASURED_N` newtons, 1-sigma, at zero load); measured by loaded
+#: frames (:data:`LOADED_OTHER_N`), the slope is what they learn over the task, not a state free to move
+#: with each frame: as a random walk of the same variance the gradients followed each dozen frames' noise and
+#: each load's mismatch (device_b's uniform 2 % loaded warm-up, last minute: 1.66 deg / 2.09 %, now 1.21 /
+#: 1.32, against 1.03 / 1.15 unwarmed). A restart's jump of the scale is not counted (:meth:`widen` covers
+#: it: a block off for hours has no gradient). Before a rest measured the slope (:class:`~.rest.FollowSlope`,
+#: 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT` and :data:`RESTART_CONTACT` (a
+#: loaded warm-up from the tare, no rest: the loaded frames then measure them).
 FOLLOW_SIGMA = 0.1
 #: A loaded frame's own measurement of the scale (:class:`~.joint.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
@@ -379,7 +384,7 @@ class DriftTracker:
         else:
             ob[2] = np.dot(self._F, ob[2])
         beta, pb, c = ob
-        if not self._wanted:  # a check (CHECK_EVERY): widen the states the frame finds wider than their covariance
+        if not self._wanted:  # a check (CHECK_EVERY, others_wanted): widen the states the frame finds wider than their covariance
             nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
             try:
@@ -411,10 +416,11 @@ class DriftTracker:
             ob[2] = c - np.dot(Kx, Cby.T)
             ob[1] = pb - np.dot(Kb, Cby.T)
 
-    @property
-    def wants_others(self) -> bool:
+    def others_wanted(self) -> bool:
         """Whether the next frame, if unrested, should measure the other states (:data:`LOADED_OTHER_N`): one
-        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`)."""
+        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`). Called once
+        per frame, before :meth:`observe`: it counts the frame towards the check and tells :meth:`observe`
+        which of the two the frame's measurement is for."""
         if self._W is None or self.m < 2:
             return False
         self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
