@@ -60,13 +60,18 @@ AIMS = (("warming while loaded", WARM, WARM_STILL, "last min", ("angle_deg", "ma
 SILENT_AIM = 1.0            # % of published frames silently wrong, every series, from the first frame
 
 
+#: The session before the restarts (s), at rest while the device takes the change: what a node running
+#: before its restart learns the device's own directions from (force/learned.py), saved beside its tare.
+LEARN_S = 90.0
+
+
 def robot_bench(out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     """``cstomo bench --drift --robot``: robot.py's rows on its :data:`~.robot.DEVICE_SCENES`, then this
     module's on :data:`FULL_SCENES`; one calibration per device. Writes robot.csv and robot.md in ``out``."""
-    return _bench(out, robot.DEVICE_SCENES, "robot", cache_dir, say)
+    return _bench(out, robot.DEVICE_SCENES, "robot", cache_dir, say, LEARN_S)
 
 
-def full_change_bench(out: str | os.PathLike, cache_dir=None, say=print, learn_s: float = 0.0) -> list[dict]:
+def full_change_bench(out: str | os.PathLike, cache_dir=None, say=print, learn_s: float = LEARN_S) -> list[dict]:
     """This module's rows only (the lines of robot.md's last table, a third of the bench's time): writes
     robot_change.csv and robot_change.md in ``out``; ``learn_s``: :func:`full_change_rows`'s learning session."""
     return _bench(out, (), "robot_change", cache_dir, say, learn_s)
