@@ -5,7 +5,8 @@
  *   SPI1 + PC0 CONVST: the ADC (ADS8860, 16 bits, after an AD8421 in-amp);
  *   PC2..PC5 + PC6..PC9: lead-off comparators of the electrodes, read as one port (contact check);
  *   USART1 PA9/PA10: the link (RX by interrupt into a ring, TX drained from a ring while waiting);
- *   USART2 PA2: a debug console (board_debug_line); SysTick: the microsecond clock.
+ *   USART2 PA2: a debug console (board_debug_line); TIM2: the microsecond clock (free-running at 1 MHz,
+ *   32 bits, extended to 64 in hal_micros; no interrupt).
  * With CSTOMO_FRONTEND_TABLE (the emulated build, QEMU has no analog world) the sample is read from
  * a table of frames in the image (frames_table.c) plus noise, and the contact check passes; the
  * multiplexer, DAC and CONVST writes still go to their registers. */
@@ -17,15 +18,22 @@
 #include "stm32f4.h"
 #include "stm32_board.h"
 
-#define SYSCLK_HZ 168000000u
-#define TICKS_PER_US (SYSCLK_HZ / 1000000u)
+/* TIM2's prescaler for 1 MHz. On the part TIM2 counts at 2 x PCLK1 = 84 MHz (APB1 at 168/4 = 42 MHz,
+ * its timers doubled because APB1's prescaler is not 1): 84 MHz / (83 + 1). QEMU's netduinoplus2
+ * (stm32f405_soc, hw/timer/stm32f2xx_timer.c) counts its timers at a fixed "clock-frequency" of 1 GHz
+ * taken from QEMU_CLOCK_VIRTUAL (the host's clock while the machine runs) whatever RCC says:
+ * 1 GHz / (999 + 1). docs/firmware.md, "The clock". */
+#ifdef CSTOMO_FRONTEND_TABLE
+#define TIM2_PSC 999u
+#else
+#define TIM2_PSC 83u
+#endif
 #define SETTLE_DRIVE_US 20u /* current source and drive mux after a drive switch */
 #define SETTLE_MEASURE_US 2u /* measure mux + in-amp (AD8421: 0.8 us to 0.01 %) */
 #define FULL_SCALE_V 2.5f
 #define TX_RING 2048u /* two frames */
 #define RX_RING 256u
 
-static volatile uint32_t millis;
 static uint8_t tx_ring[TX_RING];
 static uint32_t tx_head, tx_tail;
 static volatile uint8_t rx_ring[RX_RING];
@@ -52,7 +60,7 @@ void stm32_init(void) {
     RCC_CFGR = (5u << 10) | (4u << 13) | 2u; /* PPRE1 /4, PPRE2 /2, SW = PLL */
     RCC_AHB1ENR |= 0x7u;                      /* GPIOA, B, C */
     RCC_APB2ENR |= (1u << 4) | (1u << 12);    /* USART1, SPI1 */
-    RCC_APB1ENR |= (1u << 17) | (1u << 29);   /* USART2, DAC */
+    RCC_APB1ENR |= 1u | (1u << 17) | (1u << 29); /* TIM2, USART2, DAC */
     /* PA2 USART2 TX, PA9/PA10 USART1 (AF7), PA5..7 SPI1 (AF5), PA4 analog (DAC) */
     GPIO_MODER(GPIOA_BASE) = (GPIO_MODER(GPIOA_BASE) & ~0x003FFF30u) | (2u << 4) | (3u << 8) | (2u << 10) |
                              (2u << 12) | (2u << 14) | (2u << 18) | (2u << 20);
@@ -71,13 +79,13 @@ void stm32_init(void) {
     /* SPI1 master, CPOL 0 CPHA 0, 16-bit frames, fPCLK/4 = 21 MHz */
     SPI_CR1(SPI1_BASE) = (1u << 2) | (1u << 3) | (1u << 6) | (1u << 8) | (1u << 9) | (1u << 11);
     DAC_CR = 1u; /* channel 1 on */
-    /* SysTick: 1 ms interrupts at the core clock */
-    SYST_RVR = SYSCLK_HZ / 1000u - 1u;
-    SYST_CVR = 0;
-    SYST_CSR = 7u; /* processor clock, interrupt, enable */
+    /* TIM2: free-running up-counter at 1 MHz over its whole 32 bits; the update event (UG) loads the
+     * prescaler, which is buffered on the part */
+    TIM_PSC(TIM2_BASE) = TIM2_PSC;
+    TIM_ARR(TIM2_BASE) = 0xFFFFFFFFu;
+    TIM_EGR(TIM2_BASE) = TIM_EGR_UG;
+    TIM_CR1(TIM2_BASE) = TIM_CR1_CEN;
 }
-
-void systick_handler(void) { millis++; }
 
 void usart1_handler(void) {
     uint32_t sr = USART_SR(USART1_BASE);
@@ -88,26 +96,16 @@ void usart1_handler(void) {
     }
 }
 
+/* TIM2's count extended to 64 bits: it wraps every 71.6 minutes and the main loop reads it far more
+ * often than that (every frame, every poll). Main context only. */
 uint64_t hal_micros(void) {
-    static uint64_t last;
-    uint32_t ms, val, pending;
-    do {
-        ms = millis;
-        val = SYST_CVR;
-        pending = SCB_ICSR & ICSR_PENDSTSET;
-    } while (ms != millis);
-    if (pending && val > SYST_RVR / 2u) /* the counter wrapped, its interrupt not taken yet */
-        ms++;
-    static uint32_t last_ms;
-    static uint64_t ms_high; /* the millisecond counter's wraps (every 49.7 days) */
-    if (ms < last_ms)
-        ms_high += (uint64_t)1 << 32;
-    last_ms = ms;
-    uint64_t now = (ms_high + ms) * 1000u + (SYST_RVR - val) / TICKS_PER_US;
-    if (now < last) /* monotonic whatever the interrupt's latency */
-        now = last;
+    static uint32_t last;
+    static uint64_t high;
+    uint32_t now = TIM_CNT(TIM2_BASE);
+    if (now < last)
+        high += (uint64_t)1 << 32;
     last = now;
-    return now;
+    return high + now;
 }
 
 __attribute__((unused)) static void busy_wait_us(uint32_t us) {

@@ -9,7 +9,6 @@
 extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
 int main(void);
 void reset_handler(void);
-void systick_handler(void);
 void usart1_handler(void);
 
 static void default_handler(void) {
@@ -33,7 +32,7 @@ __attribute__((section(".isr_vector"), used)) static void (*const vectors[N_VECT
     [14] = default_handler, /* PendSV */
     [7 ... 10] = default_handler,
     [12 ... 13] = default_handler,
-    [15] = systick_handler,
+    [15] = default_handler, /* SysTick: unused (TIM2 is the clock) */
     [16 ... N_VECTORS - 1] = default_handler,
     [16 + USART1_IRQ] = usart1_handler,
 };

@@ -8,10 +8,6 @@
 /* core */
 #define SCB_CPACR REG(0xE000ED88u)
 #define SCB_ICSR REG(0xE000ED04u)
-#define ICSR_PENDSTSET (1u << 26)
-#define SYST_CSR REG(0xE000E010u)
-#define SYST_RVR REG(0xE000E014u)
-#define SYST_CVR REG(0xE000E018u)
 #define NVIC_ISER(n) REG(0xE000E100u + 4u * (n))
 #define DWT_CTRL REG(0xE0001000u)
 #define DWT_CYCCNT REG(0xE0001004u)
@@ -26,6 +22,16 @@
 #define RCC_APB1ENR REG(RCC_BASE + 0x40u)
 #define RCC_APB2ENR REG(RCC_BASE + 0x44u)
 #define FLASH_ACR REG(0x40023C00u)
+
+/* TIM2 (32 bits, on APB1): the microsecond clock */
+#define TIM2_BASE 0x40000000u
+#define TIM_CR1(b) REG((b) + 0x00u)
+#define TIM_EGR(b) REG((b) + 0x14u)
+#define TIM_CNT(b) REG((b) + 0x24u)
+#define TIM_PSC(b) REG((b) + 0x28u)
+#define TIM_ARR(b) REG((b) + 0x2Cu)
+#define TIM_CR1_CEN (1u << 0)
+#define TIM_EGR_UG (1u << 0)
 
 /* GPIO */
 #define GPIOA_BASE 0x40020000u
