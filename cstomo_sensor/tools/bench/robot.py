@@ -67,13 +67,13 @@ from ...force.stream import FrameStream
 from ...loop import Trace, run, step
 from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...settings import ESTIMATORS
 from ...sources import ArraySource
 from .scenes import random_forces
 
 SCENES = Path(__file__).resolve().parents[3] / "scenes"
 #: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
 DEVICE_SCENES = (SCENES / "cuboid_device_a_60db.yaml", SCENES / "cuboid_device_b_60db.yaml")
-ESTIMATORS = ("model", "linear")
 CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515
 WARM = 0.02                 # the uniform resistivity change (a and b, c)
 RESISTIVITY_PER_K = 0.008   # so 2 % is 2.5 K
