@@ -69,9 +69,8 @@ from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import RESISTIVITY_PER_K, ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
 from ...settings import ESTIMATORS
 from ...sources import ArraySource
-from .scenes import random_forces
+from .scenes import SCENES, random_forces
 
-SCENES = Path(__file__).resolve().parents[3] / "scenes"
 #: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
 DEVICE_SCENES = (SCENES / "cuboid_device_a_60db.yaml", SCENES / "cuboid_device_b_60db.yaml")
 CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515

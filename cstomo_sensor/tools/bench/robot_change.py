@@ -37,8 +37,8 @@ from ...model.timeline import CONTACT_PER_K, RESISTIVITY_PER_K, Timeline, full_c
 from ...settings import ESTIMATORS
 from . import robot
 from .report import write_csv
+from .scenes import SCENES
 
-SCENES = Path(__file__).resolve().parents[3] / "scenes"
 #: The devices judged: robot.py's device_b, and device_c at neither of robot.py's corners.
 FULL_SCENES = (robot.DEVICE_SCENES[1], SCENES / "cuboid_device_c_45db.yaml")
 CHANGE = 0.024              # the rubber's mean resistivity change (3 K at 0.8 %/K)

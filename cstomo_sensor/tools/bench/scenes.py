@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -14,6 +15,8 @@ from ...model.material import conductivity_of_theta
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
 from ...settings import DEFAULT_SENSOR
 
+#: The scene files of the repository (scenes/*.yaml): the benches' devices.
+SCENES = Path(__file__).resolve().parents[3] / "scenes"
 TRUTH_SEED = 9001  # the simulated device of the held-out scenes; no calibration or test uses it
 FORCE_SEED = 20261121
 TRAIN_TRUTH_SEED, TRAIN_FORCE_SEED = 77, 555  # the training side: parameter choice only (weight.py)
