@@ -120,6 +120,12 @@ def cuboid_truth(cuboid):
 PIPE = dict(sensor="cuboid_joint", estimator="linear", mesh_size=4.0e-3, grid=[6, 6, 3], iterations=0, damping=0.0)
 
 
+#: s: the longest a node process a test starts may take to refuse its arguments and exit. A hang guard, not a
+#: figure judged: it starts cold (the interpreter, numpy and scipy, rclpy and a DDS participant) before it
+#: can refuse, 6-12 s on this 2-core host at load 7; a bound of 60 s was once overrun under CI's heaviest load.
+PROCESS_TIMEOUT = 300.0
+
+
 def wait_for(pred, timeout: float = 10.0, step: float = 0.02) -> bool:
     deadline = time.monotonic() + timeout
     while not pred():

@@ -325,3 +325,60 @@ def test_a_first_start_under_a_load_reads_it_from_the_calibrations_reference(ros
     reference_path_of(path).unlink()  # the same start without it: the first tare is taken under the load
     read, taken, source = first_start("noref")
     assert taken and np.linalg.norm(read) < 0.2 * np.linalg.norm(truth), (read, truth, taken, source)
+
+
+def test_a_tare_at_start_is_checked_against_the_calibrations_reference(tmp_path, device):
+    """``tare_on_start: true`` with the device's calibration and its unloaded reference beside it (as
+    `cstomo calibrate` writes them), no saved tare: the stream starts from that reference and the tare
+    on the first frames is judged against it (FrameStream.init_reference, the offline stream a node
+    runs). On a joint loaded from the first frame the tare is refused as carrying the load, the
+    calibration's reference stays and the load is read; on the unloaded joint the same start takes the
+    tare. Without the reference file the loaded tare is taken (nothing to compare it with): the
+    reference is what refuses it."""
+    import time
+
+    from conftest import PIPE
+
+    from cstomo_sensor.force.calibration import reference_path_of
+    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.force.device import write_reference
+    from cstomo_sensor.force.stream import FrameStream
+
+    tare, frames, forces, held, held_forces = device
+    cfg = {k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}
+    pipe = Pipeline.build(PipelineConfig(**cfg))
+    ref, noise = reference_of(tare)
+    pipe.set_reference(ref, noise, len(tare))
+    path = tmp_path / "device.yaml"
+    calibrate(pipe, frames, forces).save(path)
+    write_reference(reference_path_of(path), ref, noise, frames=len(tare),
+                    comment=f"unloaded reference of {path.name}: {time.strftime('%Y-%m-%dT%H:%M:%S%z')}")
+    k = int(np.argmax(np.linalg.norm(held_forces, axis=1)))  # the largest held-out load, from the first frame
+    truth = held_forces[k]
+    rng = np.random.default_rng(6)
+    loaded = add_noise(np.repeat(held[k][None], 40, 0), ref, 60.0, rng)
+    unloaded = add_noise(np.repeat(ref[None], 40, 0), ref, 60.0, rng)  # the device at rest, new noise
+
+    def start(name, frames_in):
+        """(mean force of the last 20 frames (nan: none), tare taken, tare refused, reference source)."""
+        stream = FrameStream(Pipeline.build(PipelineConfig(**cfg, calibration_file=str(path))),
+                             StreamConfig.offline(tare_frames=10), tare_file=tmp_path / f"{name}.csv")
+        why = stream.init_reference(tare_on_start=True)
+        assert why == "" or not reference_path_of(path).is_file(), why
+        out = [stream.push(v, stamp_ns=int(1e9 * (1.0 + i / 100.0))) for i, v in enumerate(frames_in)]
+        assert not stream.taring
+        f = np.array([o.result.force for o in out[-20:] if o is not None and o.result.valid])
+        stream.close()
+        return (f.mean(axis=0) if len(f) else np.full(3, np.nan)), stream.tare_taken, stream.tare_refused, \
+            stream.reference_source
+
+    read, taken, refused, source = start("loaded", loaded)
+    assert not taken and "carries a load" in refused, (taken, refused)
+    assert "the calibration's unloaded reference" in source, source
+    assert np.linalg.norm(read - truth) < 0.15 * np.linalg.norm(truth), (read, truth)
+    read, taken, refused, source = start("unloaded", unloaded)
+    assert taken and not refused and source.startswith("tare"), (taken, refused, source)
+    assert np.linalg.norm(read) < 0.5, read
+    reference_path_of(path).unlink()  # the loaded start without the reference: the tare is taken under the load
+    read, taken, refused, source = start("noref", loaded)
+    assert taken and not refused and np.linalg.norm(read) < 0.2 * np.linalg.norm(truth), (read, taken, refused)

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import BAG_RATE, PIPE, BagSource, Harness, diag, diag_records, start, wait_for
+from conftest import BAG_RATE, PIPE, PROCESS_TIMEOUT, BagSource, Harness, diag, diag_records, start, wait_for
 
 from cstomo_sensor.board.clock import ClockMapper
 from cstomo_sensor.errors import ConfigError
@@ -126,13 +126,13 @@ def test_an_unknown_parameter_is_refused_with_the_nearest_name(ros, tmp_path):
     params.write_text("cstomo_sensor:\n  ros__parameters:\n    input: topic\n    stale_timout: 2.0\n")
     exe = Path(sys.executable).parent / "cstomo_sensor_node"
     r = subprocess.run([str(exe), "--ros-args", "--params-file", str(params)], capture_output=True, text=True,
-                       timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+                       timeout=PROCESS_TIMEOUT, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("cstomo_sensor_node: unknown parameter 'stale_timout' "
                                                         "(did you mean 'stale_timeout'?)"), r.stderr
     # a value out of the declared range, given on the command line: one line naming it and the range
     r = subprocess.run([str(exe), "--ros-args", "-p", "rate_hz:=-5.0"], capture_output=True, text=True,
-                       timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+                       timeout=PROCESS_TIMEOUT, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert r.stderr.strip().splitlines() == ["cstomo_sensor_node: parameter 'rate_hz'=-5.0: expected 0..10000 frames/s"]
 

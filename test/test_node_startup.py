@@ -4,7 +4,7 @@ real rclpy (the harness is in conftest.py); the ROS log reaches stderr (capfd)."
 from __future__ import annotations
 
 import pytest
-from conftest import PIPE, Harness
+from conftest import PIPE, PROCESS_TIMEOUT, Harness
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -124,7 +124,7 @@ def test_main_exits_non_zero_with_the_cause(tmp_path):
     f.write_bytes(b"\x00\x01binary")
     exe = Path(sys.executable).parent / "cstomo_sensor_node"
     r = subprocess.run([str(exe), "--ros-args", "-p", f"sensor:={f}", "-p", "input:=topic"], capture_output=True,
-                       text=True, timeout=60, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+                       text=True, timeout=PROCESS_TIMEOUT, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
     assert r.returncode != 0
     assert "refusing to start" in r.stderr and str(f) in r.stderr and "Traceback" not in r.stderr, r.stderr
 
@@ -248,7 +248,7 @@ def test_help_prints_usage_and_every_parameter_instead_of_starting():
     from cstomo_sensor.ros.params import PARAMETERS
 
     exe = Path(sys.executable).parent / "cstomo_sensor_node"
-    r = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=30)
+    r = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=PROCESS_TIMEOUT)
     assert r.returncode == 0 and r.stdout.startswith("usage: cstomo_sensor_node"), r.stdout + r.stderr
     assert all(f"  {name} " in r.stdout for name in PARAMETERS), r.stdout
     assert "[INFO]" not in r.stdout + r.stderr  # nothing started

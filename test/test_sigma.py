@@ -95,16 +95,15 @@ def test_the_stream_gives_every_force_a_sigma_and_says_when_it_exceeds_the_bound
 
 
 @pytest.mark.slow
-def test_sigma_is_honest_and_informative_on_the_no_drift_baseline(monkeypatch):
+def test_sigma_is_honest_and_informative_on_the_no_drift_baseline():
     """The robot bench's device a (off the model, calibrated on 20 loads), back-to-back loads for 30 s
     without warming, drift tracking off (the no-drift baseline): at most 1 % of the published frames
     err beyond 3 sigma_n, and the median sigma_n is within 2x the median error."""
     from cstomo_sensor.model.timeline import Timeline, TimelineSpec
     from cstomo_sensor.tools.bench import robot
 
-    monkeypatch.setattr(robot, "ESTIMATORS", ("linear",))
     sc, truth = robot.device_truth()
-    pipe = robot.calibrated_pipes(truth, sc.snr_db, say=lambda m: None)["linear"]
+    pipe = robot.calibrated_pipes(truth, sc.snr_db, say=lambda m: None, estimators=("linear",))["linear"]
     tare = Timeline(TimelineSpec(duration=1.0), snr_db=sc.snr_db, seed=robot.SEED, truth=truth).tare(
         20, np.random.default_rng([robot.SEED, 22]))
     spec = robot.loaded_warmup(False)

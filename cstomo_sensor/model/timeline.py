@@ -86,6 +86,11 @@ TIMELINE_KEYS = ("duration", "rate_hz", "temperature", "resistivity_per_k", "con
                  "state_step_s", "creep_knot_ratio")
 TASK_KEYS = ("start", "end", "duration_s", "rest_s", "magnitude", "elevation_deg", "seed")
 DRIFT_KEYS = ("kind", "max", "step_s", "over_s", "seed", "values")
+#: The typical device's temperature coefficients (docs/physics.md#device-changes), per K: the rubber's
+#: resistivity (+0.2..+1.5 %/K; so a 2 % change is 2.5 K) and each contact's impedance (-0.5..-1.5 %/K):
+#: the defaults of a timeline, the warm-up's and the full change's, and what the robot bench converts with.
+RESISTIVITY_PER_K = 0.008
+CONTACT_PER_K = -0.01
 
 
 # --- the description ---------------------------------------------------------------------------
@@ -275,8 +280,8 @@ class TimelineSpec:
     duration: float = 10.0
     rate_hz: float = 100.0
     temperature: Profile = ZERO
-    resistivity_per_k: float = 0.008
-    contact_per_k: float = -0.01
+    resistivity_per_k: float = RESISTIVITY_PER_K
+    contact_per_k: float = CONTACT_PER_K
     gradient: Profile = ZERO
     gradient_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
     drive: Profile = ZERO
@@ -446,7 +451,7 @@ def uniform_resistivity(percent: float = 1.0, duration: float = 10.0, ramp_s: fl
                         resistivity_per_k=0.01, contact_per_k=0.0)
 
 
-def temperature_gradient(delta_t: float = 10.0, gradient: float = 0.3, resistivity_per_k: float = 0.008,
+def temperature_gradient(delta_t: float = 10.0, gradient: float = 0.3, resistivity_per_k: float = RESISTIVITY_PER_K,
                          contact_per_k: float = 0.0, axis=(1.0, 0.0, 0.0), duration: float = 10.0,
                          ramp_s: float = 1.0) -> TimelineSpec:
     """A temperature change of ``delta_t`` K with a gradient of +-``gradient`` of it along ``axis``."""
@@ -479,8 +484,8 @@ def held_load_creep(magnitude: float = 20.0, elevation_deg: float = 90.0, azimut
     return TimelineSpec(duration=duration, creep=creep, load_times=times, load_forces=forces)
 
 
-def full_change(change: float = 0.024, gradient: float = 0.3, contact_per_k: float = -0.01,
-                resistivity_per_k: float = 0.008, ramp_s: float = 0.0, duration: float = 60.0,
+def full_change(change: float = 0.024, gradient: float = 0.3, contact_per_k: float = CONTACT_PER_K,
+                resistivity_per_k: float = RESISTIVITY_PER_K, ramp_s: float = 0.0, duration: float = 60.0,
                 tasks: Tasks | None = None, axis=(1.0, 0.0, 0.0)) -> TimelineSpec:
     """A device changed in every way a temperature change moves it (docs/physics.md#device-changes): the
     rubber's mean resistivity by ``change`` (dT = change / ``resistivity_per_k`` K), +-``gradient`` of it
@@ -501,7 +506,7 @@ def warmup_30min(seed: int = 0, creep: float = TYPICAL_CREEP_PER_DECADE, duratio
     t = np.arange(0.0, duration + 1e-9, 120.0)
     dT = np.round(15.0 * (1 - np.exp(-t / 600.0)) / (1 - np.exp(-duration / 600.0)), 2)  # as scenes/warmup_30min.yaml
     return TimelineSpec(duration=duration, temperature=Profile(tuple(zip(t.tolist(), dT.tolist()))),
-                        resistivity_per_k=0.008, contact_per_k=-0.01, gradient=Profile(((0.0, 0.3),)),
+                        resistivity_per_k=RESISTIVITY_PER_K, contact_per_k=CONTACT_PER_K, gradient=Profile(((0.0, 0.3),)),
                         drive=Profile(((0.0, 0.0), (duration, 0.003))), creep=creep, tasks=Tasks(seed=seed))
 
 

@@ -20,9 +20,9 @@ from ...force.device import reference_of
 from ...force.pipeline import Pipeline
 from ...model.simulate import Load, Scene, add_noise
 from .report import write_csv
-from .scenes import SNRS, quantile, random_forces
+from .scenes import SCENES, SNRS, quantile, random_forces
 
-DEFAULT_SCENE = Path(__file__).resolve().parents[3] / "scenes" / "cuboid_device_a_60db.yaml"
+DEFAULT_SCENE = SCENES / "cuboid_device_a_60db.yaml"
 COUNTS = (0, 3, 5, 10, 20, 40)
 FRAMES_PER_LOAD = 5
 CAL_SEED, HELD_SEED = 515, 616

@@ -66,17 +66,15 @@ from ...force.pipeline import Pipeline
 from ...force.stream import FrameStream
 from ...loop import Trace, run, step
 from ...model.simulate import Load, Scene, add_noise
-from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...model.timeline import RESISTIVITY_PER_K, ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...settings import ESTIMATORS
 from ...sources import ArraySource
-from .scenes import random_forces
+from .scenes import SCENES, random_forces
 
-SCENES = Path(__file__).resolve().parents[3] / "scenes"
 #: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
 DEVICE_SCENES = (SCENES / "cuboid_device_a_60db.yaml", SCENES / "cuboid_device_b_60db.yaml")
-ESTIMATORS = ("model", "linear")
 CAL_LOADS, CAL_FRAMES, CAL_SEED = 20, 5, 515
-WARM = 0.02                 # the uniform resistivity change (a and b, c)
-RESISTIVITY_PER_K = 0.008   # so 2 % is 2.5 K
+WARM = 0.02                 # the uniform resistivity change (a and b, c): 2.5 K at RESISTIVITY_PER_K
 WARM_S = 300.0              # a: 5 minutes
 HOLD_S = 3.0                # a, c, e: each load held 3 s (a, c: back to back)
 REST_S = 1.0                # e: the rest after each load

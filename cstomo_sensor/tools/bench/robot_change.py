@@ -33,19 +33,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ...model.timeline import Timeline, full_change
+from ...model.timeline import CONTACT_PER_K, RESISTIVITY_PER_K, Timeline, full_change
+from ...settings import ESTIMATORS
 from . import robot
 from .report import write_csv
+from .scenes import SCENES
 
-SCENES = Path(__file__).resolve().parents[3] / "scenes"
 #: The devices judged: robot.py's device_b, and device_c at neither of robot.py's corners.
 FULL_SCENES = (robot.DEVICE_SCENES[1], SCENES / "cuboid_device_c_45db.yaml")
 CHANGE = 0.024              # the rubber's mean resistivity change (3 K at 0.8 %/K)
 GRADIENT = 0.3              # +- of the mean change across the block (along x)
-CONTACT_PER_K = -0.01       # every contact follows its own temperature: -3 % at +2.4 %
-RESISTIVITY_PER_K = 0.008
 AGE_S = 8 * 3600.0          # b, c: the tare file is 8 hours old
-ESTIMATORS = robot.ESTIMATORS
 WARM, WARM_STILL = "full loaded warm-up +2.4 % in 5 min", "full: loaded, unchanged"
 #: (case, scenario of the changed device, of the unchanged one, window, figures, aims)
 AIMS = (("warming while loaded", WARM, WARM_STILL, "last min", ("angle_deg", "magnitude_pct"), (1.5, 1.6)),

@@ -24,9 +24,8 @@ from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Scene, Truth, add_noise, simulate
 from .report import write_csv
-from .scenes import SNRS, TRUTH_SEED, random_forces
+from .scenes import SCENES, SNRS, TRUTH_SEED, random_forces
 
-SCENES = Path(__file__).resolve().parents[3] / "scenes"
 SIDE = Load.from_dict({"patches": [{"shape": "circle", "radius": 0.004, "center": [0.005, 0.010], "face": "+y"}],
                        "total_force": 10})
 TOP = Load.from_dict({"patches": [{"shape": "circle", "radius": 0.004, "center": [0.018 / 2**0.5, 0.018 / 2**0.5]}],

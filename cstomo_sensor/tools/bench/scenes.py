@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -12,13 +13,15 @@ from ...angles import angle_between, force_from_angles
 from ...model.geometry import DEFAULT_SNR_DB, load_sensor, noise_std
 from ...model.material import conductivity_of_theta
 from ...model.simulate import MECHANICS_MESH_SIZE, TRUTH_MESH_SIZE, Load, Truth
-from ...settings import DEFAULT_SENSOR
+from ...settings import DEFAULT_SENSOR, RATED_FORCE
 
+#: The scene files of the repository (scenes/*.yaml): the benches' devices.
+SCENES = Path(__file__).resolve().parents[3] / "scenes"
 TRUTH_SEED = 9001  # the simulated device of the held-out scenes; no calibration or test uses it
 FORCE_SEED = 20261121
 TRAIN_TRUTH_SEED, TRAIN_FORCE_SEED = 77, 555  # the training side: parameter choice only (weight.py)
 NOISE_SEED = 4242
-BOUND_N = 400.0  # an estimate above this (10x the range) counts as unbounded
+BOUND_N = 10 * RATED_FORCE  # N: an estimate above this (10x the rated range) counts as unbounded
 #: dB: the benchmarks' board, the default scene's noise (model/geometry.py DEFAULT_SNR_DB); SNRS: it and the
 #: noisier board every estimator is judged at too.
 SNR_DB = DEFAULT_SNR_DB
@@ -34,9 +37,10 @@ def as_written(frames: np.ndarray) -> np.ndarray:
 
 
 def random_forces(n: int, seed: int = FORCE_SEED) -> np.ndarray:
-
+    """``n`` seeded socket forces (n, 3) N: 5 N up to the rated range (settings.RATED_FORCE), elevations
+    20..90 deg, any azimuth."""
     rng = np.random.default_rng(seed)
-    mag = rng.uniform(5.0, 40.0, n)
+    mag = rng.uniform(5.0, RATED_FORCE, n)
     el = np.radians(rng.uniform(20.0, 90.0, n))
     az = rng.uniform(-np.pi, np.pi, n)
     f = np.array([force_from_angles(m, e, a) for m, e, a in zip(mag, el, az)])
