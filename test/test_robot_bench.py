@@ -160,12 +160,6 @@ def _run(device, spec, tracking, rate, **kw):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "a known regression of issue 34's loaded measurement of the contact and gradient states (force/drift.py "
-    "LOADED_OTHER_N): device_b's uniform 2 % loaded warm-up reads 1.66 deg / 2.09 % in its last minute against "
-    "1.03 / 1.15 unwarmed (1.61 x / 1.82 x; aims 1.5 x / 1.6 x; before issue 34 within them), its error bars "
-    "still honest (0 % beyond 3 sigma); the same change takes device_b's restarts from a 9-12 N phantom, every "
-    "frame silently wrong, to within their aims. strict: the test says when the aim is met again"))
 def test_a_loaded_warm_up_is_followed_without_a_rest(device_b):
     warm = _run(device_b, robot.loaded_warmup(True), True, robot.LOADED_RATE)
     still = _run(device_b, robot.loaded_warmup(False), False, robot.LOADED_RATE)

@@ -47,14 +47,19 @@ ACCEL = 2e-5
 #: from a few rest frames (a 20 N load held from 1 s after the tare: 8 % off after 10 minutes without
 #: it, 0.9 % at 60 s, 0.5 % at 30 s; the warm-up's errors are the same at 30 and 60 s).
 RATE_MEMORY = 30.0
-#: ... and that slope is known only so well: while no rest measures them, each other state's variance
-#: grows by ``(FOLLOW_SIGMA a)^2``, ``a`` the scale's change at its tracked rate since the last rest frame
-#: (a slope anywhere in section 9's 0..30 % has a 1-sigma of 0.09 about its middle), so the forces'
-#: sigma says what a long task leaves unmeasured; the diagnostics warn when that reads more than
-#: :data:`~.slow.UNMEASURED_N` newtons (1-sigma) at zero load. A restart's jump of the scale is not counted
-#: (:meth:`widen` covers it: a block off for hours has no gradient). Before a rest measured the slope
-#: (:class:`~.rest.FollowSlope`, 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT`
-#: and :data:`RESTART_CONTACT` (a loaded warm-up from the tare, no rest: the loaded frames then measure them).
+#: ... and that slope is known only so well: while no rest measures them, each other state moves on by
+#: ``e a``, ``a`` the scale's change at its tracked rate since the last rest frame and ``e`` the slope's own
+#: error, a state of the tracker of 1-sigma FOLLOW_SIGMA from each rest frame on (a slope anywhere in section
+#: 9's 0..30 % has a 1-sigma of 0.09 about its middle): unmeasured, each state's variance grows by
+#: ``(FOLLOW_SIGMA a)^2``, so the forces' sigma says what a long task leaves unmeasured (the diagnostics warn
+#: when that reads more than :data:`~.slow.UNMEASURED_N` newtons, 1-sigma, at zero load); measured by loaded
+#: frames (:data:`LOADED_OTHER_N`), the slope is what they learn over the task, not a state free to move
+#: with each frame: as a random walk of the same variance the gradients followed each dozen frames' noise and
+#: each load's mismatch (device_b's uniform 2 % loaded warm-up, last minute: 1.66 deg / 2.09 %, now 1.21 /
+#: 1.32, against 1.03 / 1.15 unwarmed). A restart's jump of the scale is not counted (:meth:`widen` covers
+#: it: a block off for hours has no gradient). Before a rest measured the slope (:class:`~.rest.FollowSlope`,
+#: 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT` and :data:`RESTART_CONTACT` (a
+#: loaded warm-up from the tare, no rest: the loaded frames then measure them).
 FOLLOW_SIGMA = 0.1
 #: A loaded frame's own measurement of the scale (:class:`~.joint.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
@@ -146,10 +151,13 @@ class DriftTracker:
         D = D * keep
         Dw = D * w
         self.m = m = len(D)  # measured states: the scale, the gradient; then the scale's rate
+        # ... then each other state's slope against the scale since the latest rest (FOLLOW_SIGMA): not measured
+        # by a frame, it carries what they follow unmeasured, so that loaded frames measure it over time
+        self.n = n = m + 1 + (m - 1 if m > 1 else 0)
         self._D, self._w, self._Dw = D, w, Dw
-        self._N = np.zeros((m + 1, m + 1))
+        self._N = np.zeros((n, n))
         self._N[:m, :m] = Dw @ Dw.T
-        self._Dw1 = np.vstack([Dw, np.zeros((1, len(w)))])
+        self._Dw1 = np.vstack([Dw, np.zeros((n - m, len(w)))])
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._W = None
         if force_map is not None:  # the force of a change, of a uniform change, and its noise
@@ -164,24 +172,27 @@ class DriftTracker:
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
         self._N_others = self._N.copy()  # the information of the states other than the scale
         self._N_others[0, :] = self._N_others[:, 0] = 0.0
-        self._tot = np.zeros(m + 1)
+        self._tot = np.zeros(n)
         self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
-        self._b = np.empty(m + 1)
-        self._eye = np.eye(m + 1)
-        self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL])
+        self._b = np.empty(n)
+        self._eye = np.eye(n)
+        self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL] + [0.0] * (n - m - 1))
         self._dt, self._a, self._qdt = -1.0, 1.0, self._q  # observe()'s factors of the last period
-        self._F = np.eye(m + 1)
+        self._F = np.eye(n)  # the prediction: the scale by its rate; unrested, the other states by their slope
+        self._Fs = (np.arange(1, m), np.arange(m + 1, n))  # ... its entries of the slopes (their step each frame)
         self.scale = 1.0
         self.rate = 0.0  # the scale's relative change per second
         self.gradient = np.zeros(m - 1)
         self.offset = np.zeros_like(w)  # the gradient's change: subtracted from the frame's change
-        self.P = np.zeros((m + 1, m + 1))
+        self._Pa = np.zeros((n, n))  # the covariance of every state (P: the measured ones and the rate)
         self.rest_frames = 0  # frames measured as at rest (all time)
         self.force_step: np.ndarray | None = None  # observe()'s joint force step (N) of the latest frame
         self._follow = FollowSlope(m)
         self.follow = self._follow.slope  # each other state's slope against the scale (force/rest.py)
-        self._bias = LoadBias(m + 1)  # the held load's error of its measurement of the scale (force/rest.py)
+        self._slope = np.zeros(n - m - 1)  # the slopes' estimate beyond follow's
+        self._reset_slopes()
+        self._bias = LoadBias(n)  # the held load's error of its measurement of the scale (force/rest.py)
         self._obias: list | None = None  # ... and of the other states (_loaded_others)
         self._check, self._frames, self._wanted = 0.0, 0, False  # the other states' check (CHECK_EVERY)
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
@@ -196,7 +207,8 @@ class DriftTracker:
         new = DriftTracker(r, gradients, noise0 if noise is None else noise, keep0 if keep is None else keep,
                            map0 if force_map is None else force_map, self.contacts)
         new.learned = self.learned
-        new.scale, new.rate, new.P, new.rest_frames, new._t = self.scale, self.rate, self.P, self.rest_frames, self._t
+        new.scale, new.rate, new.rest_frames, new._t = self.scale, self.rate, self.rest_frames, self._t
+        new._Pa, new._slope = self._Pa.copy(), self._slope.copy()
         new._set_gradient(self.gradient)
         new._follow = self._follow.copy()
         new.follow = new._follow.slope
@@ -231,13 +243,41 @@ class DriftTracker:
         new._follow.slope[:m - 1] = self._follow.slope
         new._follow.fitted = self._follow.fitted
         new.follow = new._follow.slope
+        new._reset_slopes()  # (a rest frame's, as the learner's frames are) by the copied fit's 1-sigma
         new._bias = self._bias.copy()
-        new._bias.c = pad(self._bias.c, 0)
+        new._bias.c = np.zeros(new.n)  # the states' (padded as P), then the rate's; the slopes' 0 as after a rest
+        new._bias.c[:m1] = np.append(self._bias.c[:m], np.zeros(k))
+        new._bias.c[m1] = self._bias.c[m]
         new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
         if self._W is not None and new._W is not None:
             q, o = new._quiet, self._quiet
             q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
         return new
+
+    @property
+    def P(self) -> np.ndarray:
+        """(m + 1, m + 1): the covariance of the measured states (the scale, the other states) and the scale's
+        rate (the slopes' own: not here)."""
+        return self._Pa[:self.m + 1, :self.m + 1]
+
+    @P.setter
+    def P(self, value: np.ndarray) -> None:
+        self._Pa = self._Pa.copy()
+        self._Pa[:self.m + 1, :self.m + 1] = value
+
+    def _reset_slopes(self) -> None:
+        """A rest measured the other states: what they follow from here is their slope against the scale, known
+        to FOLLOW_SIGMA once rests fitted it (force/rest.py FollowSlope), else to section 9's range
+        (RESTART_GRADIENT, RESTART_CONTACT), and uncorrelated with the rest."""
+        m = self.m
+        if self.n == m + 1:
+            return
+        P = self._Pa
+        P[m + 1:, :] = 0.0
+        P[:, m + 1:] = 0.0
+        P.reshape(-1)[(m + 1) * (self.n + 1)::self.n + 1] = (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
+                                                           else self._unfitted2)
+        self._slope[:] = 0.0
 
     @property
     def change(self) -> float:
@@ -263,10 +303,6 @@ class DriftTracker:
             self._dt, self._a, self._qdt = dt, math.exp(-dt / RATE_MEMORY), self._q * dt
             self._F[0, m], self._F[m, m] = dt, self._a
         a = self._a
-        # predicted: the scale moves on at its rate, which fades: F P F^T + Q dt with
-        # F = I + dt e_0 e_m^T, F_mm = a (two small products: half the cost of row and column updates)
-        P = np.dot(np.dot(self._F, self.P), self._F.T)
-        P.reshape(-1)[:: m + 2] += self._qdt  # the diagonal
         yw = np.multiply(y, self._w, out=self._yw)
         b = np.dot(self._Dw1, yw, out=self._b)
         # at rest when the scale alone explains the frame (the gradient's current part is already
@@ -287,6 +323,20 @@ class DriftTracker:
         tot = self._tot  # the states' change since the frame was formed: the step, then the updates
         tot[:] = 0.0
         tot[0] = step
+        if rest:
+            self._unmeasured, self._t_rest = 0.0, self._t
+            self._F[self._Fs] = 0.0
+        elif m > 1:  # unmeasured, the other states follow the scale by their slope (FOLLOW_SIGMA)
+            da = abs(step)
+            self._unmeasured += da
+            self._F[self._Fs] = da
+            tot[1:m] = da * self._slope
+        # predicted: the scale moves on at its rate, which fades; unrested, the other states by their slope:
+        # F P F^T + Q dt with F = I + dt e_0 e_m^T + da E_os, F_mm = a (two small products: half the cost of row
+        # and column updates)
+        n = self.n
+        P = np.dot(np.dot(self._F, self._Pa), self._F.T)
+        P.reshape(-1)[:: n + 1] += self._qdt  # the diagonal
         use_joint = joint is not None
         if use_joint:
             # every frame, at rest or loaded: the scale measured with the frame's load marginalised
@@ -311,13 +361,6 @@ class DriftTracker:
                     tot += delta
                 if len(joint) > 5 and joint[5] is not None:
                     self._loaded_others(P, tot, joint[5], OTHERS_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD)
-        if rest:
-            self._unmeasured, self._t_rest = 0.0, self._t
-        elif m > 1:  # unmeasured, the other states follow the scale by a slope known to FOLLOW_SIGMA
-            a0 = self._unmeasured
-            self._unmeasured = a1 = a0 + abs(step)
-            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
-                                                       else self._unfitted2) * (a1 * a1 - a0 * a0)
         if rest:
             # at rest the other states (the contacts', the gradient's) are measured with their full
             # directions; the scale too without a joint fit (the linear estimator). The information
@@ -352,7 +395,11 @@ class DriftTracker:
             self.force_step = joint[2] - joint[3] * d[0]
             if len(joint) > 5 and joint[5] is not None:
                 self.force_step = self.force_step - np.dot(joint[5][2], tot[1:m])
-        self.P = 0.5 * (P + P.T)
+        self._Pa = 0.5 * (P + P.T)
+        if rest:
+            self._reset_slopes()
+        elif self.n > m + 1:
+            self._slope += tot[m + 1:]
         return rest
 
     def _loaded_others(self, P: np.ndarray, tot: np.ndarray, part: tuple, w: float) -> None:
@@ -369,11 +416,11 @@ class DriftTracker:
         ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c)
         if self._bias.new or ob is None:
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
-            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((m + 1, m - 1))]
+            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((self.n, m - 1))]
         else:
             ob[2] = np.dot(self._F, ob[2])
         beta, pb, c = ob
-        if not self._wanted:  # a check (CHECK_EVERY): widen the states the frame finds wider than their covariance
+        if not self._wanted:  # a check (CHECK_EVERY, others_wanted): widen the states the frame finds wider than their covariance
             nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
             try:
@@ -386,7 +433,7 @@ class DriftTracker:
             self._check += a * (d2 - self._check)
             if self._check < CHECK_BOUND:
                 return
-            P.reshape(-1)[m + 2:m * (m + 1):m + 2] += nu * nu
+            P.reshape(-1)[self.n + 1:m * (self.n + 1):self.n + 1] += nu * nu
             self._check = 0.0
         Cxy = P[:, 1:m] + c  # cov(states, measured), measured = others + beta + noise
         Cby = c[1:m].T + pb
@@ -395,7 +442,7 @@ class DriftTracker:
             sol = solve_small(0.5 * (S + S.T), np.hstack([Cxy.T, Cby.T]))  # S^-1 [Cxy^T, Cby^T]
         except np.linalg.LinAlgError:
             return
-        Kx, Kb = sol[:, :m + 1].T, sol[:, m + 1:].T
+        Kx, Kb = sol[:, :self.n].T, sol[:, self.n:].T
         nu = z - tot[1:m] - beta
         delta = np.dot(Kx, nu)
         if math.isfinite(float(delta.sum())):
@@ -405,10 +452,11 @@ class DriftTracker:
             ob[2] = c - np.dot(Kx, Cby.T)
             ob[1] = pb - np.dot(Kb, Cby.T)
 
-    @property
-    def wants_others(self) -> bool:
+    def others_wanted(self) -> bool:
         """Whether the next frame, if unrested, should measure the other states (:data:`LOADED_OTHER_N`): one
-        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`)."""
+        of them is less certain than the loaded frames' floor; or check them (:data:`CHECK_EVERY`). Called once
+        per frame, before :meth:`observe`: it counts the frame towards the check and tells :meth:`observe`
+        which of the two the frame's measurement is for."""
         if self._W is None or self.m < 2:
             return False
         self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))

@@ -176,7 +176,7 @@ class SlowStates:
         e = None
         if self.expected.pending is not None and result.valid:
             e = self.expected.for_frame(t, result.force, self._frame_sigma)
-        others = self.drift.wants_others
+        others = self.drift.others_wanted()  # counts the frame towards the other states' check
         own = self._joint.measure(None, others)
         return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)  # others: own's
 
