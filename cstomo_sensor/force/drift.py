@@ -356,9 +356,16 @@ class DriftTracker:
                 # LOADED_WEIGHT per DEFAULT_PERIOD: a load's frames share its mismatch, so more of them in a second
                 # do not measure more (the same held load reads the same at 10 and 100 frames/s)
                 w = LOADED_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD
+                ob = self._obias
+                if ob is not None:  # the others' bias: its covariance with the states predicted as they are, every frame
+                    ob[2] = np.dot(self._F, ob[2])
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
+                if self._bias.new:
+                    self._obias = ob = None  # a new load: its own mismatch (_loaded_others)
                 if delta is not None:
                     tot += delta
+                    if ob is not None:  # ... and updated with them (the scale's measurement)
+                        ob[2] -= np.multiply.outer(self._bias.kx, ob[2][0])
                 if len(joint) > 5 and joint[5] is not None:
                     self._loaded_others(P, tot, joint[5], OTHERS_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD)
         if rest:
@@ -417,8 +424,6 @@ class DriftTracker:
         if self._bias.new or ob is None:
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
             ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((self.n, m - 1))]
-        else:
-            ob[2] = np.dot(self._F, ob[2])
         beta, pb, c = ob
         if not self._wanted:  # a check (CHECK_EVERY, others_wanted): widen the states the frame finds wider than their covariance
             nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
@@ -448,6 +453,8 @@ class DriftTracker:
         if math.isfinite(float(delta.sum())):
             tot += delta
             P -= np.dot(Kx, Cxy.T)
+            bc = self._bias.c  # the scale's bias: its covariance with the states updated with them
+            bc -= np.dot(Kx, bc[1:m])
             ob[0] = beta + np.dot(Kb, nu)
             ob[2] = c - np.dot(Kx, Cby.T)
             ob[1] = pb - np.dot(Kb, Cby.T)

@@ -125,6 +125,7 @@ class LoadBias:
     def __init__(self, n: int) -> None:
         self.c, self.p, self.b, self.force = np.zeros(n), 0.0, 0.0, None
         self.new = False  # the latest update began a new load
+        self.kx: np.ndarray | None = None  # its latest gain of the states
 
     def copy(self) -> LoadBias:
         new = LoadBias(len(self.c))
@@ -156,5 +157,6 @@ class LoadBias:
         P -= np.multiply.outer(kx, h)
         self.c -= kx * hb
         self.p -= kb * hb
+        self.kx = kx  # the states' gain (the tracker's other biases' covariance with them follows it)
         self.b += kb * nu
         return delta
