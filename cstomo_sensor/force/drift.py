@@ -143,7 +143,6 @@ class DriftTracker:
         self.learned = np.zeros(0)  # the last this many other states are learned (force/learned.py): each one's restart per scale
         # each other state's slope against the scale before a rest measured it: section 9's range (FOLLOW_SIGMA)
         self._unfitted2 = np.full(0 if gradients is None else len(gradients), RESTART_GRADIENT ** 2)
-        self._unfitted2[:min(self.contacts, len(self._unfitted2))] = RESTART_CONTACT ** 2
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
         D = np.atleast_2d(np.asarray(r, float))
         if gradients is not None:
@@ -180,6 +179,7 @@ class DriftTracker:
         self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL] + [0.0] * (n - m - 1))
         self._dt, self._a, self._qdt = -1.0, 1.0, self._q  # observe()'s factors of the last period
         self._F = np.eye(n)  # the prediction: the scale by its rate; unrested, the other states by their slope
+        self._unfitted2[self.contacts_block] = RESTART_CONTACT ** 2
         self._Fs = (np.arange(1, m), np.arange(m + 1, n))  # ... its entries of the slopes (their step each frame)
         self.scale = 1.0
         self.rate = 0.0  # the scale's relative change per second
@@ -254,6 +254,34 @@ class DriftTracker:
             q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
         return new
 
+    # the named blocks of the states (positions counted here only): the other states (:attr:`gradient`, the
+    # directions after the scale) are the model's contacts', then the resistivity's gradients, then the device's
+    # own (force/learned.py); the full state vector is the scale, the other states, the scale's rate, then the
+    # other states' slopes against the scale
+
+    @property
+    def contacts_block(self) -> slice:
+        """The contacts' states: a slice of :attr:`gradient` (the other states)."""
+        return slice(0, min(self.contacts, self.m - 1))
+
+    @property
+    def gradients_block(self) -> slice:
+        """The resistivity gradients' states: a slice of :attr:`gradient` (the other states)."""
+        return slice(self.contacts_block.stop, self.learned_block.start)
+
+    @property
+    def learned_block(self) -> slice:
+        """The device's own directions' states (force/learned.py): a slice of :attr:`gradient` (the other
+        states)."""
+        k = self.m - 1
+        return slice(k - min(len(self.learned), k - self.contacts_block.stop), k)
+
+    @property
+    def slopes_block(self) -> slice:
+        """The other states' slopes against the scale since the latest rest (:data:`FOLLOW_SIGMA`): a slice of
+        the full state vector (its covariance :attr:`_Pa`; empty without other states)."""
+        return slice(self.m + 1, self.n)
+
     @property
     def P(self) -> np.ndarray:
         """(m + 1, m + 1): the covariance of the measured states (the scale, the other states) and the scale's
@@ -269,14 +297,14 @@ class DriftTracker:
         """A rest measured the other states: what they follow from here is their slope against the scale, known
         to FOLLOW_SIGMA once rests fitted it (force/rest.py FollowSlope), else to section 9's range
         (RESTART_GRADIENT, RESTART_CONTACT), and uncorrelated with the rest."""
-        m = self.m
-        if self.n == m + 1:
+        sl = self.slopes_block
+        if sl.start == sl.stop:
             return
         P = self._Pa
-        P[m + 1:, :] = 0.0
-        P[:, m + 1:] = 0.0
-        P.reshape(-1)[(m + 1) * (self.n + 1)::self.n + 1] = (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
-                                                           else self._unfitted2)
+        P[sl, :] = 0.0
+        P[:, sl] = 0.0
+        P.reshape(-1)[sl.start * (self.n + 1)::self.n + 1] = (FOLLOW_SIGMA * FOLLOW_SIGMA if self._follow.fitted
+                                                            else self._unfitted2)
         self._slope[:] = 0.0
 
     @property
@@ -491,12 +519,11 @@ class DriftTracker:
         if m > 1:
             so = max(s, RESTART_CHANGE)
             other = np.full(m - 1, RESTART_GRADIENT * so)
-            nc = min(self.contacts, m - 1)
-            other[:nc] = math.hypot(RESTART_CONTACT * so, RESTART_CONTACT_DRIFT
-                                    * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
-            nl = min(len(self.learned), m - 1 - nc)
-            if nl:  # the device's own directions (force/learned.py): by their slope against the scale
-                other[m - 1 - nl:] = np.maximum(self.learned[-nl:], RESTART_GRADIENT) * so
+            other[self.contacts_block] = math.hypot(RESTART_CONTACT * so, RESTART_CONTACT_DRIFT
+                                                    * min(1.0, math.sqrt(age_s / (86400.0 * RESTART_CONTACT_DAYS))))
+            bl = self.learned_block
+            if bl.stop > bl.start:  # the device's own directions (force/learned.py): by their slope against the scale
+                other[bl] = np.maximum(self.learned[len(self.learned) - (bl.stop - bl.start):], RESTART_GRADIENT) * so
             add[1:m] = other ** 2
             if self._W is not None:
                 add[1:m] = np.maximum(add[1:m], (RESTART_OTHER_N / self._other_n) ** 2)
