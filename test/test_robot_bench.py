@@ -161,6 +161,10 @@ def _run(device, spec, tracking, rate, **kw):
 
 @pytest.mark.slow
 def test_a_loaded_warm_up_is_followed_without_a_rest(device_b):
+    """Issue 26's aim for a uniform 2 % warm-up under loads back to back, no rest (last minute within 1.5 x angle
+    / 1.6 x magnitude of the same loads unwarmed, every frame honest). A strict xfail on main while the other
+    states' slope against the scale was a random walk (1.66 deg / 2.09 %, 1.61 x / 1.82 x); with the slopes as
+    states of the tracker 1.06 / 1.50 against 1.03 / 1.15 (1.03 x / 1.30 x), 0 % beyond 3 sigma."""
     warm = _run(device_b, robot.loaded_warmup(True), True, robot.LOADED_RATE)
     still = _run(device_b, robot.loaded_warmup(False), False, robot.LOADED_RATE)
     last = warm[0] >= 240.0
