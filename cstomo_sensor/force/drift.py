@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from .creep import DEFAULT_PERIOD
-from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, QUIET_POST, FollowSlope, LoadBias, QuietTest  # noqa: F401 (the constants: drift's words)
+from .rest import FOLLOW_MEMORY, FOLLOW_SPAN, QUIET_POST, FollowSlope, LoadBias, QuietTest, moved  # noqa: F401 (the constants: drift's words)
 from .small import solve_small
 
 #: Random walk of the scale (and of the gradient and contact states), per square-root second: what
@@ -198,6 +198,7 @@ class DriftTracker:
         self._unmeasured = 0.0  # the scale's change at its rate since the latest rest frame (FOLLOW_SIGMA)
         self._t_rest: float | None = None  # the latest rest frame's time (since_rest)
         self._t: float | None = None
+        self._restarted = 0.0  # seconds left of a restart's re-acquisition at rest (widen)
 
     def rebuilt(self, *, keep: np.ndarray | None = None, noise: np.ndarray | None = None,
                 force_map: np.ndarray | None = None) -> DriftTracker:
@@ -214,7 +215,7 @@ class DriftTracker:
         new.follow = new._follow.slope
         new._bias = self._bias.copy()
         new._obias = None if self._obias is None else [a.copy() for a in self._obias]
-        new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
+        new._unmeasured, new._t_rest, new._restarted = self._unmeasured, self._t_rest, self._restarted
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
             q, o = new._quiet, self._quiet
             q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
@@ -248,7 +249,7 @@ class DriftTracker:
         new._bias.c = np.zeros(new.n)  # the states' (padded as P), then the rate's; the slopes' 0 as after a rest
         new._bias.c[:m1] = np.append(self._bias.c[:m], np.zeros(k))
         new._bias.c[m1] = self._bias.c[m]
-        new._unmeasured, new._t_rest = self._unmeasured, self._t_rest
+        new._unmeasured, new._t_rest, new._restarted = self._unmeasured, self._t_rest, self._restarted
         if self._W is not None and new._W is not None:
             q, o = new._quiet, self._quiet
             q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
@@ -344,6 +345,12 @@ class DriftTracker:
             # ... and, with the joint fit, after quiet frames (force/rest.py); the linear estimator
             # measures the scale at rest only: not quieted
             quiet = self._quiet.step(f, rest, dt)
+            if self._restarted > 0.0:  # a restart's first seconds: a frame that reads no load re-anchors the quiet test
+                self._restarted -= dt
+                if rest and joint is not None and math.hypot(*joint[4]) < self.rest_force:
+                    q = self._quiet
+                    q.slow[:] = q.fast
+                    q.quiet = quiet = True
             rest = rest and (quiet or joint is None)
         step = self.rate * dt
         self.rate *= a
@@ -388,8 +395,8 @@ class DriftTracker:
                 if ob is not None:  # the others' bias: its covariance with the states predicted as they are, every frame
                     ob[2] = np.dot(self._F, ob[2])
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
-                if self._bias.new:
-                    self._obias = ob = None  # a new load: its own mismatch (_loaded_others)
+                if self._bias.new and ob is not None and moved(self._bias.force, ob[3]):
+                    self._obias = ob = None  # another load: its own mismatch (_loaded_others)
                 if delta is not None:
                     tot += delta
                     if ob is not None:  # ... and updated with them (the scale's measurement)
@@ -448,11 +455,12 @@ class DriftTracker:
         except np.linalg.LinAlgError:
             return
         z = np.dot(Hinv, bo)
-        ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c)
-        if self._bias.new or ob is None:
+        ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c, its force)
+        if ob is None:  # (observe drops it for another load)
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
-            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((self.n, m - 1))]
-        beta, pb, c = ob
+            ob = self._obias = [np.zeros(m - 1), np.diag(k * k / self._other_n ** 2), np.zeros((self.n, m - 1)),
+                                list(self._bias.force)]
+        beta, pb, c = ob[:3]
         if not self._wanted:  # a check (CHECK_EVERY, others_wanted): widen the states the frame finds wider than their covariance
             nu = z - tot[1:m]  # the held load's mismatch by its prior, not by what it took in
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
@@ -529,8 +537,7 @@ class DriftTracker:
                 add[1:m] = np.maximum(add[1:m], (RESTART_OTHER_N / self._other_n) ** 2)
         add[0], add[m] = s * s, RESTART_RATE ** 2
         self.P = self.P + np.diag(add)
-        if self._W is not None:  # the states left stale for hours: the rests re-acquire them, as after a task
-            self._quiet.post = max(self._quiet.post, QUIET_POST)
+        self._restarted = QUIET_POST  # the states left stale for hours: the rests re-acquire them (observe)
 
     @property
     def unmeasured_n(self) -> float:

@@ -53,6 +53,12 @@ LOAD_BIAS_SIGMA = 1.5e-4
 LOAD_MOVE_N, LOAD_MOVE_REL = 2.0, 0.1
 
 
+def moved(force: list, held: list) -> bool:
+    """Whether ``force`` (3 floats, N) is another load than ``held`` (its force when its bias began): further
+    from it than LOAD_MOVE_N newtons or LOAD_MOVE_REL of it."""
+    return math.dist(force, held) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*held))
+
+
 class QuietTest:
     """The fast and slow means of the non-uniform force and the previous frame's verdict (module docstring)."""
 
@@ -141,7 +147,7 @@ class LoadBias:
         white variance ``var``; ``P`` the states' predicted covariance (updated in place), ``F`` the
         prediction's transition; returns the states' update (None: not finite, nothing changed)."""
         f = np.asarray(force, float).tolist()  # on Python floats: a norm of 3 numbers in 0.1 us, not 3
-        self.new = self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force))
+        self.new = self.force is None or moved(f, self.force)
         if self.new:
             self.force, self.p, self.b = f, LOAD_BIAS_SIGMA ** 2, 0.0
             self.c[:] = 0.0
