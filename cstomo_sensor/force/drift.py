@@ -95,7 +95,9 @@ RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
 #: scale (:data:`LOADED_WEIGHT` per 10 ms). The model's mismatch with the device for a load reaches into
 #: them as an error that stays while the load is held (device_a, no change: the x and y gradients read
 #: -0.15 and -0.6 N at zero load under 12-30 N loads, against a Cramer-Rao bound of 0.28 N per frame): it
-#: is a state of its own for each load (:class:`~.rest.LoadBias`'s new load), 1-sigma what reads as
+#: is a state of its own for each load (another load than its own, :func:`~.rest.moved`: a frame counted as
+#: rest within a held load does not end it; before, it did, and a 2 N load held from a restart read 0.53 N off
+#: at 1-3 s against 0.45), 1-sigma what reads as
 #: LOADED_BIAS_N + LOADED_OTHER_REL |F| newtons at zero load (under 4-12 N: 0.04-0.08 N), so a held load
 #: counts as one measurement at most and loads with different mismatches average it; a frame without load
 #: (a phantom of the states themselves) has next to none. Only while a state is less certain than
@@ -511,10 +513,11 @@ class DriftTracker:
     def widen(self, age_s: float) -> None:
         """A restart from a tare saved ``age_s`` seconds ago: the device moved meanwhile by an unknown
         amount (module constants :data:`RESTART_SIGMA` ...): the states' covariance widened, so that the
-        first frames, loaded or not, measure them (their own shape) and their forces say how unsure. The quiet
-        test (force/rest.py) then lets the rest frames of the first :data:`~.rest.QUIET_POST` seconds count, as
-        after a task: the states they fit move the frames' non-uniform force, and that step is the tracker's
-        own, not a load put on. Before: the first rest frames left a 0.4-0.7 N lateral phantom, the quiet test
+        first frames, loaded or not, measure them (their own shape) and their forces say how unsure. In the first
+        :data:`~.rest.QUIET_POST` seconds a frame that passes its own rest tests and that the joint fit reads
+        below the rest force re-anchors the quiet test (force/rest.py), as after a task: the states the first
+        rest frames fit move the frames' non-uniform force, a step of the tracker's own, not a load put on (a
+        small load held from the first frame, which passes the frame's own tests, is read by the joint fit). Before: the first rest frames left a 0.4-0.7 N lateral phantom, the quiet test
         took it for a load and refused every rest frame until the loaded frames' sparse measurements of the
         states happened to bring it under its bound, after 4-9 s by the frames' noise (device_b at -2 %, 16
         noise seeds: 0.96-1.04 x the unchanged device's zero p99 from 1 s, 3 of them 1.11-1.27 x, main
