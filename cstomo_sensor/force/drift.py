@@ -517,9 +517,10 @@ class DriftTracker:
         :data:`~.rest.QUIET_POST` seconds a frame that passes its own rest tests and that the joint fit reads
         below the rest force re-anchors the quiet test (force/rest.py), as after a task: the states the first
         rest frames fit move the frames' non-uniform force, a step of the tracker's own, not a load put on (a
-        small load held from the first frame, which passes the frame's own tests, is read by the joint fit). Before: the first rest frames left a 0.4-0.7 N lateral phantom, the quiet test
-        took it for a load and refused every rest frame until the loaded frames' sparse measurements of the
-        states happened to bring it under its bound, after 4-9 s by the frames' noise (device_b at -2 %, 16
+        small load held from the first frame, which passes the frame's own tests, is read by the joint fit).
+        Before: the first rest frames left a 0.4-0.7 N lateral phantom, the quiet test took it for a load
+        and refused every rest frame until the loaded frames' sparse measurements of the states happened to
+        bring it under its bound, after 4-9 s by the frames' noise (device_b at -2 %, 16
         noise seeds: 0.96-1.04 x the unchanged device's zero p99 from 1 s, 3 of them 1.11-1.27 x, main
         included; now 0.96-0.99 x)."""
         if not (age_s >= 0 and math.isfinite(age_s)):

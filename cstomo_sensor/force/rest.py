@@ -14,10 +14,11 @@ mean's noise where that is more (40 dB). A load the frame tests see (the means a
 :data:`QUIET_BIG` times the rest force) moves the slow mean with it, during it and :data:`QUIET_POST`
 seconds after it: the rests after a task re-acquire the states the task left stale (else the 1.5 %/K
 warm-up locks); so does, in a restart's first QUIET_POST seconds, a frame that reads no load by the joint fit
-(:meth:`~.drift.DriftTracker.widen`: the states stale for hours). A small load held longer (1 N: from about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put
-on within QUIET_POST after a larger one, is taken for the device as before. The verdict used is the
-previous frame's, not this one's: chosen by its own noise, the frames that count as rest would bias the
-scale (a held 2 N: -1.3e-4 on them, +5e-5 on the others). docs/node.md, *The zero over time*.
+(:meth:`~.drift.DriftTracker.widen`: the states stale for hours). A small load held longer (1 N: from
+about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put on within QUIET_POST after a larger one, is taken
+for the device as before. The verdict used is the previous frame's, not this one's: chosen by its own
+noise, the frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5 on the
+others). docs/node.md, *The zero over time*.
 """
 from __future__ import annotations
 
