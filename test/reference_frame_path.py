@@ -44,15 +44,16 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     if t is not None:
         self._t = t
     m = self.m
+    k = m + 1  # the measured states and the rate (the tracker's arrays go on with the slopes' states)
     a = math.exp(-dt / RATE_MEMORY)
     P = self.P.copy()
     P[0] += dt * P[m]
     P[m] *= a
     P[:, 0] += dt * P[:, m]
     P[:, m] *= a
-    P[np.diag_indices_from(P)] += self._q * dt
+    P[np.diag_indices_from(P)] += self._q[:k] * dt
     yw = y * self._w
-    b = self._Dw1 @ yw
+    b = self._Dw1[:k] @ yw
     best = b[0] / self._N[0, 0]
     rest = float(yw @ yw) - b[0] * best < self._rest
     if rest and self._W is not None:
@@ -80,8 +81,8 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
         return False
     self.rest_frames += 1
     self._unmeasured, self._t_rest = 0.0, self._t
-    info = self._N
-    gain = P @ np.linalg.inv(self._eye + info @ P)
+    info = self._N[:k, :k]
+    gain = P @ np.linalg.inv(np.eye(k) + info @ P)
     delta = gain @ (b - info[:, 0] * step)
     if np.isfinite(delta).all():
         self.scale *= (1.0 + step) * (1.0 + float(delta[0]))

@@ -13,10 +13,12 @@ over :data:`QUIET_SLOW` seconds of the frames that pass the tests (0.25 N apart 
 mean's noise where that is more (40 dB). A load the frame tests see (the means apart by more than
 :data:`QUIET_BIG` times the rest force) moves the slow mean with it, during it and :data:`QUIET_POST`
 seconds after it: the rests after a task re-acquire the states the task left stale (else the 1.5 %/K
-warm-up locks). A small load held longer (1 N: from about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put
-on within QUIET_POST after a larger one, is taken for the device as before. The verdict used is the
-previous frame's, not this one's: chosen by its own noise, the frames that count as rest would bias the
-scale (a held 2 N: -1.3e-4 on them, +5e-5 on the others). docs/node.md, *The zero over time*.
+warm-up locks); so does, in a restart's first QUIET_POST seconds, a frame that reads no load by the joint fit
+(:meth:`~.drift.DriftTracker.widen`: the states stale for hours). A small load held longer (1 N: from
+about 15 s; 0.80 N at 21 s, 0.72 N at 45 s), or put on within QUIET_POST after a larger one, is taken
+for the device as before. The verdict used is the previous frame's, not this one's: chosen by its own
+noise, the frames that count as rest would bias the scale (a held 2 N: -1.3e-4 on them, +5e-5 on the
+others). docs/node.md, *The zero over time*.
 """
 from __future__ import annotations
 
@@ -50,6 +52,12 @@ QUIET_BIG, QUIET_POST = 1.0, 2.0
 #: with LOADED_WEIGHT per frame, before it became per 10 ms: docs/benchmark.md, issue 26's warm-up).
 LOAD_BIAS_SIGMA = 1.5e-4
 LOAD_MOVE_N, LOAD_MOVE_REL = 2.0, 0.1
+
+
+def moved(force: list, held: list) -> bool:
+    """Whether ``force`` (3 floats, N) is another load than ``held`` (its force when its bias began): further
+    from it than LOAD_MOVE_N newtons or LOAD_MOVE_REL of it."""
+    return math.dist(force, held) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*held))
 
 
 class QuietTest:
@@ -125,6 +133,7 @@ class LoadBias:
     def __init__(self, n: int) -> None:
         self.c, self.p, self.b, self.force = np.zeros(n), 0.0, 0.0, None
         self.new = False  # the latest update began a new load
+        self.kx: np.ndarray | None = None  # its latest gain of the states
 
     def copy(self) -> LoadBias:
         new = LoadBias(len(self.c))
@@ -139,7 +148,7 @@ class LoadBias:
         white variance ``var``; ``P`` the states' predicted covariance (updated in place), ``F`` the
         prediction's transition; returns the states' update (None: not finite, nothing changed)."""
         f = np.asarray(force, float).tolist()  # on Python floats: a norm of 3 numbers in 0.1 us, not 3
-        self.new = self.force is None or math.dist(f, self.force) > max(LOAD_MOVE_N, LOAD_MOVE_REL * math.hypot(*self.force))
+        self.new = self.force is None or moved(f, self.force)
         if self.new:
             self.force, self.p, self.b = f, LOAD_BIAS_SIGMA ** 2, 0.0
             self.c[:] = 0.0
@@ -156,5 +165,6 @@ class LoadBias:
         P -= np.multiply.outer(kx, h)
         self.c -= kx * hb
         self.p -= kb * hb
+        self.kx = kx  # the states' gain (the tracker's other biases' covariance with them follows it)
         self.b += kb * nu
         return delta

@@ -176,7 +176,7 @@ class SlowStates:
         e = None
         if self.expected.pending is not None and result.valid:
             e = self.expected.for_frame(t, result.force, self._frame_sigma)
-        others = self.drift.wants_others
+        others = self.drift.others_wanted()  # counts the frame towards the other states' check
         own = self._joint.measure(None, others)
         return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)  # others: own's
 
@@ -204,11 +204,8 @@ class SlowStates:
                  per_scale, self.drift.m - 1)
 
     def _offsets(self) -> None:
-        # the tracker's other states are the contacts', then the resistivity gradients' (see reset), then the
-        # device's own directions (force/learned.py)
-        n = len(self.drift.learned) if self.drift is not None else 0
-        self.gradient = self.drift.gradient[len(self.drift.gradient) - n - 3:len(self.drift.gradient) - n].tolist() \
-            if self.drift is not None else None
+        # the resistivity gradients' states (the tracker's own block: after the contacts', before the learned)
+        self.gradient = self.drift.gradient[self.drift.gradients_block].tolist() if self.drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)
