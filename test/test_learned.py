@@ -74,11 +74,12 @@ def run_frames(stream, truth, spec, seed):
 def learning_session(device, tmp_path, spec):
     """A session from a fresh tare saved to a tare file, the device changing at rest; returns the stream."""
     truth, pipe, tare = device
+    tmp_path.mkdir(parents=True, exist_ok=True)
     path = tmp_path / "tare.csv"
     write_reference(path, tare.mean(0), tare.std(0, ddof=1), "test: saved tare", len(tare))
     stream = FrameStream(pipe, CONFIG, tare_file=path)
     stream.set_reference(tare.mean(0), tare.std(0, ddof=1), len(tare), "tare")
-    run_frames(stream, truth, spec, seed=5)
+    stream.test_forces = run_frames(stream, truth, spec, seed=5)[1]  # the forces read, for the replay check
     return stream, path
 
 
@@ -113,6 +114,13 @@ def test_a_non_uniform_change_is_learned_from_rests_and_kept_across_a_restart(de
     scale = np.abs(learned.rows).max()
     assert np.allclose(back.rows, learned.rows, rtol=1e-6, atol=1e-9 * scale)
     assert np.allclose(back.per_scale, learned.per_scale, rtol=1e-5)
+    # the same frames again (a replay): the same directions, learned at the same frames, the same forces (the
+    # decomposition is spread over the frames, no thread: learned.py STEPS)
+    again, _ = learning_session(device, tmp_path / "again", local_change(RAMP_S, LEARN_S))
+    assert len(again.slow.directions) == len(learned)
+    assert np.allclose(again.slow.directions.rows, learned.rows, rtol=1e-9, atol=1e-12 * scale)
+    f0, f1 = stream.test_forces, again.test_forces
+    assert f0.shape == f1.shape and np.allclose(f0, f1, rtol=1e-9, atol=1e-9, equal_nan=True)
 
     restart = local_change(0.0, RESTART_S)
     with_p99, node = restart_p99(device, path, restart)

@@ -9,20 +9,33 @@ learns it from the device's own rest frames and the tracker follows each learned
 state, with the same Kalman machinery as the model's (measured at rest, followed under load by its
 slope against the scale, widened at a restart).
 
-How. Each rest frame's change, whitened by its noise, less its least-squares fit by every tracked
-direction (its **residual**: what the tracked states cannot explain whatever their values), goes into
-running sums (the residuals' sum and second moment, and their products with the tracked scale), as means
-of :data:`AVG` rest frames (the device changes slowly: the mean keeps its change and a tenth of the noise),
-a batch of :data:`EVERY` means at a time; every :data:`DECIDE` means (not per frame: a rest frame costs a
-sum of its change, a tenth of a residual and a share of a batch's product) the residuals' covariance about their mean is decomposed (the
-reference's own noise is constant over the frames: not learned). It is first normalised by its own
-diagonal: each channel's noise as these frames measure it (a tare of 20 frames measures a channel's noise
-to within a factor 0.6..1.6, and a channel whose noise it underestimated would otherwise lead). Its
-leading component is learned when it exceeds :data:`LEARN_RATIO` times the noise's own edge, read from the
-same covariance as its :data:`BULK`-th largest component (no direction, learned or to be learned, reaches
-it). A device whose change is the model's leaves noise only: nothing is learned. At most
-:data:`MAX_DIRECTIONS` are learned; after one, the sums are projected off it and the next is sought among
-what is left.
+How. Each clear frame's change (*Which frames*), whitened by its noise, less its least-squares fit by every
+tracked direction (its **residual**: what the tracked states cannot explain whatever their values), goes into
+running sums (the residuals' sum and second moment, and their products with the tracked scale), as means of
+:data:`AVG` frames (the device changes slowly: the mean keeps its change and a tenth of the noise), a batch of
+:data:`EVERY` means at a time. The residuals' covariance about their mean (the reference's own noise is
+constant over the frames: not learned) is decomposed (*When*). It is first normalised by its own diagonal:
+each channel's noise as these frames measure it (a tare of 20 frames measures a channel's noise to within a
+factor 0.6..1.6, and a channel whose noise it underestimated would otherwise lead). A device whose change is
+the model's leaves noise only: nothing is learned. At most :data:`MAX_DIRECTIONS` are learned; after one, the
+sums are projected off it and the next is sought among what is left.
+
+Which frames. Every frame the rest test counts as rest, and every frame it refuses while no load came since
+the latest rest frame (:class:`Unloaded`: no step of the force, no controller's expected load beyond the
+rest force): a change none of the tracked directions describe reads as a phantom force that keeps the frames
+from counting as rest (a loose contact: 80 % of a session's frames), and it is what is to be learned; a load
+comes in a step, and after it only a rest frame clears the frames again, so a held load is never learned.
+
+When. After :data:`FIRST` samples, twice as many, up to :data:`DECIDE`, then every DECIDE more. The leading
+component is learned when its ratio to the covariance's :data:`BULK`-th largest (the noise's own: no
+direction, learned or to be learned, reaches it) exceeds the noise's edge for that many samples
+(:func:`noise_edge`, derived, not tuned: few samples spread the noise's components further).
+
+Off the frame's time. A decision takes a snapshot of the sums; the decomposition (:class:`_Lanczos`, the BULK
+largest of a covariance of about 200 channels: 3-5 ms of CPU, 15-25 ms on a loaded host, in one frame before)
+runs :data:`STEPS` Lanczos steps a frame (:meth:`DirectionLearner.tick`, every frame) and its decision is
+applied at the frame it ends in: the same frame on every run of the same frames (the node, ``cstomo replay``,
+``cstomo estimate``), no thread.
 
 A learned direction is kept in the tracker's units (the normalised change ``y``, scaled so that one unit of
 its state is as large, whitened, as a uniform change of one), with its slope against the scale over the
@@ -384,9 +397,11 @@ class DirectionLearner:
         row = np.where(keep, u * self._rho / np.where(keep, self._w, 1.0), 0.0)  # y units, a uniform change's size
         # what is left is sought off it: the sums (all of them, the samples since the snapshot too) projected
         # (whitened, u is a unit vector)
-        Pu = np.eye(self.p) - np.outer(u, u)
-        self._S2 = Pu @ self._S2 @ Pu
-        self._S1 = Pu @ self._S1
-        self._Sxs = Pu @ self._Sxs
+        # (I - u u^T) S2 (I - u u^T) as rank-one updates: O(p^2), not two products of O(p^3)
+        S2u = np.dot(self._S2, u)
+        uS2u = float(u.dot(S2u))
+        self._S2 -= np.multiply.outer(u, S2u) + np.multiply.outer(S2u, u) - uS2u * np.multiply.outer(u, u)
+        self._S1 -= u * float(u.dot(self._S1))
+        self._Sxs -= u * float(u.dot(self._Sxs))
         self.learned += 1
         return row, per_scale
