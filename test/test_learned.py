@@ -17,8 +17,17 @@ import pytest
 from cstomo_sensor.errors import FrameError
 from cstomo_sensor.force.config import PipelineConfig, StreamConfig
 from cstomo_sensor.force.device import write_reference
-from cstomo_sensor.force.learned import (AVG, BULK, STEPS, Directions, _Lanczos, directions_path, noise_edge,
-                                         read_directions, write_directions)
+from cstomo_sensor.force.learned import (
+    AVG,
+    BULK,
+    STEPS,
+    Directions,
+    _Lanczos,
+    directions_path,
+    noise_edge,
+    read_directions,
+    write_directions,
+)
 from cstomo_sensor.force.pipeline import Pipeline
 from cstomo_sensor.force.stream import FrameStream
 from cstomo_sensor.loop import Trace, run

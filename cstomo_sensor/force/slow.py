@@ -158,6 +158,8 @@ class SlowStates:
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
+        elif self.learner is not None:  # an implausible change (beyond max_force): a load, until the next rest
+            self.learner.unloaded.clear = False
         if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
                                                drift.change if drift is not None else 0.0,
