@@ -56,7 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.linalg import eigh_tridiagonal
+from scipy.linalg import eigh_tridiagonal, eigvalsh_tridiagonal
 
 from ..errors import FrameError
 from ..frames_io import read_frames, write_frames
@@ -227,18 +227,25 @@ class _Lanczos:
     def __init__(self, S2: np.ndarray, S1: np.ndarray, n: int, keep: np.ndarray, extra: tuple) -> None:
         self.snap = (S2.copy(), S1.copy(), n, keep)
         self.extra = extra  # the slope's sums at the snapshot (decide)
-        self.C = None
+        self.C = self.Q = None
         self.j = 0
         self.done = False
 
     def _start(self) -> None:
+        """The covariance about the mean over the channels in use (one frame), then normalised (the next)."""
         S2, S1, n, keep = self.snap
-        mu = S1 / n
-        C = (S2 / n - np.outer(mu, mu))[np.ix_(keep, keep)]
+        if self.C is None:
+            k = np.flatnonzero(keep)
+            C = S2[k][:, k]
+            C /= n
+            self.mu = mu = S1 / n
+            C -= np.multiply.outer(mu[k], mu[k])
+            self.C, self.n = C, n
+            return
         # against the noise's own second moment, channel by channel (module docstring)
+        C = self.C
         self.d = d = np.sqrt(np.maximum(C.diagonal(), 1e-300))
-        C /= np.outer(d, d)
-        self.C, self.mu, self.n = C, mu, n
+        C /= np.multiply.outer(d, d)
         k = len(C)
         self.Q = np.zeros((k + 1, k))
         q = np.random.default_rng(0).standard_normal(k)  # a fixed start: the same steps on every replay
@@ -247,8 +254,8 @@ class _Lanczos:
         self.tol = 1e-10 * max(float(np.trace(C)), 1e-300)
 
     def step(self, steps: int) -> bool:
-        """``steps`` more Lanczos steps (the first call forms the normalised covariance): True when done."""
-        if self.C is None:
+        """``steps`` more Lanczos steps (the first two calls form the normalised covariance): True when done."""
+        if self.Q is None:
             self._start()
             return False
         C, Q, k = self.C, self.Q, len(self.C)
@@ -269,14 +276,25 @@ class _Lanczos:
             Q[j + 1] = w / b
         return False
 
-    def result(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(the BULK largest components' variances, ascending; the leading one's unit vector) or None (too few)."""
+    def values(self) -> np.ndarray | None:
+        """The BULK largest components' variances (ascending), None if too few."""
         K = len(self.alpha)
         if K <= BULK:
             return None
-        lam, s = eigh_tridiagonal(np.array(self.alpha), np.array(self.beta[:K - 1]), select="i",
-                                  select_range=(K - BULK, K - 1))
-        return lam, np.dot(s[:, -1], self.Q[:K])
+        return eigvalsh_tridiagonal(np.array(self.alpha), np.array(self.beta[:K - 1]), select="i",
+                                    select_range=(K - BULK, K - 1))
+
+    def leading(self) -> np.ndarray:
+        """The leading component's unit vector (over the channels in use)."""
+        K = len(self.alpha)
+        _, s = eigh_tridiagonal(np.array(self.alpha), np.array(self.beta[:K - 1]), select="i",
+                                select_range=(K - 1, K - 1))
+        return np.dot(s[:, -1], self.Q[:K])
+
+    def result(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the BULK largest components' variances, ascending; the leading one's unit vector) or None (too few)."""
+        lam = self.values()
+        return None if lam is None else (lam, self.leading())
 
 
 class DirectionLearner:
@@ -368,10 +386,9 @@ class DirectionLearner:
 
     def _decide(self, run: _Lanczos) -> tuple[np.ndarray, float] | None:
         self.decisions += 1
-        out = run.result()
-        if out is None:
+        lam = run.values()
+        if lam is None:
             return None
-        lam, vec = out
         n, mu, d, keep = run.n, run.mu, run.d, run.snap[3]
         Ss, Sxs, m = run.extra
         # the noise's own largest components: the bulk's edge, read where no direction can reach (BULK-th largest)
@@ -384,7 +401,7 @@ class DirectionLearner:
         if not self.last_ratio > self.last_edge:
             return None
         # the direction, whitened again: the leading component of the covariance over the normalised one's channels
-        v = vec * d
+        v = run.leading() * d
         v /= max(float(np.linalg.norm(v)), 1e-300)
         u = np.zeros(self.p)
         u[keep] = v
