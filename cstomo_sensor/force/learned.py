@@ -75,7 +75,7 @@ EVERY = 50
 FIRST, DECIDE = 50, 200
 #: The noise's edge (noise_edge): its largest component's Tracy-Widom quantile. 4.0: exceeded by noise alone
 #: with a probability of about 1e-4 per decision (the law's upper tail); checked against white noise in
-#: test_learned (200 channels: the edge over the 99th percentile of 300 draws 1.06-1.10 for 30..900 samples).
+#: test_learned (200 channels: the edge over the 99th percentile of 300 draws 1.03-1.11 for 900..30 samples).
 EDGE_TW = 4.0
 #: The leading component is sought beside the noise's BULK largest: the BULK-th largest is the noise's own
 #: (at most MAX_DIRECTIONS are learned, the tracked ones are projected off), the ratio of the largest to it
