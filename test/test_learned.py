@@ -22,6 +22,7 @@ from cstomo_sensor.force.learned import (
     BULK,
     STEPS,
     Directions,
+    Unloaded,
     _Lanczos,
     directions_path,
     noise_edge,
@@ -257,3 +258,30 @@ def test_a_load_held_for_minutes_is_not_learned(device, tmp_path):
     assert 0 < L.fed <= unloaded_frames  # the unloaded frames only
     assert len(stream.slow.directions) == 0 and stream.drift.m == 8
     assert not directions_path(path).exists()
+
+
+def test_the_chain_of_clear_frames_follows_a_slow_phantom_and_breaks_at_a_load():
+    """Unloaded (learned.py): after a rest frame, frames the rest test refuses stay clear while the force moves as
+    a device's change does (a phantom growing 1.5 N in 30 s, noise 0.27 N per axis at 100 frames/s); a load's step
+    (0.5 N in 0.1 s), a known load or a refused frame ends it, and only a rest frame begins it again."""
+    rng = np.random.default_rng(4)
+    sigma, dt = 0.27, 0.01
+    u = Unloaded()
+
+    def frames(force_of_t, n, rest=False, known=False, t0=0.0):
+        return [u.step(force_of_t(t0 + i * dt) + rng.normal(0, sigma, 3), rest, sigma, dt, known) for i in range(n)]
+
+    assert not any(frames(lambda t: np.zeros(3), 300))  # no rest frame yet: nothing is clear
+    assert all(frames(lambda t: np.zeros(3), 5, rest=True))
+    phantom = lambda t: np.array([0.05 * t, -0.02 * t, 0.0])  # noqa: E731
+    assert all(frames(phantom, 3000))  # 30 s of a slow phantom, refused by the rest test: clear throughout
+    f0 = phantom(30.0)
+    step = frames(lambda t: f0 + np.array([0.0, 0.0, -min(t, 0.1) * 5.0]), 300)  # a 0.5 N load put on in 0.1 s
+    assert not step[-1] and sum(step) < 40  # the step ends the chain within 0.4 s ...
+    assert not any(frames(lambda t: f0 + np.array([0.0, 0.0, -0.5]), 2000))  # ... and the held load stays out
+    assert all(frames(lambda t: np.zeros(3), 300, rest=True))  # rest frames (fed as ever) begin it again ...
+    assert all(frames(lambda t: np.zeros(3), 100))  # ... once the load's step has passed
+    assert not any(frames(lambda t: np.zeros(3), 5, known=True))  # a controller's load beyond the rest force
+    assert all(frames(lambda t: np.zeros(3), 5, rest=True))
+    assert not u.step(None, False, sigma, dt, False)  # a refused frame (no force)
+    assert not any(frames(lambda t: np.zeros(3), 5))
