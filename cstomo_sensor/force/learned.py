@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,6 +94,9 @@ STEPS = 1
 #: the noise's 3-D excursions the rest (clear for 30 s on 8 noise seeds of 8; test_learned checks one). A load put on more
 #: slowly than about 0.1 N/s is taken for the device (docs/node.md).
 STEP_FAST, STEP_SLOW = 0.2, 1.0
+#: ... and a load's first frames come before its step is seen: a sample counts HOLD_S after its last frame, and
+#: the samples still held when the chain ends are dropped (DirectionLearner.discard).
+HOLD_S = 0.5
 STEP_SIGMAS, STEP_N = 6.0, 0.12
 #: Directions learned at most (each one more state of the tracker).
 MAX_DIRECTIONS = 2
@@ -178,6 +182,7 @@ class Unloaded:
     def __init__(self) -> None:
         self.fast = self.slow = None
         self.clear = False  # no load since the latest rest frame
+        self.broke = False  # the latest frame ended the chain (a step, a known load, a refused frame)
         self._dt, self._k = None, None
 
     def step(self, force: np.ndarray | None, rest: bool, sigma: float, dt: float, known: bool) -> bool:
@@ -186,7 +191,7 @@ class Unloaded:
         ``dt`` (s) and whether a load is known (``known``: a controller's expected load): whether the frame
         feeds the learner: a rest frame, or a clear one."""
         if force is None or not np.isfinite(force).all():
-            self.clear = False
+            self.clear, self.broke = False, True
             return rest
         if dt != self._dt:  # frames come at one rate: the factors once
             a, b = 1.0 - math.exp(-dt / STEP_FAST), 1.0 - math.exp(-dt / STEP_SLOW)
@@ -202,7 +207,8 @@ class Unloaded:
         d = self.fast - self.slow
         bound = max(STEP_N, STEP_SIGMAS * sd * sigma)
         moved = float(d.dot(d)) > bound * bound
-        self.clear = (self.clear or rest) and not (moved or known)
+        self.broke = moved or known
+        self.clear = (self.clear or rest) and not self.broke
         return self.clear or rest  # a rest frame feeds it as ever (the rest test's own verdict)
 
 
@@ -323,6 +329,9 @@ class DirectionLearner:
         self._run: _Lanczos | None = None  # the decomposition under way (tick)
         self.decisions = 0
         self.fed = 0  # frames added (diagnostics, tests)
+        self.frames = 0  # frames ticked
+        self._pending: deque = deque()  # samples held (release frame, residual, scale)
+        self._hold_dt, self._hold = None, max(1, math.ceil(HOLD_S / 0.01))
         self.last_ratio = 0.0  # the latest decomposition's leading variance over the noise's (diagnostics, tests)
         self.max_ratio = 0.0  # ... and the largest so far
         self.last_edge = math.inf  # ... the noise's edge for its samples (noise_edge)
@@ -356,6 +365,16 @@ class DirectionLearner:
         res = yw - np.dot(np.dot(self._A, yw), self._Dw)
         if not np.isfinite(res).all():
             return
+        # held HOLD_S before it counts: a load's first frames feed it before its step is seen (discard)
+        self._pending.append((self.frames + self._hold, res, s_mean))
+
+    def discard(self) -> None:
+        """The chain of clear frames ended (:class:`Unloaded`): the samples not yet counted, and the one being
+        averaged, may hold a load's first frames: dropped."""
+        self._pending.clear()
+        self._ysum[:], self._ssum, self._j = 0.0, 0.0, 0
+
+    def _commit(self, res: np.ndarray, s_mean: float) -> None:
         self._batch[self._k] = res
         self._s[self._k] = s_mean
         self._k += 1
@@ -375,9 +394,15 @@ class DirectionLearner:
             self._run = _Lanczos(self._S2, self._S1, self.n, self._keep,
                                  (self._Ss[:2].copy(), self._Sxs.copy(), self._m))
 
-    def tick(self, tracker) -> tuple[np.ndarray, float] | None:
-        """A frame (every one, clear or not): the decomposition under way a few steps on; when it is done, its
-        decision: a newly learned (row, per_scale), else None."""
+    def tick(self, tracker, dt: float | None = None) -> tuple[np.ndarray, float] | None:
+        """A frame (every one, clear or not; ``dt`` s after the previous): the samples held HOLD_S counted, the
+        decomposition under way a few steps on; when it is done, its decision: a newly learned (row, per_scale),
+        else None."""
+        self.frames += 1
+        if dt is not None and dt > 0 and dt != self._hold_dt:
+            self._hold_dt, self._hold = dt, max(1, math.ceil(HOLD_S / dt))
+        while self._pending and self._pending[0][0] <= self.frames:
+            self._commit(*self._pending.popleft()[1:])
         run = self._run
         if run is None or not run.step(STEPS):
             return None

@@ -160,6 +160,7 @@ class SlowStates:
             self._offsets()
         elif self.learner is not None:  # an implausible change (beyond max_force): a load, until the next rest
             self.learner.unloaded.clear = False
+            self.learner.discard()
         if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
                                                drift.change if drift is not None else 0.0,
@@ -205,9 +206,11 @@ class SlowStates:
             e = self.expected.pending
             known = e is not None and float(np.dot(e[0], e[0])) > drift.rest_force ** 2
             clear = learner.unloaded.step(result.force if result.valid else None, rest, quiet.sigma, drift._dt, known)
+            if learner.unloaded.broke:  # its samples not yet counted may hold a load's first frames
+                learner.discard()
         if clear:
             learner.add(drift, y)
-        new = learner.tick(drift)
+        new = learner.tick(drift, drift._dt)
         if new is None:
             return
         row, per_scale = new
