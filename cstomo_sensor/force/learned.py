@@ -29,7 +29,8 @@ comes in a step, and after it only a rest frame clears the frames again, so a he
 When. After :data:`FIRST` samples, twice as many, up to :data:`DECIDE`, then every DECIDE more. The leading
 component is learned when its ratio to the covariance's :data:`BULK`-th largest (the noise's own: no
 direction, learned or to be learned, reaches it) exceeds the noise's edge for that many samples
-(:func:`noise_edge`, derived, not tuned: few samples spread the noise's components further).
+(:func:`noise_edge`, derived, not tuned: few samples spread the noise's components further), and at least
+:data:`LEARN_RATIO` (a real noise's own spread, which many samples do not shrink).
 
 Off the frame's time. A decision takes a snapshot of the sums; the decomposition (:class:`_Lanczos`, the BULK
 largest of a covariance of about 200 channels: 3-5 ms of CPU, 15-25 ms on a loaded host, in one frame before)
@@ -78,6 +79,11 @@ FIRST, DECIDE = 50, 200
 #: with a probability of about 1e-4 per decision (the law's upper tail); checked against white noise in
 #: test_learned (200 channels: the edge over the 99th percentile of 300 draws 1.03-1.11 for 900..30 samples).
 EDGE_TW = 4.0
+#: ... and at least LEARN_RATIO: the white noise's edge falls toward 1 as the samples grow (1.135 at 900, 1.05
+#: at 10000), but a real noise is not white: its own components spread (device_c's coarse truth, 60 dB, a
+#: uniform change or none: 1.05-1.10 at 900 samples, 1.10 at 800 where the white edge is 1.14), and that spread
+#: stays however many samples. One electrode's contact +20 %: 1.47 at 900 samples.
+LEARN_RATIO = 1.3
 #: The leading component is sought beside the noise's BULK largest: the BULK-th largest is the noise's own
 #: (at most MAX_DIRECTIONS are learned, the tracked ones are projected off), the ratio of the largest to it
 #: the decision's statistic.
@@ -336,6 +342,7 @@ class DirectionLearner:
         self.max_ratio = 0.0  # ... and the largest so far
         self.last_edge = math.inf  # ... the noise's edge for its samples (noise_edge)
         self.max_excess = 0.0  # ... and the largest ratio over its edge so far (> 1: learned)
+        self.history: list[tuple[int, float, float]] = []  # every decision's (samples, ratio, edge)
 
     def _projection(self, tracker) -> None:
         """The least-squares residual's operator for ``tracker``'s directions (whitened)."""
@@ -423,8 +430,9 @@ class DirectionLearner:
         self.last_ratio = float(lam[-1] / bulk) if bulk > 0 else 0.0
         self.max_ratio = max(self.max_ratio, self.last_ratio)
         # the channels the residual spans: those in use less the tracked directions projected off
-        self.last_edge = noise_edge(n, int(np.count_nonzero(keep)) - m)
+        self.last_edge = max(LEARN_RATIO, noise_edge(n, int(np.count_nonzero(keep)) - m))
         self.max_excess = max(self.max_excess, self.last_ratio / self.last_edge)
+        self.history.append((n, self.last_ratio, self.last_edge))
         if not self.last_ratio > self.last_edge:
             return None
         # the direction, whitened again: the leading component of the covariance over the normalised one's channels
