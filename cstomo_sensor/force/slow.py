@@ -145,18 +145,22 @@ class SlowStates:
             if drift is not None:
                 # every frame measures the scale jointly with its force (force/joint.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
-                if drift.observe(y, t, self._joint_scale(pipe, t, result)) and self.learner is not None:
-                    self._learn(y)
-                    if drift is not self.drift:  # one more state: its sigma too
-                        drift = self.drift
-                        sig = self._sigma_model(pipe) if sig is not None else None
+                rest = drift.observe(y, t, self._joint_scale(pipe, t, result))
                 self.scale = drift.scale
                 if drift.force_step is not None and result.valid:
                     result.force = result.force + drift.force_step
                     result.magnitude, result.elevation, result.azimuth = force_angles3(result.force)
+                if self.learner is not None:
+                    self._learn(y, rest, result)
+                    if drift is not self.drift:  # one more state: its sigma too
+                        drift = self.drift
+                        sig = self._sigma_model(pipe) if sig is not None else None
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
+        elif self.learner is not None:  # an implausible change (beyond max_force): a load, until the next rest
+            self.learner.unloaded.clear = False
+            self.learner.discard()
         if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
             result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
                                                drift.change if drift is not None else 0.0,
@@ -189,9 +193,24 @@ class SlowStates:
         of the force in the joint fit of the device's scale for frames within the tolerance of its stamp."""
         return self.expected.offer(force, sigma, stamp_ns, frame_id, source)
 
-    def _learn(self, y: np.ndarray) -> None:
-        """A rest frame's change ``y`` into the learner (force/learned.py); a direction learned: one more state."""
-        new = self.learner.add(self.drift, y)
+    def _learn(self, y: np.ndarray, rest: bool, result) -> None:
+        """A frame's change ``y`` into the learner (force/learned.py) if it is clear: counted as rest (``rest``),
+        or refused by the rest test with no load since the latest rest frame and none known (its ``result``'s
+        force, :class:`~.learned.Unloaded`); the learner's decomposition a step on; a direction learned: one
+        more state."""
+        drift, learner = self.drift, self.learner
+        quiet = getattr(drift, "_quiet", None)  # the force's per-frame noise (None: no force map, rest frames only)
+        if quiet is None:
+            clear = rest
+        else:
+            e = self.expected.pending
+            known = e is not None and float(np.dot(e[0], e[0])) > drift.rest_force ** 2
+            clear = learner.unloaded.step(result.force if result.valid else None, rest, quiet.sigma, drift._dt, known)
+            if learner.unloaded.broke:  # its samples not yet counted may hold a load's first frames
+                learner.discard()
+        if clear:
+            learner.add(drift, y)
+        new = learner.tick(drift, drift._dt)
         if new is None:
             return
         row, per_scale = new
@@ -199,9 +218,9 @@ class SlowStates:
         # its state unknown as yet: 1-sigma the change the scale made (the next rest frames measure it)
         self.drift = self.drift.with_directions(row, [per_scale], max(abs(self.drift.change), 1e-3))
         self.learned_new = True
-        log.info("learned a direction of the device's own change from %d rest frames (%.1f x the noise's; "
-                 "restart 1-sigma %.2f x the scale's): tracked as state %d", self.learner.n * AVG, self.learner.last_ratio,
-                 per_scale, self.drift.m - 1)
+        log.info("learned a direction of the device's own change from %d clear frames (%.2f x the noise's largest, "
+                 "its edge %.2f; restart 1-sigma %.2f x the scale's): tracked as state %d", learner.n * AVG,
+                 learner.last_ratio, learner.last_edge, per_scale, self.drift.m - 1)
 
     def _offsets(self) -> None:
         # the resistivity gradients' states (the tracker's own block: after the contacts', before the learned)
