@@ -1,7 +1,7 @@
 """Every setting of the node, declared once: name, default, range or choices, unit and description.
 
 The node's parameters (their ROS descriptors: ros/params.py), the defaults and range checks
-(:func:`check_config`) of :class:`~.force.config.PipelineConfig`, :class:`~.force.config.StreamConfig`
+(:func:`check_config`) of :class:`~.frame_path.config.PipelineConfig`, :class:`~.frame_path.config.StreamConfig`
 and the node's ``NodeConfig``, the command-line flags that mirror a setting (:func:`.tools.common.add_setting_arg`),
 the launch arguments that override one (:mod:`.tools.launching`), ``cstomo_sensor_node --help``,
 ``config/cstomo_sensor.yaml`` and the parameter table of docs/node.md all come from :data:`SETTINGS`;
@@ -22,7 +22,7 @@ from .errors import ConfigError
 # a setting and its owner use: declared here once, imported by the owner (named beside each).
 #: The wire modes a board may speak (board/wire.py); the first is the default.
 PROTOCOLS = ("binary", "text")
-#: The force estimators by name (force/estimate.py); the first is the default: ``model``, the more accurate,
+#: The force estimators by name (force/estimators/estimate.py); the first is the default: ``model``, the more accurate,
 #: whose per-frame cost with the drift tracking (``cstomo bench --frame-cost``) is within the 0.1 ms aim.
 ESTIMATORS = ("model", "linear")
 #: The sensor of the node, the tools and the benchmark unless told otherwise (a preset name, model/geometry.py).
@@ -31,15 +31,15 @@ DEFAULT_SENSOR = "cuboid_joint"
 MESH_SIZE_RANGE = (2.0e-4, 2.0e-2)
 #: The typical rubber's creep per decade (model/material.py's creep law), the middle of the documented
 #: 2..6 % per decade: the one declaration of both what the frame stream compensates without a calibration
-#: (``creep_per_decade``, force/creep.py) and how the simulated board's rubber creeps by default
+#: (``creep_per_decade``, force/slow_states/creep.py) and how the simulated board's rubber creeps by default
 #: (``cstomo board-sim --creep``), so that the node with its defaults reads a held load of the simulated
 #: board with its defaults constant.
 TYPICAL_CREEP_PER_DECADE = 0.04
-#: The largest creep coefficient taken (rubbers: 0.02..0.06); the compensation (force/creep.py) feeds back
+#: The largest creep coefficient taken (rubbers: 0.02..0.06); the compensation (force/slow_states/creep.py) feeds back
 #: its own output, stable to about 0.3 per decade.
 MAX_CREEP = 0.2
 #: The rated force range of the socket (docs/physics.md#loads): the calibration's largest load
-#: (force/training.py ``CalibrationSpec.magnitudes``), N.
+#: (force/estimators/training.py ``CalibrationSpec.magnitudes``), N.
 RATED_FORCE = 40.0
 
 INPUTS = ("serial", "topic")

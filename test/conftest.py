@@ -247,8 +247,8 @@ def source():
 @pytest.fixture(scope="module")
 def warm_model():
     """Build the Pipeline once (into the test cache); every node below loads it in well under a second."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 

@@ -13,9 +13,9 @@ Two tables:
 1. **Against the model's reference** (what a first tare could compare with): the candidate tare's change
    from the model's predicted frame, its global factor divided out and projected off the uniform, the
    contacts' (4) and the gradient's (3) directions, through the estimator retrained blind to them (the
-   rule force/tare.py applies between two tares): the "load" each device reads unloaded, and under each
+   rule force/reference/tare_rules.py applies between two tares): the "load" each device reads unloaded, and under each
    load.
-2. **After the first tare** (force/first_tare.py): a FrameStream tares on 50 frames under the load, reads
+2. **After the first tare** (force/reference/first_tare.py): a FrameStream tares on 50 frames under the load, reads
    100 frames of it, then 200 unloaded frames: the smallest load whose first tare is dropped once the
    load goes, by direction and device.
 3. A true first tare (taken unloaded), then every load of the device: never dropped, and the largest
@@ -66,8 +66,8 @@ def device_frames(scene):
 
 def model_figure(pipe):
     """The figure of table 1 for a candidate tare (volts): the blind estimate's norm (N)."""
-    from cstomo_sensor.force.device import ScaleReport
-    from cstomo_sensor.force.joint import gradient_directions
+    from cstomo_sensor.force.estimators.scale_fit import gradient_directions
+    from cstomo_sensor.force.reference.files import ScaleReport
 
     m = pipe.model
     q, _ = np.linalg.qr(np.vstack([m.model_reference / m.v_scale, m.contact, gradient_directions(m)]).T)
@@ -87,8 +87,8 @@ def model_figure(pipe):
 def run_stream(pipe, frames, tare_file):
     """Push ``frames`` ((n, n_meas) volts, one per 10 ms) through a FrameStream from a first start; returns
     (the frame index at which the first tare was dropped, None if never; forces (n, 3), NaN without output)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     Path(tare_file).unlink(missing_ok=True)  # a first start: no saved tare, no reference
     pipe.reference = None
@@ -112,9 +112,9 @@ def main() -> None:
     ap.add_argument("--estimator", default="model", choices=("model", "linear"))
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.first_tare import PULL_FRAMES, PULL_MIN_N
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.force.reference.first_tare import PULL_FRAMES, PULL_MIN_N
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
     from cstomo_sensor.model.simulate import add_noise
 
     t0 = time.perf_counter()

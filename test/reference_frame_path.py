@@ -36,8 +36,15 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     column operations and the rest frame's gain through a matrix inverse, on ``tracker``'s state; with
     issue 26's follow under load: the other states' slope against the scale by a weighted polynomial
     fit of every rest frame kept (``np.polyfit``), and their variance's growth since the last rest."""
-    from cstomo_sensor.force.creep import DEFAULT_PERIOD
-    from cstomo_sensor.force.drift import FOLLOW_MEMORY, FOLLOW_SIGMA, FOLLOW_SPAN, RATE_MEMORY, RESTART_CONTACT, RESTART_GRADIENT
+    from cstomo_sensor.force.slow_states.creep import DEFAULT_PERIOD
+    from cstomo_sensor.force.slow_states.drift import (
+        FOLLOW_MEMORY,
+        FOLLOW_SIGMA,
+        FOLLOW_SPAN,
+        RATE_MEMORY,
+        RESTART_CONTACT,
+        RESTART_GRADIENT,
+    )
 
     self = tracker
     dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
@@ -111,7 +118,7 @@ def model_sigma(sig, D: np.ndarray | None, force: np.ndarray, P: np.ndarray | No
     covariance of the module docstring as one 3 x 3 matrix (``D``: the tracker's directions) (issue 26: the per-frame form solved the
     normal equations by LAPACK with the states' directions as right-hand sides; issue 34: the frame's
     ``misfit`` times the noise's and the states' terms, the calibration residual by the load's elevation)."""
-    from cstomo_sensor.force.sigma import UNDESCRIBED
+    from cstomo_sensor.force.slow_states.sigma import UNDESCRIBED
 
     est = sig.est
     k, fit = est.scale, est.last_fit
@@ -142,7 +149,7 @@ class PlainCreep:
     ``s += (1 - exp(-dt / tau)) (last - s)``, by broadcast row operations; the same queue and clock."""
 
     def __init__(self, coefficient: float, n_meas: int) -> None:
-        from cstomo_sensor.force.creep import creep_modes
+        from cstomo_sensor.force.slow_states.creep import creep_modes
 
         self.tau, w = creep_modes()
         self.cw = coefficient * w
@@ -152,7 +159,7 @@ class PlainCreep:
         self.last, self.t_last, self.f_last = np.zeros(n_meas), 0.1, None
 
     def observe(self, y: np.ndarray, t: float, frozen: np.ndarray | None = None) -> None:
-        from cstomo_sensor.force.creep import CREEP_T0, MAX_STEPS, PERIOD_STEPS, STEP_ROUND
+        from cstomo_sensor.force.slow_states.creep import CREEP_T0, MAX_STEPS, PERIOD_STEPS, STEP_ROUND
 
         step = None if self.t is None else t - self.t
         self.t = t

@@ -1,4 +1,4 @@
-"""Device calibration on known loads (cstomo_sensor.force.calibration, ``cstomo calibrate``).
+"""Device calibration on known loads (cstomo_sensor.force.reference.calibration, ``cstomo calibrate``).
 
 The device is scenes/devices/cuboid_joint_device_a.yaml (material and electrode placement inside
 docs/physics.md#real-devices), simulated honestly by the scene file scenes/cuboid_device_a_60db.yaml
@@ -18,10 +18,10 @@ import pytest
 from conftest import MODEL_H
 
 from cstomo_sensor.errors import ConfigError, ModelMismatchError
-from cstomo_sensor.force.calibration import DeviceCalibration, calibrate, summary
-from cstomo_sensor.force.config import PipelineConfig
-from cstomo_sensor.force.device import reference_of
-from cstomo_sensor.force.pipeline import Pipeline
+from cstomo_sensor.force.reference.calibration import DeviceCalibration, calibrate, summary
+from cstomo_sensor.force.reference.files import reference_of
+from cstomo_sensor.frame_path.config import PipelineConfig
+from cstomo_sensor.frame_path.pipeline import Pipeline
 from cstomo_sensor.model.simulate import Load, Scene, add_noise
 
 pytestmark = pytest.mark.slow  # calibration effort: the held-out device's frames (~47 s) and node runs
@@ -99,7 +99,7 @@ def test_file_round_trip_other_model_refused_and_damage_named(tmp_path, device):
     other_pipe = Pipeline(pipe.geometry, other, pipe.base_estimator)
     with pytest.raises(ModelMismatchError) as err:
         other_pipe.set_calibration(back)
-    from cstomo_sensor.force.calibration import model_hash
+    from cstomo_sensor.force.reference.calibration import model_hash
 
     assert cal.model_hash in str(err.value) and model_hash(other) in str(err.value)
     same = dataclasses.replace(pipe.model, model_reference=pipe.model.model_reference * (1 + 1e-13))
@@ -170,7 +170,7 @@ def test_a_rosbag_with_load_changes_calibrates_as_the_csv_files(tmp_path, device
     assert main([*common, "--reference", str(tmp_path / "ref.csv"), "--frames", str(tmp_path / "frames.csv"),
                  "--forces", str(tmp_path / "forces.csv"), "--out", str(tmp_path / "csv.yaml")]) == 0
     # the device's unloaded reference beside the calibration, stamped with the time its frames were recorded
-    from cstomo_sensor.force.device import read_reference, saved_at
+    from cstomo_sensor.force.reference.files import read_reference, saved_at
 
     written, _, n_written = read_reference(tmp_path / "csv.reference.csv")
     assert n_written == len(tare)
@@ -249,7 +249,7 @@ def test_a_one_frame_reference_takes_the_recordings_noise(tmp_path, device, caps
     for 5 frames on a 40 dB board: the estimate says 40 dB, from the documented rms x 10^(-SNR/20));
     a recording too short to tell (fewer than 10 frame pairs) keeps the assumed 60 dB, and says so.
     (A file of distinct loads, one frame each, may pass for noise: on one truth mesh its 19 pairs said
-    39 dB at 60 dB, on another they were refused; force/noise.py's limit, docs/calibration.md.)"""
+    39 dB at 60 dB, on another they were refused; force/reference/noise_estimate.py's limit, docs/calibration.md.)"""
     from cstomo_sensor.frames_io import write_forces, write_frames
     from cstomo_sensor.tools.calibrate import main
 
@@ -283,8 +283,8 @@ def test_a_first_start_under_a_load_reads_it_from_the_calibrations_reference(ros
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
-    from cstomo_sensor.force.calibration import reference_path_of
-    from cstomo_sensor.force.device import write_reference
+    from cstomo_sensor.force.reference.calibration import reference_path_of
+    from cstomo_sensor.force.reference.files import write_reference
     from cstomo_sensor.ros.messages import raw_voltages_msg
 
     tare, frames, forces, held, held_forces = device
@@ -339,10 +339,10 @@ def test_a_tare_at_start_is_checked_against_the_calibrations_reference(tmp_path,
 
     from conftest import PIPE
 
-    from cstomo_sensor.force.calibration import reference_path_of
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.device import write_reference
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.force.reference.calibration import reference_path_of
+    from cstomo_sensor.force.reference.files import write_reference
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     tare, frames, forces, held, held_forces = device
     cfg = {k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.force.calibration import calibrate, fit_correction, load_groups
+from cstomo_sensor.force.reference.calibration import calibrate, fit_correction, load_groups
 
 
 def _device(seed: int = 8):

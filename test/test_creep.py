@@ -1,4 +1,4 @@
-"""Creep (force/creep.py): a held load reads constant, its recovery reads zero, the coefficient is fitted
+"""Creep (force/slow_states/creep.py): a held load reads constant, its recovery reads zero, the coefficient is fitted
 from a held load and carried by the calibration file. The data: the honest device over time
 (model/timeline.py: its own mesh, the creep law applied to the truth's strain), never the model's."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cstomo_sensor.force.creep import CREEP_T0, creep_kernel
+from cstomo_sensor.force.slow_states.creep import CREEP_T0, creep_kernel
 
 
 def test_a_stamp_that_goes_back_or_jumps_does_not_corrupt_the_history():
@@ -14,7 +14,7 @@ def test_a_stamp_that_goes_back_or_jumps_does_not_corrupt_the_history():
     0.51 s (from then on), or one frame's stamp off by as much: the creep offset afterwards stays within
     3e-3 of the clean run's (the history ages by at most 10 frame periods at the step; unguarded, the
     frame after a stamp 5 s early aged it by 5 s: 0.04)."""
-    from cstomo_sensor.force.creep import CreepCompensator
+    from cstomo_sensor.force.slow_states.creep import CreepCompensator
 
     runs = {}
     cases = [("clean", 0.0, False)] + [(f"{d:+g} s {kind}", d, kind == "once") for d in (-5.0, 30.0)
@@ -48,7 +48,7 @@ def test_a_held_change_that_creeps_by_the_law_is_compensated_from_its_first_fram
     held 10 minutes and removed: compensated within 0.08 % of it at every frame from its first (0.66 %
     with the former kernel), 0.02 % after its removal, at 10, 100 and 25 frames/s, and with stamps
     that jitter by 20 us as a board's mapped to the host's clock do."""
-    from cstomo_sensor.force.creep import CreepCompensator
+    from cstomo_sensor.force.slow_states.creep import CreepCompensator
 
     c = 0.04
     t = np.arange(0.0, 620.0, 1.0 / rate)
@@ -84,8 +84,8 @@ def held(warm_model):
 
 
 def _magnitudes(pipe, held, creep, tracking=True):
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     times, frames, tare = held
     stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking, creep_per_decade=creep))
@@ -139,9 +139,9 @@ def test_without_noise_the_compensated_hold_is_flat_to_a_tenth_of_a_percent(warm
 
 @pytest.mark.slow
 def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibration_file(warm_model, held, tmp_path):
-    from cstomo_sensor.force.calibration import DeviceCalibration
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.force.reference.calibration import DeviceCalibration
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
     from cstomo_sensor.tools.calibrate import held_creep
 
     times, frames, tare = held
@@ -192,7 +192,7 @@ def test_calibrate_fits_the_creep_from_the_recordings_held_loads_and_says_when_i
     written into the file (its rests, 0 N rows of the forces file, are the creep's history, not loads);
     without --rate (a frames file has no time), or with each load's frames listed for its first 3 s
     only (fewer than 3 held 5 s), it says why in one line and writes none; --creep-per-decade overrides."""
-    from cstomo_sensor.force.calibration import DeviceCalibration
+    from cstomo_sensor.force.reference.calibration import DeviceCalibration
     from cstomo_sensor.frames_io import write_forces, write_frames
     from cstomo_sensor.tools.calibrate import main
 
@@ -236,8 +236,8 @@ HOLD_ON, HOLD_OFF = 1.0, 601.0  # 20 N straight down applied at 1 s, held 10 min
 @pytest.fixture(scope="module")
 def default_pipe():
     """The default pipeline (`model` estimator, the node's and `cstomo estimate`'s)."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig())
 
@@ -260,8 +260,8 @@ def _hold(pipe, rubber: float, comp: float, times: np.ndarray, snr_db, seed: int
     creeping by ``rubber`` per decade (its own 3 mm mesh, the law applied to its strain), through a
     default stream compensating ``comp``. With
     noise the readings are medians over 0.1 s (1 s), the hold's last 10 s and 1 s (rests)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
     from cstomo_sensor.model.simulate import add_noise
     from cstomo_sensor.model.timeline import Timeline, held_load_creep
 

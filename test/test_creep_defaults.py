@@ -16,8 +16,8 @@ from cstomo_sensor.settings import TYPICAL_CREEP_PER_DECADE
 
 def test_one_declaration_of_the_typical_creep_and_of_the_simulated_boards_rate_and_sensor(tmp_path):
     from cstomo_sensor.board.sim import DEFAULT_RATE_HZ
-    from cstomo_sensor.force.config import PipelineConfig, StreamConfig
-    from cstomo_sensor.force.creep import DEFAULT_CREEP
+    from cstomo_sensor.force.slow_states.creep import DEFAULT_CREEP
+    from cstomo_sensor.frame_path.config import PipelineConfig, StreamConfig
     from cstomo_sensor.model.timeline import held_load_creep
     from cstomo_sensor.tools import board_sim
     from cstomo_sensor.tools.launching import _sim_board

@@ -11,16 +11,16 @@ from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import angle_between
 from cstomo_sensor.errors import ConfigError, FrameError
-from cstomo_sensor.force.config import PipelineConfig
-from cstomo_sensor.force.device import (
+from cstomo_sensor.force.reference.files import (
     UNEXPLAINED_WARN,
     ScaleReport,
     read_reference,
     reference_of,
     write_reference,
 )
-from cstomo_sensor.force.pipeline import Pipeline
-from cstomo_sensor.force.stream import FrameStream
+from cstomo_sensor.frame_path.config import PipelineConfig
+from cstomo_sensor.frame_path.pipeline import Pipeline
+from cstomo_sensor.frame_path.stream import FrameStream
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
 pytestmark = pytest.mark.slow  # the scaled devices' frames (~15 s set-up)

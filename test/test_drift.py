@@ -1,4 +1,4 @@
-"""The zero that holds (force/drift.py): a device whose resistivity changes uniformly after its tare
+"""The zero that holds (force/slow_states/drift.py): a device whose resistivity changes uniformly after its tare
 (it warmed or cooled; section "Device changes" of docs/physics.md), simulated honestly on the truth's
 own mesh with its contacts unchanged (so the change is a scaling plus a contact change, not the
 tracker's model), reads the same force as without the change.
@@ -34,8 +34,8 @@ def device(warm_model):
 
 
 def _stream(pipe, ref, tracking, rng):
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(pipe, StreamConfig.offline(drift_tracking=tracking))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
@@ -132,7 +132,7 @@ def test_an_all_zero_frame_does_not_move_the_scale(warm_model, device):
 
 
 def test_the_node_parameter_and_the_command_line_turn_it_off(warm_model):
-    from cstomo_sensor.force.config import StreamConfig
+    from cstomo_sensor.frame_path.config import StreamConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
     from cstomo_sensor.tools.common import add_pipeline_args  # noqa: F401 - the flags' module imports
 
@@ -149,8 +149,8 @@ def test_a_drifting_device_over_time_is_followed(warm_model):
     untracked it reads several newtons."""
     from pathlib import Path
 
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
     from cstomo_sensor.model.timeline import Timeline
 
     scene = Path(__file__).resolve().parents[1] / "scenes" / "timeline_drift_short.yaml"
@@ -183,8 +183,8 @@ def _follow_run(follow: bool):
     them, with the tracker's state; each frame's scale measured as the model estimator's joint fit
     measures it (JointScale: here the true ratio with a 1e-4 error). ``follow`` False: the slopes kept
     at 0 (what the tracker did before issue 26's fix)."""
-    from cstomo_sensor.force.drift import DriftTracker
-    from cstomo_sensor.force.slow import drift_status
+    from cstomo_sensor.force.slow_states.coordinator import drift_status
+    from cstomo_sensor.force.slow_states.drift import DriftTracker
 
     rng = np.random.default_rng(4)
     n = 208
@@ -207,7 +207,7 @@ def _follow_run(follow: bool):
 
 def test_under_load_the_states_a_rest_measures_follow_the_scale_and_their_sigma_says_so():
     """Issue 26: "the tracking never locks: when it loses the device, it says so and re-acquires". The
-    other states follow the scale by their slope at rest (force/drift.py FOLLOW_MEMORY); without it they
+    other states follow the scale by their slope at rest (force/slow_states/drift.py FOLLOW_MEMORY); without it they
     stand still under load, the first rest after it no longer looks like rest, and none after it does."""
     for follow in (True, False):
         out = _follow_run(follow)

@@ -1,4 +1,4 @@
-"""A load is never taken for the device (issue 26, items 2 and 4; force/joint.py JointScale): held
+"""A load is never taken for the device (issue 26, items 2 and 4; force/estimators/scale_fit.py JointScale): held
 socket loads straight down, the direction closest to a uniform change, read what they are through a
 fresh tare with the drift tracking on, and a controller's expected load (``expect_load``) helps the
 tracker find the device's change under load.
@@ -21,8 +21,8 @@ RATE = 100.0  # frames per second
 @pytest.fixture(scope="module")
 def model_pipe(warm_model):
     """The test's pipeline with the default estimator (``model``: the one with the joint fit)."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
@@ -44,8 +44,8 @@ def _voltages(volts, m):
 
 def _run(pipe, down_, profile, seconds, tracking=True, expected=None):
     """The forces read (n, 3) for the magnitude ``profile(t)`` straight down, from a fresh tare."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     ref, volts = down_
     rng = np.random.default_rng(11)
@@ -75,7 +75,7 @@ def test_a_small_load_held_straight_down_is_not_taken_for_the_device(model_pipe,
     """A held 1-2 N load straight down (the load most like a uniform change) with the tracking on reads
     what it reads without tracking, to what the design separates: measured 0.95-0.99 x (1 N) and
     0.97-1.0 x (2 N) over 2-11 s, where the tracking before issue 26 read 0.16 N for 1 N after 2 s (it took
-    the load for the device) and before the quiet test (force/drift.py QUIET_N) 0.78 x and 0.85 x after
+    the load for the device) and before the quiet test (force/slow_states/drift.py QUIET_N) 0.78 x and 0.85 x after
     10 s: 97 % of a 1 N load's frames pass the frame's own rest tests, and the contacts' and the gradient's
     states took the load's part along their directions from them, the scale following; at 2 N the frames
     that passed were those whose noise hid the load, their scale measurements biased (-1.3e-4 against
@@ -128,8 +128,8 @@ def _restart_under_load(pipe, ref, loaded, expected, rng):
     """A stream started from a tare 2 hours old while the drive is 2 % up (every voltage x 1.02) and the
     joint carries ``loaded`` (its noise-free voltages) from the first frame; ``expected``: a controller's
     1-sigma (its expected load drawn around the truth per frame), None: none. The forces read over 3 s."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=0.0))
     tare = add_noise(np.repeat(ref[None], 20, 0), ref, 60, rng)
@@ -165,7 +165,7 @@ def test_a_restart_under_load_finds_the_change_and_an_expected_load_helps(model_
 
 def test_an_expected_load_is_checked(model_pipe):
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(model_pipe)
     with pytest.raises(ConfigError, match="sigma"):

@@ -1,4 +1,4 @@
-"""The ``model`` estimator's surrogate follows the resistivity gradients' states (force/training.py
+"""The ``model`` estimator's surrogate follows the resistivity gradients' states (force/estimators/training.py
 ``response_set``, issue 26): a warmed block's gradient changes how a load shows in the voltages, not
 only the zero. Judged on the honest truth (its own finer mesh, mismatched electrodes), never on the
 estimator's own model."""
@@ -14,14 +14,14 @@ from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
 @pytest.fixture(scope="module")
 def model_pipe():
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
 
 def test_spline_coefficients_of_other_values_are_those_of_a_spline_built_on_them():
-    from cstomo_sensor.force.tps import ThinPlateSpline
+    from cstomo_sensor.force.estimators.tps import ThinPlateSpline
 
     rng = np.random.default_rng(3)
     p, v, dv = rng.normal(size=(30, 3)), rng.normal(size=(30, 4)), rng.normal(size=(30, 4))
@@ -37,7 +37,7 @@ def test_following_a_state_reads_as_the_estimator_rebuilt_on_the_changed_set(mod
     """coef(g) = coef0 + sum g_k C_k in the nominal set's basis against a new estimator on the set's y
     changed by the response (its own basis): the same forces to 0.5 % of the load; None is the nominal
     estimator's answer; a state moved by less than the tolerance keeps the coefficients."""
-    from cstomo_sensor.force.estimate import STATE_TOLERANCE
+    from cstomo_sensor.force.estimators.estimate import STATE_TOLERANCE
 
     est = model_pipe.estimator.with_noise(model_pipe.estimator.noise)  # a copy: the fixture's stays nominal
     assert est.response is not None and est.response.shape == (3, *est.y.shape)
@@ -84,7 +84,7 @@ def test_with_the_gradient_s_states_a_warmed_block_s_loads_read_as_a_cold_one_s(
     """Noise-free, the device's states (scale, contacts, gradient) fitted to the warmed unloaded frame
     (an oracle of what the tracker measures at rest): the nominal surrogate reads the warmed loads'
     angles 0.27 deg worse than the cold block's (1.17 against 0.90 mean), following the gradient 0.89."""
-    from cstomo_sensor.force.joint import gradient_directions
+    from cstomo_sensor.force.estimators.scale_fit import gradient_directions
 
     ref, warm0, forces, cold, warm = warmed
     pipe = model_pipe
@@ -114,10 +114,10 @@ def test_the_stream_hands_the_tracked_gradient_to_the_estimator(model_pipe, warm
     """60 dB, tracking on: the block warms at rest over 2 minutes (the tracker measures its gradient),
     then loads with rests: the stream reads them better than one whose estimator does not follow
     (the same frames; median angle 1.07 against 1.37 deg)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.estimate import ModelEstimator
-    from cstomo_sensor.force.pipeline import Pipeline
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.force.estimators.estimate import ModelEstimator
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     ref, warm0, forces, _, warm = warmed
     est = model_pipe.estimator

@@ -1,4 +1,4 @@
-"""The rules of a controller's expected load (force/expected.py, issue 34 item 5) on the frame stream: the
+"""The rules of a controller's expected load (force/checks/expected.py, issue 34 item 5) on the frame stream: the
 committed bag's honest frames (its own simulator's mesh, 60 dB), tared on its unloaded frames, then its
 (10, 0, -10) N load held; the ``model`` estimator (the joint fit that uses an expected load). Each run is
 compared with the same frames without any message. Through a real node: test_node_expected.py."""
@@ -16,8 +16,8 @@ RATE = 50.0
 
 @pytest.fixture(scope="module")
 def model_pipe(warm_model):
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
@@ -25,8 +25,8 @@ def model_pipe(warm_model):
 def _run(pipe, bag, n, message=None):
     """(forces (n, 3), scales (n,), scale 1-sigmas (n,), stream) of ``n`` frames of the held load from a
     tare on the bag's unloaded frames; ``message(k, stamp_ns, stream)`` is called before frame k."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(pipe, StreamConfig.offline(creep_per_decade=0.0))
     rest = bag.frames[:20]
@@ -57,7 +57,7 @@ def test_each_bad_kind_is_refused_and_counted_and_none_moves_anything(model_pipe
         if k >= 1:  # the first frame: no time to check a stamp against yet
             assert said == expect[k % len(bad)], (k, said)
 
-    with caplog.at_level("WARNING", logger="cstomo_sensor.force.expected"):
+    with caplog.at_level("WARNING", logger="cstomo_sensor.force.checks.expected"):
         out, s1, _, stream = _run(model_pipe, source, n, message)
     refused = stream.slow.expected.refused
     print(refused)

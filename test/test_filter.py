@@ -1,4 +1,4 @@
-"""``~/wrench_filtered``: the first-order low-pass (force/filter.py) against the continuous filter it
+"""``~/wrench_filtered``: the first-order low-pass (frame_path/filter.py) against the continuous filter it
 states (step response, -3 dB at the cutoff, noise), its restarts, and the real node on a simulated board
 (reset on tare and after a reconnect, noise reduction and step delay on a held load)."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.force.filter import LowPass
+from cstomo_sensor.frame_path.filter import LowPass
 
 
 def _run(f: LowPass, xs, ts):

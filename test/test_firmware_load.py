@@ -14,8 +14,8 @@ from firmware_harness import Process, build_host, write_frames
 
 from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.sim import SimulatedBoard
-from cstomo_sensor.force.config import StreamConfig
-from cstomo_sensor.force.stream import FrameStream
+from cstomo_sensor.frame_path.config import StreamConfig
+from cstomo_sensor.frame_path.stream import FrameStream
 
 RATE = 100.0
 TRUE_FORCE = np.array([0.0, 0.0, -20.0])  # the bag's held load (raw_voltages_truth.csv)

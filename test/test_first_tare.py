@@ -1,4 +1,4 @@
-"""Issue 35, item 2: a first start under a load (force/first_tare.py).
+"""Issue 35, item 2: a first start under a load (force/reference/first_tare.py).
 
 A first tare (no saved tare) has only the model's predicted frame to compare with, and against it a
 device's own mismatch reads as far more "load" than 20 N (test/first_tare_table.py), so a load held during
@@ -57,8 +57,8 @@ def _noisy(v, ref, n, rng):
 def _run(pipe, frames, tare_file):
     """``frames`` through a FrameStream from a first start (no saved tare, no reference): (the stream, forces
     (n, 3) with NaN where no force, the index of the frame at which a first tare was dropped or None)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     pipe.reference = None
     s = FrameStream(pipe, StreamConfig.offline(tare_frames=TARE), tare_file=tare_file)
@@ -80,7 +80,7 @@ def _run(pipe, frames, tare_file):
     ("device_a", "20 N lateral x (el 15)"), ("device_a", "10 N at 45 deg"), ("device_b", "20 N straight down"),
 ])
 def test_a_first_tare_under_a_load_is_dropped_once_the_load_goes(warm_model, devices, tmp_path, caplog, device, load):
-    from cstomo_sensor.force.first_tare import PULL_FRAMES
+    from cstomo_sensor.force.reference.first_tare import PULL_FRAMES
 
     ref, frames = devices[device]
     rng = np.random.default_rng(35)
@@ -107,7 +107,7 @@ def test_a_first_tare_under_a_load_is_dropped_once_the_load_goes(warm_model, dev
     assert "first tare was taken under a load" in s.tare_refused
     # the dropped tare's file was removed, then the new tare saved in its place
     assert any("loaded first tare removed" in r.getMessage() for r in caplog.records)
-    from cstomo_sensor.force.device import read_reference
+    from cstomo_sensor.force.reference.files import read_reference
 
     saved, _, _ = read_reference(tare_file)
     assert np.allclose(saved, warm_model.reference)
@@ -116,7 +116,7 @@ def test_a_first_tare_under_a_load_is_dropped_once_the_load_goes(warm_model, dev
 @pytest.mark.parametrize("device", list(DEVICES))
 def test_a_true_first_tare_is_never_dropped_under_loads(warm_model, devices, tmp_path, device):
     """Unloaded first tare, then every load (2-20 N, elevations 15-90 deg) held 60 frames, unloaded between."""
-    from cstomo_sensor.force.first_tare import PULL_FRAMES, PULL_MIN_N
+    from cstomo_sensor.force.reference.first_tare import PULL_FRAMES, PULL_MIN_N
 
     ref, frames = devices[device]
     rng = np.random.default_rng(7)
@@ -135,7 +135,7 @@ def test_a_true_first_tare_is_never_dropped_under_loads(warm_model, devices, tmp
 def test_the_watch_counts_a_run_of_frames_and_its_limit_follows_the_noise():
     """Unit: a pull must be held PULL_FRAMES frames in a row (a spike resets it); the limit is PULL_MIN_N,
     or PULL_SIGMAS x the noise of Fz when that is larger."""
-    from cstomo_sensor.force.first_tare import PULL_FRAMES, PULL_MIN_N, PULL_REL, PULL_SIGMAS, FirstTareWatch
+    from cstomo_sensor.force.reference.first_tare import PULL_FRAMES, PULL_MIN_N, PULL_REL, PULL_SIGMAS, FirstTareWatch
 
     n = 8
     W = np.zeros((3, n))

@@ -11,8 +11,8 @@ import pytest
 from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import angle_between, force_from_angles, planar_angle
-from cstomo_sensor.force.config import PipelineConfig
-from cstomo_sensor.force.pipeline import Pipeline
+from cstomo_sensor.frame_path.config import PipelineConfig
+from cstomo_sensor.frame_path.pipeline import Pipeline
 from cstomo_sensor.model.simulate import Load, Scene, Truth, add_noise, simulate
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"

@@ -10,7 +10,7 @@ from scipy.interpolate import RBFInterpolator
 from scipy.optimize import least_squares
 
 from cstomo_sensor.angles import force_angles, force_angles3
-from cstomo_sensor.force.tps import ThinPlateSpline
+from cstomo_sensor.force.estimators.tps import ThinPlateSpline
 
 
 def test_scalar_angles_equal_the_numpy_ones():
@@ -62,7 +62,7 @@ def test_model_estimator_finds_the_least_squares_force_of_the_surrogate(warm_mod
 
 @pytest.fixture(scope="module")
 def warm_model_estimator(cuboid, cuboid_model):
-    from cstomo_sensor.force.estimate import build_estimator
+    from cstomo_sensor.force.estimators.estimate import build_estimator
 
     return build_estimator("model", cuboid, cuboid_model)
 
@@ -94,8 +94,8 @@ def tared_stream(pipe, seed: int, creep: float, age_s: float | None = None):
     """A stream of ``pipe`` (no field; creep compensated at ``creep`` per decade) tared on 20 frames of its
     model's reference at 60 dB (``age_s``: a saved tare this old); with the reference, the noise's std
     and the generator for the frames to come."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     rng = np.random.default_rng(seed)
     ref = pipe.model_reference
@@ -157,8 +157,8 @@ def model_pipe(warm_model):
     """The test's pipeline with the ``model`` estimator (its own: a mask stays with it)."""
     from conftest import PIPE
 
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
@@ -217,7 +217,7 @@ def test_creep_compensator_equals_its_previous_formulation(rate):
     0.1 s delay (the part of a step)."""
     from reference_frame_path import PlainCreep
 
-    from cstomo_sensor.force.creep import CreepCompensator
+    from cstomo_sensor.force.slow_states.creep import CreepCompensator
 
     rng = np.random.default_rng(8)
     n = 208

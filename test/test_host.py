@@ -103,7 +103,7 @@ def test_the_package_log_propagates_again_once_the_last_bridge_is_detached():
 
 def test_the_hosts_log_names_the_sensor_of_each_tare_line(capfd):
     """In one process of several sensors, a library record (the tare's lines, the frame path's) logged
-    while a sensor's frames or tare service are handled names that sensor (before: 'force.taring: tare
+    while a sensor's frames or tare service are handled names that sensor (before: 'force.reference.tare_transaction: tare
     taken ...' from /left and /right alike); a record outside any sensor has no prefix."""
     import logging
 
@@ -113,7 +113,7 @@ def test_the_hosts_log_names_the_sensor_of_each_tare_line(capfd):
     from cstomo_sensor.ros.host import sensor_of
 
     handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), label=sensor_of)
-    taring = logging.getLogger("cstomo_sensor.force.taring")
+    taring = logging.getLogger("cstomo_sensor.force.reference.tare_transaction")
     try:
         with ros_log.sensor("/left"):
             taring.info("tare taken at 12.5 s")
@@ -124,7 +124,7 @@ def test_the_hosts_log_names_the_sensor_of_each_tare_line(capfd):
     finally:
         ros_log.detach(handler)
     err = capfd.readouterr().err
-    assert "]: /left: force.taring: tare taken at 12.5 s" in err, err
-    assert "]: /right: force.taring: not steady; the previous reference stays" in err, err
-    assert "]: /left: force.taring: tare saved" in err, err  # back to /left after the inner block
-    assert "]: force.taring: outside any sensor" in err, err
+    assert "]: /left: force.reference.tare_transaction: tare taken at 12.5 s" in err, err
+    assert "]: /right: force.reference.tare_transaction: not steady; the previous reference stays" in err, err
+    assert "]: /left: force.reference.tare_transaction: tare saved" in err, err  # back to /left after the inner block
+    assert "]: force.reference.tare_transaction: outside any sensor" in err, err

@@ -218,7 +218,7 @@ def test_the_example_list_starts_two_independent_simulated_sensors():
 
 
 def test_sensors_on_ports_or_topics_get_tare_files_of_their_own(tmp_path):
-    from cstomo_sensor.force.device import tare_file_name
+    from cstomo_sensor.force.reference.files import tare_file_name
     from cstomo_sensor.model.geometry import load_sensor
 
     entries = [{"namespace": "left_knee", "frame_id": "l_socket", "port": "/dev/cstomo_l", "calibration_file": "/c/l.yaml"},

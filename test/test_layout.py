@@ -1,7 +1,7 @@
 """The house rules: the layers' import contract, no cycles, no heavy import in the core, one source of
 truth for the settings, and the lint.
 
-Layers (README.md, "What is where"): the core (``model``, ``inverse``, ``force``, ``board`` and the top-level helpers)
+Layers (README.md, "What is where"): the core (``model``, ``inverse``, ``force``, ``frame_path``, ``board`` and the top-level helpers)
 never imports ``ros`` or ``tools``; ``ros`` never imports ``tools``. Imports are read as text (module
 level and inside functions), so a function-level import cannot hide a crossing.
 """
@@ -69,7 +69,7 @@ def layer(module: str) -> str:
 def test_the_graph_is_read():
     # guards the checks below against an empty or misread graph
     assert {"model", "inverse", "force", "board", "ros", "tools"} <= {layer(m) for m in MODULES}
-    assert "cstomo_sensor.force.pipeline" in GRAPH["cstomo_sensor.ros.node"][0]
+    assert "cstomo_sensor.frame_path.pipeline" in GRAPH["cstomo_sensor.ros.node"][0]
     assert "rclpy" in GRAPH["cstomo_sensor.ros.node"][1]
 
 
@@ -135,7 +135,7 @@ def test_core_modules_load_no_heavy_or_ros_package_at_import():
 
 
 def test_cli_flags_take_their_defaults_and_choices_from_the_config():
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
     from cstomo_sensor.settings import ESTIMATORS
     from cstomo_sensor.tools import cli
 
@@ -152,7 +152,7 @@ def test_cli_flags_take_their_defaults_and_choices_from_the_config():
 
 def test_node_parameter_defaults_are_the_config_defaults():
     pytest.importorskip("rclpy")
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
     from cstomo_sensor.settings import PROTOCOLS
 

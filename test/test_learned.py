@@ -1,4 +1,4 @@
-"""The device's own directions (issue 34 item 1; cstomo_sensor/force/learned.py): a device whose change after
+"""The device's own directions (issue 34 item 1; cstomo_sensor/force/slow_states/learned.py): a device whose change after
 its tare is not the model's learns the part its rests leave unexplained, tracks it as a state, and keeps it
 across a restart (saved beside the tare and read back); a device whose change is the model's learns nothing.
 
@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 from cstomo_sensor.errors import FrameError
-from cstomo_sensor.force.config import PipelineConfig, StreamConfig
-from cstomo_sensor.force.device import write_reference
-from cstomo_sensor.force.learned import (
+from cstomo_sensor.force.reference.files import write_reference
+from cstomo_sensor.force.slow_states.learned import (
     AVG,
     BULK,
     STEPS,
@@ -29,12 +28,13 @@ from cstomo_sensor.force.learned import (
     read_directions,
     write_directions,
 )
-from cstomo_sensor.force.pipeline import Pipeline
-from cstomo_sensor.force.stream import FrameStream
-from cstomo_sensor.loop import Trace, run
+from cstomo_sensor.frame_path.config import PipelineConfig, StreamConfig
+from cstomo_sensor.frame_path.loop import Trace, run
+from cstomo_sensor.frame_path.pipeline import Pipeline
+from cstomo_sensor.frame_path.sources import ArraySource
+from cstomo_sensor.frame_path.stream import FrameStream
 from cstomo_sensor.model.simulate import Truth
 from cstomo_sensor.model.timeline import ContactDrift, Profile, Timeline, TimelineSpec, full_change
-from cstomo_sensor.sources import ArraySource
 from cstomo_sensor.tools.bench import robot
 from cstomo_sensor.tools.bench import robot_change as rc
 

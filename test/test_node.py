@@ -307,7 +307,7 @@ def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, s
 
     from geometry_msgs.msg import WrenchStamped
 
-    import cstomo_sensor.force.taring as taring_module
+    import cstomo_sensor.force.reference.tare_transaction as taring_module
 
     h, board = start(ros, tmp_path, Unloaded(source), rate=100.0, tare_frames=5)
     tare_file = tmp_path / "tare.csv"
@@ -445,7 +445,7 @@ def test_disconnect_corrupt_saturated_and_dead_electrode(ros, tmp_path, source, 
     assert int(v["corrupt"]) > 0 and lost <= inj["bit_flip"] + inj.get("overrun", 0) + 2, (v, inj)
     assert int(v["resyncs"]) > 0
     logs = [(m.level, m.name, m.msg) for _, m in rosout]
-    assert any(level == Log.WARN and name == "cstomo_rosout" and msg.startswith("force.stream: excluding")
+    assert any(level == Log.WARN and name == "cstomo_rosout" and msg.startswith("frame_path.stream: excluding")
                for level, name, msg in logs), logs
 
     assert v["saturated_channels"] == "1" and v["dead_electrodes"] == "4"

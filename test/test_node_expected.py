@@ -1,4 +1,4 @@
-"""A controller's expected load is an input to check, not to trust (issue 34 item 5; force/expected.py):
+"""A controller's expected load is an input to check, not to trust (issue 34 item 5; force/checks/expected.py):
 every bad kind of ``~/expected_wrench`` through a real node (rclpy, the simulated board on an in-process
 virtual link, the ``model`` estimator: the one whose joint fit uses an expected load), in sequence on
 one node: none moves the published wrench beyond what the frames support, the output never stops,
@@ -192,7 +192,7 @@ def test_bad_expected_wrenches_are_refused_counted_and_said_once(ros, tmp_path, 
     said = [m.msg for _, m in rosout if m.name == NAME and "~/expected_wrench refused, not used" in m.msg]
     print("\n".join(said))
     assert len(said) == len(kinds), said
-    from cstomo_sensor.force.expected import KINDS
+    from cstomo_sensor.force.checks.expected import KINDS
 
     for k in kinds:
         assert sum(KINDS[k] in s for s in said) == 1, k

@@ -25,8 +25,8 @@ LOADED = slice(30, 60)    # bag frames under a held 20 N socket load
 @pytest.fixture
 def pipe(warm_model):
     """A fresh Pipeline of its own (loaded from the cache warm_model filled)."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
@@ -58,7 +58,7 @@ class Script:
 
 
 def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_in_step(pipe, source):
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     proc = FrameStream(pipe)
     pipe.set_reference(source.frames[UNLOADED].mean(axis=0))
@@ -89,8 +89,8 @@ def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_i
 def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     """60 dB noise passes for 2..20 frames; a 20 N load arriving during the tare is refused and the
     old reference stays; without any reference a refused or cancelled tare starts over."""
-    from cstomo_sensor.force.stream import FrameStream
-    from cstomo_sensor.force.tare import TARE_MAX_SPREAD
+    from cstomo_sensor.force.reference.tare_rules import TARE_MAX_SPREAD
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     ended = []
     proc = FrameStream(pipe, on_tare=ended.append)
@@ -126,8 +126,8 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
     """Issue 27 item 3: an accepted tare is the reference at once and is saved by a thread of its own,
     outside the frame lock; a failed save is logged, in the outcome's note and in the diagnostics until
     a tare is saved."""
-    import cstomo_sensor.force.taring as stream_module
-    from cstomo_sensor.force.stream import FrameStream
+    import cstomo_sensor.force.reference.tare_transaction as stream_module
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     def full(*args, **kwargs):
         raise OSError(28, "No space left on device")
@@ -159,8 +159,8 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
 def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_path, monkeypatch):
     """A node that stops or reconfigures right after a tare (a ~/joint_free re-zero, then Ctrl-C) keeps
     it: close() waits for the writer thread, bounded, and says when a hung disk outlasts it."""
-    import cstomo_sensor.force.taring as stream_module
-    from cstomo_sensor.force.stream import FrameStream
+    import cstomo_sensor.force.reference.tare_transaction as stream_module
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     write, release = stream_module.write_reference, threading.Event()
 
@@ -270,7 +270,7 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
 
 @pytest.mark.slow  # starts a node
 def test_tare_on_a_moving_joint_is_refused_and_changes_nothing(ros, tmp_path, source, warm_model):
-    from cstomo_sensor.force.tare import TARE_MAX_SPREAD
+    from cstomo_sensor.force.reference.tare_rules import TARE_MAX_SPREAD
 
     script = Script(source, t_load=0.0, wobble=0.4)  # 0 -> 20 N -> 0 every 0.4 s
     h, board = start(ros, tmp_path, script, rate=100.0, tare_frames=20)

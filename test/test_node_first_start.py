@@ -97,12 +97,12 @@ def test_a_first_start_under_a_load_is_dropped_and_tared_again_once_the_load_goe
                                                                                     capfd):
     """Issue 35 item 2: the node starts on a joint held under 20 N (the committed bag's honest frames, straight
     down). Its first tare has nothing to compare with but the model's reference, which cannot tell the load
-    from the device's own mismatch (force/first_tare.py), so it is taken and the load reads ~0 N. When the
+    from the device's own mismatch (force/reference/first_tare.py), so it is taken and the load reads ~0 N. When the
     load goes, the frames read a pull out of the socket, which no load can cause: the tare is dropped with
     its file, said once (log and /diagnostics), no wrench until a tare on the next frames, which reads ~0 N."""
     from geometry_msgs.msg import WrenchStamped
 
-    from cstomo_sensor.force.first_tare import PULL_FRAMES
+    from cstomo_sensor.force.reference.first_tare import PULL_FRAMES
 
     unload_at = 3.0  # board seconds
 

@@ -43,8 +43,8 @@ def scene(path: Path, duration: float, device: dict, load: bool) -> Path:
 
 @pytest.fixture(scope="module")
 def model_built():
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()
                                             if k != "estimator"}, estimator="model"))

@@ -12,8 +12,8 @@ rclpy = pytest.importorskip("rclpy")
 @pytest.fixture(scope="module")
 def warm_model():
     """The test pipeline, built once into the test cache (every node below loads it quickly)."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 

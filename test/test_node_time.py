@@ -142,7 +142,7 @@ def test_lost_frames_raise_the_level_above_the_stated_fractions(ros, tmp_path, s
     5 % is WARN (above LOSS_WARN = 1 % over the last 5 s), 40 % is ERROR (above LOSS_ERROR = 20 %);
     the message says how many and of what kind. Before issue 14 gaps never raised the level."""
     from cstomo_sensor.board.sim import FaultConfig
-    from cstomo_sensor.force.health import LOSS_ERROR, LOSS_WARN
+    from cstomo_sensor.frame_path.health import LOSS_ERROR, LOSS_WARN
 
     assert LOSS_WARN < 0.05 < LOSS_ERROR < 0.4
     h, board = start(ros, tmp_path, source, faults=FaultConfig(drop=drop), rate=100.0, tare_on_start=True,

@@ -1,4 +1,4 @@
-"""The board's noise estimated from its own frames (force/noise.py) after a one-frame reference, on an
+"""The board's noise estimated from its own frames (force/reference/noise_estimate.py) after a one-frame reference, on an
 honestly simulated device (docs/physics.md#honest-simulation: the truth on its own finer mesh,
 mismatched electrodes, seed 31) with socket loads held over consecutive frames and white noise of the
 stated SNR. The simulated noise's std is the documented rms(reference) x 10^(-SNR/20)
@@ -19,8 +19,8 @@ import pytest
 
 from cstomo_sensor.angles import force_from_angles
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.force.noise import MAD_NORMAL, MIN_PAIRS, NoiseEstimate, noise_level, pair_level
-from cstomo_sensor.force.pipeline import NOISE_ASSUMED
+from cstomo_sensor.force.reference.noise_estimate import MAD_NORMAL, MIN_PAIRS, NoiseEstimate, noise_level, pair_level
+from cstomo_sensor.frame_path.pipeline import NOISE_ASSUMED
 from cstomo_sensor.model.simulate import Load, Truth, add_noise
 
 HOLD = 12  # frames each load is held (0.12 s at 100 frames/s)
@@ -50,8 +50,8 @@ def _held(device, snr: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stream(pipe, estimation: bool):
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     return FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0, noise_estimation=estimation))
 
@@ -181,7 +181,7 @@ def test_a_refused_estimate_is_said_once_not_every_evaluation(device, warm_model
     ref, _ = device
     stream = _stream(warm_model, True)
     stream.set_reference(ref, None, 1, "one frame")
-    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.stream"):
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.frame_path.stream"):
         _run(stream, np.repeat(ref[None], 1000, axis=0))
     said = [r for r in caplog.records if "estimate not used" in r.getMessage()]
     assert len(said) == 1, [r.getMessage() for r in said]

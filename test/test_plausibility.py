@@ -1,4 +1,4 @@
-"""The plausibility gate (cstomo_sensor.force.pipeline module docstring): frames no load in the rated
+"""The plausibility gate (cstomo_sensor.frame_path.pipeline module docstring): frames no load in the rated
 range can explain (all-zero, scaled x10, huge finite values) are rejected, honest loads up to 40 N on a
 poor 40 dB board never are; ``cstomo estimate`` and the forces file mark rejected frames."""
 from __future__ import annotations
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import PIPE
 
-from cstomo_sensor.force.config import PipelineConfig
-from cstomo_sensor.force.pipeline import Pipeline
+from cstomo_sensor.frame_path.config import PipelineConfig
+from cstomo_sensor.frame_path.pipeline import Pipeline
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data")
 CONFIG = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
@@ -125,11 +125,11 @@ def test_a_flapping_gate_logs_a_run_of_implausible_frames_at_most_every_few_seco
     import logging
     from types import SimpleNamespace
 
-    from cstomo_sensor.force import health as health_mod
+    from cstomo_sensor.frame_path import health as health_mod
 
     h = health_mod.Health(0.0)
     bad, good = SimpleNamespace(valid=False, reason="too large"), SimpleNamespace(valid=True, reason="")
-    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.frame_path.health"):
         for _ in range(200):
             h.plausible(bad)
             h.plausible(good)
@@ -138,7 +138,7 @@ def test_a_flapping_gate_logs_a_run_of_implausible_frames_at_most_every_few_seco
     assert h.counts.implausible == 200  # every frame counted (the diagnostics)
     h._run_said_at -= health_mod.LOG_EVERY  # LOG_EVERY s later: the next run is said, with the unsaid ones
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.force.health"):
+    with caplog.at_level(logging.WARNING, logger="cstomo_sensor.frame_path.health"):
         h.plausible(bad)
     assert "199 shorter runs before it not logged" in caplog.records[0].getMessage(), caplog.records
 

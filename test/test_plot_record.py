@@ -130,7 +130,7 @@ def test_plot_says_one_line_for_a_bad_input(tmp_path, capsys):
 def replayed(tmp_path_factory, warm_model):
     """The committed bag through ``cstomo replay``'s function: (output bag, forces file)."""
     pytest.importorskip("rosbags")
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
     from cstomo_sensor.tools.replay import replay
 
     tmp = tmp_path_factory.mktemp("replayed")

@@ -164,8 +164,8 @@ def test_frames_with_nan_or_inf_refused(cuboid_model, bad):
 
 
 def test_masked_channels_ignored(cuboid_model, cuboid_truth):
-    from cstomo_sensor.force.estimate import LinearEstimator
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.force.estimators.estimate import LinearEstimator
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     n = cuboid_model.n_meas
     est = LinearEstimator(np.random.default_rng(0).standard_normal((20, 3)),

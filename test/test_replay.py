@@ -21,14 +21,14 @@ FORCE_TOPICS = ("wrench", "force_magnitude", "force_elevation", "force_azimuth")
 
 @pytest.fixture(scope="module")
 def config():
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
 
     return PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
 
 
 @pytest.fixture(scope="module")
 def pipe(config):
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(config)
 

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from cstomo_sensor.force.training import CalibrationSpec, calibration_set
+from cstomo_sensor.force.estimators.training import CalibrationSpec, calibration_set
 from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
 from cstomo_sensor.model import mesh as meshmod
 from cstomo_sensor.model.mesh import MeshSpec, build_mesh
@@ -28,7 +28,7 @@ BUILD = """
 import json, sys, numpy as np
 from cstomo_sensor.model.geometry import load_sensor
 from cstomo_sensor.inverse.reconstruction import ReconSpec, build_model
-from cstomo_sensor.force.training import CalibrationSpec, calibration_set
+from cstomo_sensor.force.estimators.training import CalibrationSpec, calibration_set
 g = load_sensor("cuboid_joint")
 m = build_model(g, ReconSpec(), sys.argv[1])
 f, y = calibration_set(g, m, CalibrationSpec(), sys.argv[1])

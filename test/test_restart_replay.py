@@ -1,5 +1,5 @@
 """Restarts replay (issue 34 item 4): the node restarted from a saved tare 8 hours old (its restart path:
-the tare's age widens the slow states, force/drift.py ``widen``), fed the committed bag's frames in topic
+the tare's age widens the slow states, force/slow_states/drift.py ``widen``), fed the committed bag's frames in topic
 mode, publishes the forces and sigmas that ``cstomo replay`` with that tare file (its age from the file's
 stamp against the bag's first frame) writes, and that ``cstomo estimate --reference-age`` (the node's age)
 reads from the same frames; every topic equal. Without the age, estimate reads other sigmas: the test tells
@@ -21,15 +21,15 @@ TARE = 10  # the bag's first frames, unloaded: the saved tare's
 
 @pytest.fixture(scope="module")
 def config():
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
 
     return PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"})
 
 
 def _saved_tare(path, frames, saved: float) -> None:
-    """The tare file the node writes (force/taring.py): the mean of ``frames``, their noise beside it, the
+    """The tare file the node writes (force/reference/tare_transaction.py): the mean of ``frames``, their noise beside it, the
     time ``saved`` (s since the epoch) ending its comment."""
-    from cstomo_sensor.force.device import write_reference
+    from cstomo_sensor.force.reference.files import write_reference
 
     stamp = time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(saved))
     write_reference(path, frames.mean(axis=0), frames.std(axis=0, ddof=1), frames=len(frames),
@@ -65,9 +65,9 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     from std_msgs.msg import Float64
     from test_replay import BAG, _write_raw_bag, read_bag
 
-    from cstomo_sensor.force.device import saved_at
+    from cstomo_sensor.force.reference.files import saved_at
+    from cstomo_sensor.frame_path.outputs import FLOAT64, OUTPUTS, VECTOR, WRENCH
     from cstomo_sensor.frames_io import write_frames
-    from cstomo_sensor.outputs import FLOAT64, OUTPUTS, VECTOR, WRENCH
     from cstomo_sensor.ros.messages import raw_voltages_msg
     from cstomo_sensor.tools.cli import main as cli
     from cstomo_sensor.tools.replay import replay
@@ -79,8 +79,8 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
     tare = tmp_path / "tare.csv"
     _saved_tare(tare, frames[:TARE].astype(float), saved)
     assert saved_at(tare) == saved
-    # and a direction the device learned (force/learned.py) beside it: each reader starts with it
-    from cstomo_sensor.force.learned import Directions, write_directions
+    # and a direction the device learned (force/slow_states/learned.py) beside it: each reader starts with it
+    from cstomo_sensor.force.slow_states.learned import Directions, write_directions
     write_directions(tare, Directions(np.random.default_rng(4).normal(0.0, 0.01, (1, frames.shape[1])), np.array([0.5])))
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

@@ -127,7 +127,7 @@ def test_the_silently_wrong_share_counts_errors_beyond_half_a_newton_at_rest_or_
     assert r["zero_p99_n"] == pytest.approx(np.percentile([0.4, 0.6], 99))
 
 
-# --- issue 26 items 2-4: following the device under load and across restarts (force/joint.py JointScale) ---
+# --- issue 26 items 2-4: following the device under load and across restarts (force/estimators/scale_fit.py JointScale) ---
 # The bench's device_b (the least sensitive corner) on its own coarse truth mesh (4 mm: the test judges
 # the tracking, not a mesh), calibrated on 20 loads with the tests' coarse model and the default
 # estimator (model). Aims from issue 26; the bounds pinned below are what was measured, with a margin
@@ -253,7 +253,7 @@ def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(de
 # known, refuses every later rest: drift_rest_frames stops at 1201 (57 s), the zero at rest reads 3.6 N
 # at 57 s and 11.5 N at 110 s (37 N at 6 minutes) with sigma_n 1.3-1.8 N, status OK; this test: rest frames
 # 1201 by 60 s and at the end, the zero from 60 s 6.2 N (sigma_n 1.4). Now the other states follow the scale
-# under load by their slope fitted at rest (force/drift.py FOLLOW_MEMORY): rest frames keep counting, the zero
+# under load by their slope fitted at rest (force/slow_states/drift.py FOLLOW_MEMORY): rest frames keep counting, the zero
 # from 60 s reads about 0.4 N.
 
 WARM_FAST = 0.015   # resistivity per K: section 9's top
@@ -264,7 +264,7 @@ WARM_FAST_S = 120.0
 def test_a_warm_up_at_1_5_pct_per_k_keeps_its_zero_and_never_locks(device_b):
     from pathlib import Path
 
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream, StreamConfig
     from cstomo_sensor.model.simulate import Scene
 
     sc, truth, pipe, tare = device_b

@@ -97,7 +97,7 @@ def device_c():
 
 @pytest.mark.slow
 def test_a_restart_goes_through_the_nodes_start_on_a_tare_file_of_its_age(device_c):
-    from cstomo_sensor.force.stream import FrameStream, StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream, StreamConfig
 
     sc, truth, pipes, tare = device_c
     pipe, config = pipes["model"], StreamConfig.offline()

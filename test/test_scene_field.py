@@ -1,4 +1,4 @@
-"""The scene's own stress field and the foreign-load flag (force/scene_field.py), on honest
+"""The scene's own stress field and the foreign-load flag (force/checks/consistency.py), on honest
 simulations (docs/physics.md#honest-simulation: the truth's mechanics on its own 4 mm mesh, the scene
 field's on the calibration's 6 mm mesh; forward truth on an independent 3 mm mesh, mismatched).
 
@@ -18,10 +18,10 @@ from conftest import MODEL_H, TRUTH_H
 
 from cstomo_sensor.angles import force_from_angles
 from cstomo_sensor.errors import ConfigError
-from cstomo_sensor.force.config import PipelineConfig
-from cstomo_sensor.force.pipeline import Pipeline
-from cstomo_sensor.force.scene_field import Consistency
-from cstomo_sensor.force.training import CalibrationSpec, calibration_directions
+from cstomo_sensor.force.checks.consistency import Consistency
+from cstomo_sensor.force.estimators.training import CalibrationSpec, calibration_directions
+from cstomo_sensor.frame_path.config import PipelineConfig
+from cstomo_sensor.frame_path.pipeline import Pipeline
 from cstomo_sensor.model import elasticity
 from cstomo_sensor.model.material import pressure_of_theta
 from cstomo_sensor.model.mesh import MeshSpec, build_mesh
@@ -114,8 +114,8 @@ def test_the_calibration_and_the_scene_field_share_one_mechanics(cuboid, cuboid_
     calibration set and the scene field, whose directions are the calibration's; a stale mechanics
     entry is rebuilt, not used."""
     from cstomo_sensor.cache import cache_save
-    from cstomo_sensor.force.scene_field import per_newton_fields
-    from cstomo_sensor.force.training import calibration_set, socket_mechanics
+    from cstomo_sensor.force.checks.consistency import per_newton_fields
+    from cstomo_sensor.force.estimators.training import calibration_set, socket_mechanics
 
     solve, calls = elasticity.solve_socket_load, []
     monkeypatch.setattr(elasticity, "solve_socket_load", lambda *a: calls.append(a[3]) or solve(*a))

@@ -40,7 +40,7 @@ def test_the_parameter_file_and_the_docs_table_are_written_from_the_settings():
 
 def test_the_config_dataclasses_take_their_defaults_from_the_settings():
     pytest.importorskip("rclpy")
-    from cstomo_sensor.force.config import PipelineConfig, StreamConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig, StreamConfig
     from cstomo_sensor.ros.params import PARAMETERS, NodeConfig
 
     seen = set()
@@ -78,7 +78,7 @@ def test_the_node_config_refuses_a_value_outside_the_declared_range_naming_it(na
     ("PipelineConfig", "max_force", 0.0, "1..100000 N"), ("PipelineConfig", "grid", (6, 6), "3 numbers, each 1..64")])
 def test_the_config_dataclasses_refuse_a_value_outside_the_declared_range_naming_it(cls, name, value, why):
     from cstomo_sensor.errors import ConfigError
-    from cstomo_sensor.force import config
+    from cstomo_sensor.frame_path import config
 
     with pytest.raises(ConfigError, match=re.escape(f"{name}={value!r}: expected {why}")):
         getattr(config, cls)(**{name: value})

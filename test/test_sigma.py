@@ -1,14 +1,14 @@
-"""Every force with its error bar (force/sigma.py, issue 26 item 3): the stream's sigma, its
+"""Every force with its error bar (force/slow_states/sigma.py, issue 26 item 3): the stream's sigma, its
 diagnostics, and its honesty on an honest simulation (a device off the model, calibrated)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from cstomo_sensor.force.config import StreamConfig
-from cstomo_sensor.force.health import WARN
-from cstomo_sensor.force.sigma import UNDESCRIBED, ForceSigma, relative_error
-from cstomo_sensor.force.stream import FrameStream
+from cstomo_sensor.force.slow_states.sigma import UNDESCRIBED, ForceSigma, relative_error
+from cstomo_sensor.frame_path.config import StreamConfig
+from cstomo_sensor.frame_path.health import WARN
+from cstomo_sensor.frame_path.stream import FrameStream
 
 
 def test_sigma_is_the_covariance_diagonal_and_its_trace():
@@ -53,8 +53,8 @@ def test_uncalibrated_residual_is_the_nominal_error_by_direction():
 def test_a_frames_misfit_widens_the_noise_and_the_states_terms_only():
     """The misfit m (the frame's consistency over its noise-alone mean, at least 1) multiplies the noise's
     and the tracked states' variances; the calibration's and the creep's stay."""
-    from cstomo_sensor.force.scene_field import noise_expectation
-    from cstomo_sensor.force.sigma import misfit
+    from cstomo_sensor.force.checks.consistency import noise_expectation
+    from cstomo_sensor.force.slow_states.sigma import misfit
 
     assert misfit(float("nan"), 1.0) == 1.0 and misfit(0.5, 1.0) == 1.0 and misfit(6.0, 1.5) == 4.0
     assert noise_expectation(None) == 1.0 and noise_expectation(10) == pytest.approx(9 / 7)
@@ -120,8 +120,8 @@ def test_sigma_is_honest_and_informative_on_the_no_drift_baseline():
 def model_pipe():
     from conftest import PIPE
 
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{**PIPE, "grid": tuple(PIPE["grid"]), "estimator": "model"}))
 
@@ -163,7 +163,7 @@ def test_a_restart_from_an_old_tare_on_a_device_that_changed_unevenly_covers_its
     truth (its own mesh), 60 dB, at rest or loaded from the first frame. The first frames read off (the
     tracker has measured little yet), and their sigma_n says so: error <= 3 sigma_n on each of the first
     10 frames (before issue 34: the first frame 4.1 N off at rest, 3.7 x its sigma_n). The frame's misfit
-    (force/sigma.py) widens the first; the restart's widened device states (force/drift.py) the next."""
+    (force/slow_states/sigma.py) widens the first; the restart's widened device states (force/slow_states/drift.py) the next."""
     from cstomo_sensor.model.timeline import Profile, Timeline, TimelineSpec
 
     tare = Timeline(TimelineSpec(duration=1.0), snr_db=60.0, seed=5, truth=cuboid_truth).tare(20, np.random.default_rng(1))

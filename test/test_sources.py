@@ -13,7 +13,7 @@ from conftest import PIPE, board_link, start, wait_for
 from test_board_pty import CountingSource
 
 from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
-from cstomo_sensor.sources import ArraySource, SerialSource
+from cstomo_sensor.frame_path.sources import ArraySource, SerialSource
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -105,7 +105,7 @@ def test_a_bag_of_the_recording_yields_the_same_frames(recording, tmp_path):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from cstomo_sensor.outputs import TOPIC_TYPES
+    from cstomo_sensor.frame_path.outputs import TOPIC_TYPES
     from cstomo_sensor.ros.sources import BagSource
 
     store = get_typestore(getattr(Stores, "ROS2_KILTED", None) or Stores.LATEST)
@@ -186,9 +186,9 @@ def test_estimate_and_replay_give_the_same_forces_through_the_loop(tmp_path, war
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from cstomo_sensor.force.config import PipelineConfig
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.outputs import TOPIC_TYPES
     from cstomo_sensor.frames_io import read_forces, write_frames
-    from cstomo_sensor.outputs import TOPIC_TYPES
     from cstomo_sensor.ros.messages import raw_voltages_msg
     from cstomo_sensor.tools.cli import main as cstomo
     from cstomo_sensor.tools.replay import replay

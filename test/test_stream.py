@@ -1,4 +1,4 @@
-"""The frame stream's one list of outputs (outputs.py OUTPUTS) against what the node publishes,
+"""The frame stream's one list of outputs (frame_path/outputs.py OUTPUTS) against what the node publishes,
 what replay writes and what ``cstomo_sensor_node --help`` says; and two sensors in two namespaces
 with distinct diagnostics names."""
 from __future__ import annotations
@@ -50,8 +50,8 @@ def _nodes(namespaces_params: list[tuple[str, dict]]):
 
 @pytest.mark.slow  # starts a node
 def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.outputs import OUTPUTS, output_set
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.outputs import OUTPUTS, output_set
     from cstomo_sensor.ros.messages import RAW_TOPIC, TOPIC_TYPES
 
     assert set(TOPIC_TYPES) == set(OUTPUTS) | {RAW_TOPIC}  # every output has its message type, nothing else
@@ -75,8 +75,8 @@ def test_the_node_publishes_exactly_the_stream_outputs(tmp_path, warm_model):
 @pytest.mark.parametrize("case", CASES)
 def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
     pytest.importorskip("rosbags")
-    from cstomo_sensor.force.config import PipelineConfig, StreamConfig
-    from cstomo_sensor.outputs import output_set
+    from cstomo_sensor.frame_path.config import PipelineConfig, StreamConfig
+    from cstomo_sensor.frame_path.outputs import output_set
     from cstomo_sensor.tools.replay import replay
 
     cfg = PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()})
@@ -95,7 +95,7 @@ def test_replay_writes_exactly_the_stream_outputs(tmp_path, case, warm_model):
 
 
 def test_help_lists_exactly_the_stream_outputs():
-    from cstomo_sensor.outputs import OUTPUTS
+    from cstomo_sensor.frame_path.outputs import OUTPUTS
     from cstomo_sensor.ros.startup import usage
 
     text = usage()
@@ -120,11 +120,11 @@ def test_two_sensors_in_two_namespaces_have_distinct_diagnostics_names(tmp_path,
 def test_a_dropped_frame_never_raises_and_repeats_are_logged_once(warm_model, caplog):
     """The stream's boundary: frames of the wrong length and an unexpected error are counted and
     logged at most once per LOG_EVERY s, never raised to the caller."""
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(warm_model)
     stream.set_reference(warm_model.model_reference, None, 1, "test")
-    with caplog.at_level("WARNING", logger="cstomo_sensor.force.stream"):
+    with caplog.at_level("WARNING", logger="cstomo_sensor.frame_path.stream"):
         for _ in range(20):
             assert stream.push(np.ones(207)) is None
         assert stream.push(np.array(["x"] * 208, dtype=object)) is None  # not numbers: an unexpected error
@@ -138,9 +138,9 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
     """Issue 27 item 3: reading the health changes nothing (twice the same problems and figures);
     end_period returns the period's health and the next period starts without its rejected and
     implausible frames (the all-time counts stay)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.health import WARN
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.health import WARN
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     stream = FrameStream(warm_model, StreamConfig.offline())
     ref = warm_model.model_reference

@@ -77,7 +77,7 @@ def test_a_tare_under_a_held_5_n_load_is_refused_and_a_forced_one_says_what_it_o
         ros, tmp_path, warm_model, device):
     from geometry_msgs.msg import WrenchStamped
 
-    from cstomo_sensor.force.tare import TARE_MAX_LOAD
+    from cstomo_sensor.force.reference.tare_rules import TARE_MAX_LOAD
 
     joint = Joint(device, load=lambda t: 0.0 if t < 1.5 else 5.0)
     h, board = start(ros, tmp_path, joint, rate=RATE, tare_on_start=True)  # the default 50 tare frames
@@ -179,8 +179,8 @@ def test_a_tare_pending_across_an_outage_is_refused_when_the_board_returns_loade
 
 @pytest.fixture
 def pipe(warm_model):
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
@@ -196,8 +196,8 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
     contact impedances unchanged, so not an exact scaling). Through the estimator the change reads as
     an 18 N load; with the uniform scale removed it is accepted. A 5 N load on the same warmer device
     is still refused, and a drive current 0.5 % lower (every voltage alike) is accepted."""
-    from cstomo_sensor.force.stream import FrameStream
-    from cstomo_sensor.force.tare import TARE_MAX_LOAD, y_scale
+    from cstomo_sensor.force.reference.tare_rules import TARE_MAX_LOAD, y_scale
+    from cstomo_sensor.frame_path.stream import FrameStream
     from cstomo_sensor.model.simulate import Load
 
     truth, table = device
@@ -235,8 +235,8 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
 
 
 def test_reconnect_ends_a_pending_tare_and_a_tare_at_start_starts_over(pipe, device):
-    from cstomo_sensor.force.stream import FrameStream
-    from cstomo_sensor.force.tare import TARE_RECONNECTED
+    from cstomo_sensor.force.reference.tare_rules import TARE_RECONNECTED
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     ref = device[1][0]
     rng = np.random.default_rng(4)

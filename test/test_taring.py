@@ -1,4 +1,4 @@
-"""The tare transaction (force/taring.py) in the frame stream, without ROS: its deadline follows the
+"""The tare transaction (force/reference/tare_transaction.py) in the frame stream, without ROS: its deadline follows the
 measured frame period (a 50-frame tare on a 5 frame/s board completes), and a tare file whose write
 blocks on a real FIFO does not stop the frames (issue 27 item 3)."""
 from __future__ import annotations
@@ -15,8 +15,8 @@ from conftest import PIPE, wait_for
 @pytest.fixture
 def pipe(warm_model):
     """A fresh Pipeline of its own (loaded from the cache warm_model filled)."""
-    from cstomo_sensor.force.config import PipelineConfig
-    from cstomo_sensor.force.pipeline import Pipeline
+    from cstomo_sensor.frame_path.config import PipelineConfig
+    from cstomo_sensor.frame_path.pipeline import Pipeline
 
     return Pipeline.build(PipelineConfig(**{k: (tuple(v) if k == "grid" else v) for k, v in PIPE.items()}))
 
@@ -30,7 +30,7 @@ def unloaded(source):
 def test_the_deadline_rule_follows_the_frame_period():
     """The rule alone: 50 frames at 1 frame/s get 50 x 1.5 s + stale_timeout + 2 s (the old rule's
     0.1 s per frame gave 7.5 s); the nominal rate bounds a period measured short; none known: 0.1 s."""
-    from cstomo_sensor.force.tare import tare_deadline
+    from cstomo_sensor.force.reference.tare_rules import tare_deadline
 
     assert tare_deadline(50, 1.0, 0.0, 0.5) == pytest.approx(50 * 1.5 + 0.5 + 2.0)
     assert tare_deadline(50, 0.001, 1.0, 0.5) == pytest.approx(50 * 1.5 + 0.5 + 2.0)  # a drained backlog
@@ -44,8 +44,8 @@ def test_a_tare_file_whose_write_blocks_does_not_stop_the_frames(pipe, unloaded,
     every frame gives its force at once; close() says the file is late instead of waiting for ever;
     the tare is reported once the FIFO is read (before issue 27 the write held the frame lock: the
     tare's last frame never returned)."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     tare_file = tmp_path / "tare.csv"
     fifo = tmp_path / f".tare.noise.csv.tmp{os.getpid()}"  # frames_io.atomic_write's temporary name
@@ -87,8 +87,8 @@ def test_a_50_frame_tare_on_a_5_frame_per_s_board_completes(pipe, unloaded):
     old rule, stale_timeout + 0.1 s x 50 + 2 s = 7.5 s, cancelled it after 37 frames; at 1 frame/s
     after 7: the rule's figures at 1 frame/s are test_the_deadline_rule_follows_the_frame_period's).
     5 frames/s and not 1: the same rule guarded in 10 s instead of 50."""
-    from cstomo_sensor.force.config import StreamConfig
-    from cstomo_sensor.force.stream import FrameStream
+    from cstomo_sensor.frame_path.config import StreamConfig
+    from cstomo_sensor.frame_path.stream import FrameStream
 
     cfg = StreamConfig.offline()
     assert cfg.tare_frames == 50

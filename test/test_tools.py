@@ -334,7 +334,7 @@ def test_a_command_prints_one_log_message_at_most_three_times(capsys):
     from cstomo_sensor.tools.common import MAX_REPEATS, setup_logging
 
     repeats = setup_logging(force=True)
-    log = logging.getLogger("cstomo_sensor.force.health")
+    log = logging.getLogger("cstomo_sensor.frame_path.health")
     for i in range(400):
         log.warning("implausible frames (no force output): %s", f"reason {i}")
         log.warning("plausible frames again after %d implausible ones", i)
@@ -420,7 +420,7 @@ def test_progress_is_one_updating_line_on_a_terminal_and_nothing_elsewhere(monke
 
 def test_every_flag_of_every_command_has_help_and_shows_its_default():
     """--help: every option with a help text, its default shown (by the shared formatter, so a flag
-    added later shows it too), no internal file paths (force/drift.py), --cache-dir naming
+    added later shows it too), no internal file paths (force/slow_states/drift.py), --cache-dir naming
     $XDG_CACHE_HOME as the cache does; calibrate's help was 99 lines, replay's 86."""
     import argparse
     import re

@@ -1,6 +1,6 @@
 """Serial driver for the board: a pyserial port opened by URL, a bounded queue, and a reader thread
 or none (``thread=False``: the thread calling :meth:`BoardDriver.get` reads, as
-:class:`cstomo_sensor.sources.SerialSource` does: no hand-over between threads).
+:class:`cstomo_sensor.frame_path.sources.SerialSource` does: no hand-over between threads).
 
 The reader decodes frames (binary or text mode, docs/protocol.md), counts lost frames once
 each (by sequence number: lost to corruption or to a gap), drops and counts duplicated and late

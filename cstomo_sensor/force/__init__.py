@@ -1,3 +1,2 @@
-"""From a frame to a force: the calibrated estimators (:mod:`.estimate`), the per-frame path
-(:mod:`.pipeline`), the frame stream (:mod:`.stream`) and their settings (:mod:`.config`), shared by
-the node, replay and the command line. No ROS, no serial."""
+"""From a frame's change to a force and its error bar, in four rooms, each importing only the ones before it:
+estimators, checks, slow_states, reference (the frame path that drives them: cstomo_sensor.frame_path)."""

@@ -141,7 +141,7 @@ class ReconstructionModel:
     basis_centers : (n_basis, 3) m.   average : (n_voxels, n_basis) sparse volume average.
     contact : (k, n_meas) the normalised changes (``dV / v_scale``) of the electrodes' contact impedances
     rising by 1 (relative): all alike, then linearly with the electrode's position along x, y, z (by 1
-    per half of the electrodes' extent): directions the drift tracker follows (force/drift.py).
+    per half of the electrodes' extent): directions the drift tracker follows (force/slow_states/drift.py).
     """
 
     R: np.ndarray

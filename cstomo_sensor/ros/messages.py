@@ -1,7 +1,7 @@
 """What the node publishes, built in one place for the live node and for ``cstomo replay``.
 
 Both :mod:`cstomo_sensor.ros.node` and :mod:`cstomo_sensor.tools.replay` push frames of 208 volts
-through a :class:`~cstomo_sensor.force.stream.FrameStream` and turn what it emits into messages with
+through a :class:`~cstomo_sensor.frame_path.stream.FrameStream` and turn what it emits into messages with
 :class:`OutputMessages`; so the same frames give the same numbers in the same message types, live or
 replayed.
 
@@ -20,8 +20,8 @@ from std_msgs.msg import Float32MultiArray, Float64, MultiArrayDimension
 
 from ..board.wire import N_VALUES as N_MEAS
 from ..errors import ConfigError, FrameError
+from ..frame_path.outputs import CLOUD, FLOAT64, OUTPUTS, RAW_TOPIC, TOPIC_TYPES, VECTOR, WRENCH  # noqa: F401 - TOPIC_TYPES
 from ..frames_io import check_frame
-from ..outputs import CLOUD, FLOAT64, OUTPUTS, RAW_TOPIC, TOPIC_TYPES, VECTOR, WRENCH  # noqa: F401 - TOPIC_TYPES
 
 #: The raw frames' type before they carried a stamp: still read by replay and calibrate (old bags).
 LEGACY_RAW_TYPE = "std_msgs/msg/Float32MultiArray"
@@ -172,10 +172,10 @@ class OutputMessages:
         return bytes(tpl)
 
     def build(self, result: object, stamp_ns: int, filtered=None, names=None) -> dict[str, bytes]:
-        """CDR messages of one :class:`~cstomo_sensor.force.pipeline.FrameResult` at ``stamp_ns``, keyed
+        """CDR messages of one :class:`~cstomo_sensor.frame_path.pipeline.FrameResult` at ``stamp_ns``, keyed
         by topic name (relative to the node), of the outputs ``names`` (default: every output of
-        :data:`~cstomo_sensor.outputs.OUTPUTS`, in its order) whose value this frame has
-        (:class:`~cstomo_sensor.outputs.Output`: ``wrench_sigma`` when the result has its uncertainty,
+        :data:`~cstomo_sensor.frame_path.outputs.OUTPUTS`, in its order) whose value this frame has
+        (:class:`~cstomo_sensor.frame_path.outputs.Output`: ``wrench_sigma`` when the result has its uncertainty,
         under the wrench's stamp; ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given;
         ``consistency`` when the result has the statistic; the stress fields when it carries them)."""
         out = {}

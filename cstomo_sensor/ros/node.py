@@ -1,10 +1,10 @@
 """``cstomo_sensor_node``: the sensor's managed (lifecycle) ROS 2 node, publishing the joint's force.
 
-A thin ROS adapter over the one frame loop (:mod:`cstomo_sensor.loop`): a source of stamped frames
-(the board: :class:`~cstomo_sensor.sources.SerialSource`, read, decoded and processed by one thread;
+A thin ROS adapter over the one frame loop (:mod:`cstomo_sensor.frame_path.loop`): a source of stamped frames
+(the board: :class:`~cstomo_sensor.frame_path.sources.SerialSource`, read, decoded and processed by one thread;
 or ``~/raw_voltages_in``: :class:`~.sources.TopicSource`, processed in its callback) through the
-sensor's :class:`~cstomo_sensor.force.stream.FrameStream` to the publishers
-(:class:`~.sinks.Publishers`: one per output of :data:`~cstomo_sensor.outputs.OUTPUTS`, each message
+sensor's :class:`~cstomo_sensor.frame_path.stream.FrameStream` to the publishers
+(:class:`~.sinks.Publishers`: one per output of :data:`~cstomo_sensor.frame_path.outputs.OUTPUTS`, each message
 built only while someone subscribes). ``cstomo replay`` and ``cstomo estimate`` are the same loop.
 
 configure: one frozen :class:`~.params.NodeConfig` from the parameters, the pipeline, the stream, the
@@ -31,12 +31,12 @@ from std_msgs.msg import Empty
 from std_srvs.srv import Trigger
 
 from ..board.driver import set_os_thread_name
-from ..force.pipeline import Pipeline
-from ..force.stream import FrameStream
-from ..loop import connect, run, step
+from ..frame_path.loop import connect, run, step
+from ..frame_path.outputs import RAW_TOPIC
+from ..frame_path.pipeline import Pipeline
+from ..frame_path.sources import SerialSource
+from ..frame_path.stream import FrameStream
 from ..model.geometry import load_sensor
-from ..outputs import RAW_TOPIC
-from ..sources import SerialSource
 from . import log as ros_log
 from . import status
 from .params import NodeConfig
@@ -263,7 +263,7 @@ class CstomoSensorNode(LifecycleNode):
 
     def _on_expected(self, msg: WrenchStamped) -> None:
         """``~/expected_wrench``: the load a controller expects now, to ``expected_wrench_sigma`` per axis;
-        the stream checks it (force/expected.py: a refusal is counted and said once per kind)."""
+        the stream checks it (force/checks/expected.py: a refusal is counted and said once per kind)."""
         f, h, stream = msg.wrench.force, msg.header, self.stream
         if stream is not None:  # None: released meanwhile
             stream.expect_load((f.x, f.y, f.z), self.config.expected_wrench_sigma, h.stamp.sec * 10**9 + h.stamp.nanosec,

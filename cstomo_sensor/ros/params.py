@@ -11,8 +11,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from ..cache import default_cache_dir
 from ..errors import ConfigError
-from ..force.config import PipelineConfig, StreamConfig
-from ..force.device import tare_file_name
+from ..force.reference.files import tare_file_name
+from ..frame_path.config import PipelineConfig, StreamConfig
 from ..model.geometry import SensorGeometry
 from ..settings import SETTING, SETTINGS, Setting, default
 

@@ -1,4 +1,4 @@
-"""Sinks of the frame loop (:mod:`cstomo_sensor.loop`) that speak ROS: the node's publishers and a
+"""Sinks of the frame loop (:mod:`cstomo_sensor.frame_path.loop`) that speak ROS: the node's publishers and a
 rosbag2 writer. Both build the messages of :class:`~.messages.OutputMessages` (CDR bytes, the same
 for both), the publishers only those of the topics someone subscribes to.
 """
@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 from rclpy.event_handler import PublisherEventCallbacks
 
-from ..outputs import OUTPUTS, RAW_TOPIC, TOPIC_TYPES
+from ..frame_path.outputs import OUTPUTS, RAW_TOPIC, TOPIC_TYPES
 from .messages import OutputMessages, RawVoltagesCdr
 
 

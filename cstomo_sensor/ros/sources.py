@@ -1,4 +1,4 @@
-"""Frame sources of ROS messages (:mod:`cstomo_sensor.sources` for the base): a topic of raw frames
+"""Frame sources of ROS messages (:mod:`cstomo_sensor.frame_path.sources` for the base): a topic of raw frames
 and a rosbag2 recording of one. Each frame is stamped with its message's header stamp (the time it
 was measured, as the serial node stamps it), else the time it arrived (a topic: the node's clock on
 reception; a bag: its receive time); NaN in a message marks a measurement the board flagged.
@@ -14,7 +14,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from ..errors import ConfigError, FrameError
-from ..sources import FrameSource, StampedFrame
+from ..frame_path.sources import FrameSource, StampedFrame
 from .messages import RAW_TOPIC, TOPIC_TYPES, frame_from_raw_msg
 
 
@@ -98,7 +98,7 @@ def bag_path(path: str | Path) -> Path:
 class BagSource(FrameSource):
     """The raw frames of a rosbag2 recording (sqlite3 or mcap; the ``rosbags`` library): the topic
     ``topic``, else the one ending in ``raw_voltages`` (:func:`find_raw_topic`). A frame's
-    :attr:`~cstomo_sensor.sources.StampedFrame.t_ns` is its receive time in the bag."""
+    :attr:`~cstomo_sensor.frame_path.sources.StampedFrame.t_ns` is its receive time in the bag."""
 
     def __init__(self, path: str | Path, topic: str | None = None) -> None:
         from rosbags.rosbag2 import Reader  # optional: the [full] extra

@@ -17,7 +17,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
 from ..errors import ConfigError, CstomoError
-from ..outputs import help_lines
+from ..frame_path.outputs import help_lines
 from ..settings import SETTING
 from .params import PARAMETERS
 

@@ -7,7 +7,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-from ..force.health import ERROR, OK, WARN
+from ..frame_path.health import ERROR, OK, WARN
 
 
 def stale_reason(cfg, stream, source) -> str:

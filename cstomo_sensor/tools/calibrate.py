@@ -34,10 +34,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.calibration import calibrate, reference_path_of
-from ..force.creep import HELD_FOR, MIN_HELD
-from ..force.device import read_reference, reference_of, saved_at, write_reference
-from ..force.pipeline import Pipeline
+from ..force.reference.calibration import calibrate, reference_path_of
+from ..force.reference.files import read_reference, reference_of, saved_at, write_reference
+from ..force.slow_states.creep import HELD_FOR, MIN_HELD
+from ..frame_path.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
 from .common import ToolParser, add_pipeline_args, help_text, pipeline_config, positive
 
@@ -155,7 +155,7 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
 class HeldLoads:
     """When the frames of a calibration recording were measured (``times``, s, in time order), the
     held load (plateau) each is on (``load``, numbered in time order; -1 none) and when each load was
-    applied (``starts``, s): what the creep's fit needs (force/creep.py fit_creep_loads)."""
+    applied (``starts``, s): what the creep's fit needs (force/slow_states/creep.py fit_creep_loads)."""
 
     times: np.ndarray
     load: np.ndarray
@@ -234,10 +234,10 @@ def parser() -> argparse.ArgumentParser:
 
 def recorded_noise(frames: np.ndarray, ref: np.ndarray) -> np.ndarray | None:
     """The per-channel noise (volts, one level for all) of a recording's consecutive frames, by the
-    stream's rules (force/noise.py), or None (the estimators assume 60 dB) when its frame pairs do not
+    stream's rules (force/reference/noise_estimate.py), or None (the estimators assume 60 dB) when its frame pairs do not
     differ by noise alone; prints which."""
-    from ..force.device import DEFAULT_NOISE_DB, NOISE_DB_RANGE
-    from ..force.noise import is_time_series, noise_level, snr_db
+    from ..force.reference.files import DEFAULT_NOISE_DB, NOISE_DB_RANGE
+    from ..force.reference.noise_estimate import is_time_series, noise_level, snr_db
 
     level, pairs, agree = noise_level(frames)
     db = snr_db(level, ref) if level == level else float("nan")
@@ -253,11 +253,11 @@ def recorded_noise(frames: np.ndarray, ref: np.ndarray) -> np.ndarray | None:
 def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
     """The creep per decade of a held load's frames (the first when the load was applied, ``rate``
     frames/s): their force magnitudes through the stream, neither creep nor drift compensated."""
-    from ..force.config import StreamConfig
-    from ..force.creep import fit_creep
-    from ..force.stream import FrameStream
-    from ..loop import Results, run
-    from ..sources import ArraySource
+    from ..force.slow_states.creep import fit_creep
+    from ..frame_path.config import StreamConfig
+    from ..frame_path.loop import Results, run
+    from ..frame_path.sources import ArraySource
+    from ..frame_path.stream import FrameStream
 
     if not rate > 0:
         raise ConfigError.bad_value("--creep-rate", rate, "frames per second > 0")
@@ -275,8 +275,8 @@ def held_creep(pipe, frames: np.ndarray, rate: float) -> float:
 def recording_creep(pipe, frames: np.ndarray, loads: HeldLoads | None, why_not: str = "") -> tuple[float | None, str]:
     """(creep per decade or None, the line that says so) fitted on a calibration recording's held loads
     (:class:`HeldLoads` of ``frames``; None: ``why_not``): their uncompensated forces through the
-    pipeline (its reference set), force/creep.py fit_creep_loads."""
-    from ..force.creep import fit_creep_loads
+    pipeline (its reference set), force/slow_states/creep.py fit_creep_loads."""
+    from ..force.slow_states.creep import fit_creep_loads
 
     if loads is not None:
         order = np.argsort(loads.times, kind="stable")
@@ -291,7 +291,7 @@ def recording_creep(pipe, frames: np.ndarray, loads: HeldLoads | None, why_not: 
 
 
 def run(a) -> int:
-    from ..force.creep import creep_problem
+    from ..force.slow_states.creep import creep_problem
 
     cfg = pipeline_config(a)
     if a.creep_per_decade is not None and a.creep_hold:

@@ -93,14 +93,14 @@ def cmd_reconstruct(a) -> int:
 
 
 def cmd_estimate(a) -> int:
-    from ..force.config import StreamConfig
-    from ..force.device import read_reference
-    from ..force.learned import read_directions
-    from ..force.noise import MIN_PAIRS, is_time_series, noise_level
-    from ..force.pipeline import Pipeline
-    from ..force.stream import FrameStream
-    from ..loop import Results, run
-    from ..sources import ArraySource
+    from ..force.reference.files import read_reference
+    from ..force.reference.noise_estimate import MIN_PAIRS, is_time_series, noise_level
+    from ..force.slow_states.learned import read_directions
+    from ..frame_path.config import StreamConfig
+    from ..frame_path.loop import Results, run
+    from ..frame_path.pipeline import Pipeline
+    from ..frame_path.sources import ArraySource
+    from ..frame_path.stream import FrameStream
 
     cfg = pipeline_config(a)
     if not a.rate > 0:
@@ -109,7 +109,7 @@ def cmd_estimate(a) -> int:
         raise ConfigError.bad_value("--reference-age", a.reference_age, "seconds >= 0 (how old the saved tare is)")
     load_sensor(cfg.sensor)
     ref, noise, n_ref = read_reference(a.reference)  # the inputs are checked before any model is built
-    directions = read_directions(a.reference)  # the device's own directions saved beside it (force/learned.py)
+    directions = read_directions(a.reference)  # the device's own directions saved beside it (force/slow_states/learned.py)
     frames = read_frames(a.frames)
     creep = a.creep_per_decade
     _, pairs, agree = noise_level(frames)

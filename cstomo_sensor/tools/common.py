@@ -26,7 +26,7 @@ from typing import IO
 import yaml
 
 from ..errors import CstomoError
-from ..force.config import PipelineConfig
+from ..frame_path.config import PipelineConfig
 from ..settings import SETTING, text_of
 
 _SAME = object()

@@ -35,8 +35,8 @@ from geometry_msgs.msg import Vector3Stamped, WrenchStamped
 
 from ..angles import angle_between, force_angles, force_from_angles
 from ..errors import CstomoError
-from ..force.config import PipelineConfig
-from ..force.pipeline import Pipeline
+from ..frame_path.config import PipelineConfig
+from ..frame_path.pipeline import Pipeline
 from ..frames_io import force_at, load_index, read_load_script
 from ..settings import MAX_LOAD
 from .board_sim import COMPUTING

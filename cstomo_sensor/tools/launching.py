@@ -25,7 +25,7 @@ import yaml
 from ..board.sim import DEFAULT_RATE_HZ
 from ..cache import default_cache_dir
 from ..errors import ConfigError, CstomoError
-from ..force.device import tare_file_name
+from ..force.reference.files import tare_file_name
 from ..frames_io import read_load_script
 from ..model.geometry import load_sensor
 from ..settings import SETTING, default

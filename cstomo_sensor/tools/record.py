@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ConfigError, CstomoError
-from ..outputs import OUTPUTS, TOPIC_TYPES
+from ..frame_path.outputs import OUTPUTS, TOPIC_TYPES
 from .common import ToolParser, bag_typestore, help_text
 
 STORAGES = ("sqlite3", "mcap")

@@ -23,8 +23,8 @@ import numpy as np
 
 from ..angles import planar_angle
 from ..errors import ConfigError, CstomoError, ModelMismatchError
-from ..force.config import PipelineConfig
-from ..force.pipeline import Pipeline
+from ..frame_path.config import PipelineConfig
+from ..frame_path.pipeline import Pipeline
 from ..inverse.reconstruction import voxel_basis
 from ..model.geometry import load_sensor
 from ..model.material import pressure_of_theta

@@ -5,18 +5,18 @@ publishes it, or the std_msgs/Float32MultiArray of older recordings; sqlite3 or 
 marks a measurement the board flagged) with the ``rosbags``
 library and writes a new bag with the node's output topics under the same namespace as the input
 topic, with the same message types and the same numbers the live node publishes: both push the
-frames through a :class:`~cstomo_sensor.force.stream.FrameStream` in the one frame loop
-(:func:`cstomo_sensor.loop.run`: a :class:`~cstomo_sensor.ros.sources.BagSource` in, a
+frames through a :class:`~cstomo_sensor.frame_path.stream.FrameStream` in the one frame loop
+(:func:`cstomo_sensor.frame_path.loop.run`: a :class:`~cstomo_sensor.ros.sources.BagSource` in, a
 :class:`~cstomo_sensor.ros.sinks.BagWriter` and the forces file out) and build the messages with
 :class:`~cstomo_sensor.ros.messages.OutputMessages`; the topics are the stream's outputs for the
 settings given (``wrench_filtered`` with a filter, the stress fields with ``--stress-field-every``).
 
 Tare: with ``reference`` (a frames file, e.g. the node's saved ``tare_<sensor>-<digest>.csv``) that frame
 (the mean of its rows; their spread, or the saved ``.noise.csv`` beside it, is the noise; without
-either, the noise is estimated from the bag's frames as they come, as the node does: force/noise.py) is the
+either, the noise is estimated from the bag's frames as they come, as the node does: force/reference/noise_estimate.py) is the
 reference, if it is a plausible frame of this sensor (the node's rule for a saved tare); a file that records
 when it was saved (the node's saved tare), before the bag's first frame, is a restart: its age at that frame
-widens the slow states as the node's restart does (force/device.py ``tare_age``); without it,
+widens the slow states as the node's restart does (force/reference/files.py ``tare_age``); without it,
 the first ``tare_frames`` frames of the bag are averaged into the reference and give no output,
 exactly as the node in topic mode with ``tare_on_start: true``. Stamps: each output carries its input
 frame's own stamp (the time it was measured), as the node stamps it; a legacy frame without one, the
@@ -40,13 +40,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, CstomoError
-from ..force.config import PipelineConfig, StreamConfig
-from ..force.device import read_reference, tare_age
-from ..force.learned import read_directions
-from ..force.pipeline import Pipeline
-from ..force.stream import FrameStream
-from ..loop import Results, run
-from ..outputs import RAW_TOPIC
+from ..force.reference.files import read_reference, tare_age
+from ..force.slow_states.learned import read_directions
+from ..frame_path.config import PipelineConfig, StreamConfig
+from ..frame_path.loop import Results, run
+from ..frame_path.outputs import RAW_TOPIC
+from ..frame_path.pipeline import Pipeline
+from ..frame_path.stream import FrameStream
 from ..ros.sinks import BagWriter
 from ..ros.sources import BagSource
 from ..settings import default
@@ -124,7 +124,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             first = source.peek()
             age = None if first is None else tare_age(reference, first.stamp_ns * 1e-9, file_time=False)
             stream.set_reference(*read_reference(reference, pipe.n_meas), f"reference {reference}", age_s=age,
-                                 directions=read_directions(reference, pipe.n_meas))  # the device's own (force/learned.py)
+                                 directions=read_directions(reference, pipe.n_meas))  # the device's own (force/slow_states/learned.py)
             log.info("reference %s: %s", reference, "a tare just taken (it records no time before the bag's first frame)"
                      if age is None else f"a saved tare {age:.0f} s old at the bag's first frame: the node's restart")
         else:

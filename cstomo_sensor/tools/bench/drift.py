@@ -1,4 +1,4 @@
-"""``cstomo bench --drift``: does the zero hold when the device changes after its tare (force/drift.py)?
+"""``cstomo bench --drift``: does the zero hold when the device changes after its tare (force/slow_states/drift.py)?
 
 An honestly simulated device (the benchmark's truth: its own mesh, mismatched electrodes, 60 dB) is
 tared unloaded (20 frames), then changes over :data:`RAMP_S` seconds and stays changed: a uniform
@@ -14,7 +14,7 @@ at :data:`RATE` frames/s. Per scenario, estimator and tracking on/off:
 - ``angle_deg`` / ``magnitude_pct``: median errors over the loaded frames;
 - ``tracked_change``: the tracker's scale - 1 at the end; ``implausible``: frames refused;
 - ``us_per_frame``: median time of one frame through the stream (``FrameStream.push``) in this run;
-- ``over3sigma_pct``: the published frames whose error norm exceeds 3 ``sigma_n`` (force/sigma.py; the
+- ``over3sigma_pct``: the published frames whose error norm exceeds 3 ``sigma_n`` (force/slow_states/sigma.py; the
   aim <= 1 % where the drift is tracked or absent), ``sigma_ratio`` the median ``sigma_n`` over the
   median error (informative: within 2x).
 
@@ -39,15 +39,15 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import angle_between, force_from_angles
-from ...force.config import PipelineConfig, StreamConfig
-from ...force.pipeline import Pipeline
-from ...force.stream import FrameStream
-from ...loop import Trace, run
+from ...frame_path.config import PipelineConfig, StreamConfig
+from ...frame_path.loop import Trace, run
+from ...frame_path.pipeline import Pipeline
+from ...frame_path.sources import ArraySource
+from ...frame_path.stream import FrameStream
 from ...model.geometry import load_sensor
 from ...model.simulate import Load, Truth, add_noise
 from ...model.timeline import ZERO, Timeline, contact_drift, held_load_creep, temperature_gradient, warmup_30min
 from ...settings import DEFAULT_SENSOR, ESTIMATORS
-from ...sources import ArraySource
 from .report import write_rows
 from .scenes import SNR_DB
 from .timing import one_core

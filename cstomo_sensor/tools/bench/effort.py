@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ...force.calibration import calibrate, errors
-from ...force.config import PipelineConfig
-from ...force.device import reference_of
-from ...force.pipeline import Pipeline
+from ...force.reference.calibration import calibrate, errors
+from ...force.reference.files import reference_of
+from ...frame_path.config import PipelineConfig
+from ...frame_path.pipeline import Pipeline
 from ...model.simulate import Load, Scene, add_noise
 from .report import write_csv
 from .scenes import SCENES, SNRS, quantile, random_forces

@@ -1,4 +1,4 @@
-"""``cstomo bench --filter``: delay and noise reduction of ``~/wrench_filtered`` (force/filter.py) on
+"""``cstomo bench --filter``: delay and noise reduction of ``~/wrench_filtered`` (frame_path/filter.py) on
 held-out loads at 60 and 40 dB.
 
 For each of a few held-out socket loads (the benchmark's honestly simulated device), a stream of
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...force.filter import LowPass
+from ...frame_path.filter import LowPass
 from .models import Builder, Setting
 from .report import write_rows
 from .scenes import NOISE_SEED, SNRS, SceneSet

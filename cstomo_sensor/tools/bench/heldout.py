@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import force_angles
-from ...force.calibration import DeviceCalibration
-from ...force.device import reference_of
+from ...force.reference.calibration import DeviceCalibration
+from ...force.reference.files import reference_of
 from .models import Builder, Setting
 from .report import write_rows
 from .scenes import NOISE_SEED, SNR_DB, SNRS, SceneSet, errors, quantile
@@ -67,8 +67,8 @@ ONE_FRAME_CASES = (("tare 50, noise measured", TARE_FRAMES, True, False),
 
 
 def _observe_us(frames: np.ndarray) -> float:
-    """Microseconds per frame pair of the running noise estimate (:class:`~...force.noise.NoiseEstimate`)."""
-    from ...force.noise import NoiseEstimate
+    """Microseconds per frame pair of the running noise estimate (:class:`~...force.reference.noise_estimate.NoiseEstimate`)."""
+    from ...force.reference.noise_estimate import NoiseEstimate
 
     est = NoiseEstimate(frames.shape[1])
     f32 = frames.astype(np.float32)  # as the node receives them
@@ -86,10 +86,10 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
     is in use, included), the noise the stream ended with, and the stream's mean time per frame (its
     noise updates, milliseconds each, included), with the drift tracking on (the node's default) and off.
     Writes heldout_one_frame.csv."""
-    from ...force.config import StreamConfig
-    from ...force.stream import FrameStream
-    from ...loop import Results, run
-    from ...sources import ArraySource
+    from ...frame_path.config import StreamConfig
+    from ...frame_path.loop import Results, run
+    from ...frame_path.sources import ArraySource
+    from ...frame_path.stream import FrameStream
 
     scenes = SceneSet(n, cache_dir, say)
     builder = Builder(cache_dir, say)
@@ -134,7 +134,7 @@ SIGMA_BINS = (20, 30, 40, 50, 60, 70, 80, 90.01)
 
 def sigma_table(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> list[dict]:
     """``cstomo bench --sigma-table N``: the nominal model's error by the load's direction, which the force's
-    sigma takes as its calibration residual without a calibration (force/sigma.py ``NOMINAL_ERROR``): both
+    sigma takes as its calibration residual without a calibration (force/slow_states/sigma.py ``NOMINAL_ERROR``): both
     estimators on ``n`` random socket loads of the training side's simulated device (truth seed
     :data:`~.scenes.TRAIN_TRUTH_SEED`, forces :data:`~.scenes.TRAIN_FORCE_SEED`), noise-free frames against
     the noise-free reference (the estimators weighted by a 50-frame tare's noise at 60 dB): the relative
@@ -142,7 +142,7 @@ def sigma_table(n: int, out: str | os.PathLike, cache_dir=None, say=print) -> li
     fitted (``k_v^2`` the mean square over 80..90 deg, ``k_l^2`` least squares of the rest). Then the same
     loads' errors on the held-out device (truth seed :data:`~.scenes.TRUTH_SEED`), judged against the fit
     in use: ``over3sigma_pct`` of its errors beyond 3 k(el). Writes sigma_table.csv."""
-    from ...force.sigma import NOMINAL_ERROR
+    from ...force.slow_states.sigma import NOMINAL_ERROR
     from .scenes import TRAIN_FORCE_SEED, TRAIN_TRUTH_SEED, TRUTH_SEED
 
     builder = Builder(cache_dir, say)

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...force.config import PipelineConfig
-from ...force.estimate import build_estimator
-from ...force.pipeline import Pipeline
+from ...force.estimators.estimate import build_estimator
+from ...frame_path.config import PipelineConfig
+from ...frame_path.pipeline import Pipeline
 from ...inverse.reconstruction import ReconSpec, build_model, discrepancy_iterations
 from ...model.geometry import load_sensor
 from ...settings import DEFAULT_SENSOR

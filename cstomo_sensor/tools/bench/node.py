@@ -75,8 +75,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
 
 from ...errors import CstomoError
-from ...force.config import PipelineConfig
-from ...force.pipeline import Pipeline
+from ...frame_path.config import PipelineConfig
+from ...frame_path.pipeline import Pipeline
 from ..common import NodeWithBoard, ToolParser, add_setting_arg, executable, help_text, local_ros_env, positive
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",

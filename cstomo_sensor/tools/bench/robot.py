@@ -8,7 +8,7 @@ to 0.5 mm from their nominal centres; ``cuboid_device_b_60db.yaml``: stiff (E 1.
 sensitive rubber (phi0 0.063, tau 1.9), half as resistive at rest, contact impedance 0.5 x the model's
 +-30 %, every electrode moved by up to 0.5 mm (seeded). Each has its own truth mesh, 60 dB. As on a
 robot each is calibrated once on
-:data:`CAL_LOADS` known loads (``cstomo calibrate``'s :func:`~cstomo_sensor.force.calibration.calibrate`,
+:data:`CAL_LOADS` known loads (``cstomo calibrate``'s :func:`~cstomo_sensor.force.reference.calibration.calibrate`,
 :data:`CAL_FRAMES` frames each) against its tare, unchanged; then (model/timeline.py, the truth solved at
 knots, no parallel simulation):
 
@@ -41,7 +41,7 @@ the median errors over its loaded frames, ``wrong_pct`` the "silently wrong" sha
 (plausible) frames whose error exceeds 0.5 N at zero load or 10 % of the load, ``silent_pct`` those of
 them whose error also exceeds 3 ``sigma_n`` (silently wrong as issue 34 counts it), ``implausible`` frames
 refused, ``tracked_change`` the tracker's scale - 1 at the window's end; the error bars' honesty
-(force/sigma.py): ``over3sigma_pct`` the share of published frames whose error norm exceeds 3
+(force/slow_states/sigma.py): ``over3sigma_pct`` the share of published frames whose error norm exceeds 3
 ``sigma_n`` (the aim: <= 1 %), ``sigma_n`` the median ``sigma_n`` and ``sigma_ratio`` it over the
 median error (informative: within 2x).
 Then robot_change.py's rows (issue 34): the loaded warm-up and both restarts with the full change of a
@@ -58,17 +58,17 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import angle_between
-from ...force.calibration import calibrate
-from ...force.config import PipelineConfig, StreamConfig
-from ...force.device import write_reference
-from ...force.learned import write_directions
-from ...force.pipeline import Pipeline
-from ...force.stream import FrameStream
-from ...loop import Trace, run, step
+from ...force.reference.calibration import calibrate
+from ...force.reference.files import write_reference
+from ...force.slow_states.learned import write_directions
+from ...frame_path.config import PipelineConfig, StreamConfig
+from ...frame_path.loop import Trace, run, step
+from ...frame_path.pipeline import Pipeline
+from ...frame_path.sources import ArraySource
+from ...frame_path.stream import FrameStream
 from ...model.simulate import Load, Scene, add_noise
 from ...model.timeline import RESISTIVITY_PER_K, ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
 from ...settings import ESTIMATORS
-from ...sources import ArraySource
 from .scenes import SCENES, random_forces
 
 #: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
@@ -147,7 +147,7 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
     timeline's frames: (times, forces read (n, 3; NaN when refused), true forces, tracked scale,
     sigma_n (NaN when refused)). ``tare_file_age``: the tare is saved as the node saves it and the stream
     starts as the node does (:meth:`FrameStream.init_reference` on a tare file of that age: a restart), with
-    the device's learned ``directions`` saved beside it (force/learned.py; None: none);
+    the device's learned ``directions`` saved beside it (force/slow_states/learned.py; None: none);
     ``streams``: a list that gets the stream."""
     rng = np.random.default_rng(seed)
     times, frames, forces, _ = tl.frames(rate, rng=rng)
@@ -174,8 +174,8 @@ def run_stream(pipe, tl: Timeline, tare: np.ndarray, tracking: bool, rate: float
 
 def restarted_stream(pipe, config: StreamConfig, tare: np.ndarray, age_s: float, directions=None) -> FrameStream:
     """A stream started as the node starts (ros/node.py): ``tare`` (frames) saved to a tare file as
-    :class:`~cstomo_sensor.force.taring.Taring` saves an accepted tare (and the device's learned
-    ``directions`` beside it, force/learned.py), the file ``age_s`` seconds old, then
+    :class:`~cstomo_sensor.force.reference.tare_transaction.Taring` saves an accepted tare (and the device's learned
+    ``directions`` beside it, force/slow_states/learned.py), the file ``age_s`` seconds old, then
     :meth:`FrameStream.init_reference` without a tare on start (``tare_on_start`` false)."""
     with tempfile.TemporaryDirectory(prefix="cstomo_robot_") as tmp:
         path = Path(tmp) / "tare.csv"

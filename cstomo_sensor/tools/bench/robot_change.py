@@ -59,7 +59,7 @@ SILENT_AIM = 1.0            # % of published frames silently wrong, every series
 
 
 #: The session before the restarts (s), at rest while the device takes the change: what a node running
-#: before its restart learns the device's own directions from (force/learned.py), saved beside its tare.
+#: before its restart learns the device's own directions from (force/slow_states/learned.py), saved beside its tare.
 LEARN_S = 90.0
 
 
@@ -109,7 +109,7 @@ def full_change_rows(device, cache_dir=None, say=print, estimators=ESTIMATORS, w
     (scene, truth, pipes, tare)); ``warm_s``, ``restart_s``, ``loaded_s``: the scenarios' durations (a
     shorter run for the tests). ``learn_s`` > 0: before the restarts, a session of that many seconds from
     the tare at rest while the device takes the full change (+:data:`CHANGE`, reached at 2/3 of it) learns
-    the device's own directions (force/learned.py), and the restarts' tare file carries them (the node
+    the device's own directions (force/slow_states/learned.py), and the restarts' tare file carries them (the node
     that ran before its restart); 0: none (a tare file without them)."""
     sc, truth, pipes, tare = device
     dev = truth.geometry.name

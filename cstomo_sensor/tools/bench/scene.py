@@ -1,4 +1,4 @@
-"""``cstomo bench --scene``: the scene's stress field and the foreign-load flag (force/scene_field.py).
+"""``cstomo bench --scene``: the scene's stress field and the foreign-load flag (force/checks/consistency.py).
 
 Prints and writes scene.csv: the scene field's and the EIT image's correlation with the truth's
 mean stress on the published points for the paper's planar cases; the spline's error between the
@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 
 from ...angles import force_from_angles
-from ...force.config import PipelineConfig
-from ...force.pipeline import Pipeline
-from ...force.scene_field import Consistency, change_noise, mismatch_allowance
-from ...force.training import CalibrationSpec
+from ...force.checks.consistency import Consistency, change_noise, mismatch_allowance
+from ...force.estimators.training import CalibrationSpec
+from ...frame_path.config import PipelineConfig
+from ...frame_path.pipeline import Pipeline
 from ...model import elasticity
 from ...model.material import pressure_of_theta
 from ...model.mesh import MeshSpec, build_mesh

@@ -1,0 +1,136 @@
+"""One frame's own measurement of the device's uniform scale, its load marginalised (issue 26): the joint
+fit of the force and the scale that lets every frame, loaded or not, inform the drift tracker
+(:mod:`..slow_states.drift`), and the directions the tracker follows besides the scale. docs/node.md, *Following the
+device under load*."""
+from __future__ import annotations
+
+import numpy as np
+
+from .linalg import solve_small
+
+
+def gradient_coordinates(model, points: np.ndarray) -> np.ndarray:
+    """(n, 3): the relative resistivity change at ``points`` (n, 3) m of the gradients along x, y and z:
+    rising linearly by 1 per half of the block's extent (its basis voxels' centres) from its middle."""
+    c = np.asarray(model.basis_centers, float)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    return (np.asarray(points, float) - 0.5 * (lo + hi)) / np.maximum(0.5 * (hi - lo), 1e-12)
+
+
+def gradient_directions(model) -> np.ndarray:
+    """(3, n_meas): the normalised change of the resistivity gradients along x, y and z
+    (:func:`gradient_coordinates`) through the model's sensitivity (``S`` is per relative conductivity
+    change of its basis voxels: ``-S`` per relative resistivity change; ``-S @ 1`` is the uniform
+    scaling's ``r`` to 5e-4). The ``model`` estimator's response follows their states
+    (force/estimators/training.py :func:`~.training.response_set`)."""
+    return -(model.S @ gradient_coordinates(model, model.basis_centers)).T
+
+
+class JointScale:
+    """One frame's own measurement of the device's uniform scale with its load marginalised (issue 26,
+    item 2): the model estimator's last fit (``ModelEstimator.last_fit``: the surrogate's residual and
+    Jacobian at the force it found, in its whitened basis) extended by the scale's direction.
+
+    A scale error ``d`` of the frame's change ``y`` adds ``d (r + y)`` (``r = V_ref / y_scale``); with
+    ``J`` the load's Jacobian, ``rho`` the fit's residual and a controller's expected load ``e`` of
+    information ``L`` (None: none), the joint least squares over the force step ``dx`` and ``d``::
+
+        |rho - J dx - d_w d|^2 + (dx - e)^T L (dx - e)
+
+    profiled over ``dx`` gives ``d``'s information ``H = |d_w|^2 - g^T A^-1 g`` and its estimate
+    ``b / H`` (``A = J^T J + L``, ``g = J^T d_w``): the part of the frame's change along ``r`` that no
+    load explains. The part of ``d_w`` outside the estimator's basis (no load makes it) is taken from
+    dot products over the full change. :meth:`measure` returns it with the force's step for a given
+    ``d``: ``dF = u - v d`` (N).
+
+    With the tracker's other directions ``D_o`` (``others``: the contacts', the gradients'), the same least
+    squares over ``(dx, d, d_o)`` profiled over ``dx`` and then ``d`` gives their information
+    (:meth:`others_part`): its inverse is their Cramer-Rao bound for the frame. On device_a at 60 dB, as the
+    1-sigma of the force each reads at zero load: contacts 0.09 / 0.13 / 0.06 / 0.04 N under a load (0.07 /
+    0.12 / 0.04 / 0.03 at rest), gradients along x, y, z 0.28 / 0.28 / 0.02 N (0.07 / 0.08 / 0.02 at
+    rest): a lateral load takes 15/16 of the x and y gradients' information (docs/physics.md#device-changes).
+    """
+
+    def __init__(self, estimator, r: np.ndarray, others: np.ndarray | None = None) -> None:
+        self.est = estimator
+        rw = np.asarray(r, float)[estimator.keep] * estimator.w
+        self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
+        self.dof = max(len(rw) - 4, 1)
+        self._M = np.empty((len(self.Brw), 2))
+        self.n_others = 0
+        if others is not None and len(others):  # the tracker's other states' directions (whitened, in use)
+            Dw = np.ascontiguousarray(np.atleast_2d(np.asarray(others, float))[:, estimator.keep] * estimator.w)
+            self.n_others = k = len(Dw)
+            self._Dw, self._BD = Dw, np.ascontiguousarray(estimator.basis @ Dw.T)  # (k, n_keep), (kb, k)
+            self._Dr, self._DD = Dw @ rw, Dw @ Dw.T
+            self._Mx = np.empty((len(self.Brw), 2 + k))
+            self._Q = np.empty((1 + k, 1 + k))
+            self._Q[1:, 1:] = self._DD
+
+    def measure(self, expected: tuple | None = None, others: bool = False) -> tuple | None:
+        """(d, its variance, u, v, the frame's force, the others' part) of the estimator's latest frame (class
+        docstring); ``expected``: (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives
+        nothing. ``others`` (and the tracker's other directions given): the others' part is (``H``, ``b``,
+        ``V``): their information and information vector with the load and the scale profiled out
+        (:meth:`others_part`), and the force's step per unit of each (``dF = u - v d - V d_o``); else None."""
+        est = self.est
+        if est.last_fit is None:
+            return None
+        yw, By, step, x_hat, out, _ = est.last_fit
+        k = est.scale
+        Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
+        rho = np.dot(np.asarray(step, float), Jt)  # the residual at the final force: By - s(x) to first order
+        rho -= out[0]
+        Bd = self.Brw + By
+        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
+        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
+        dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
+        A = np.dot(Jt, Jt.T)
+        ext = others and self.n_others > 0
+        M = self._Mx if ext else self._M
+        M[:, 0] = rho
+        M[:, 1] = Bd
+        if ext:
+            M[:, 2:] = self._BD
+        rhs = np.dot(Jt, M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        if expected is not None:
+            f, sig = expected
+            lam = (k / sig) ** 2
+            A[np.diag_indices(3)] += lam
+            rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
+        try:
+            sol = solve_small(A, rhs)
+        except np.linalg.LinAlgError:
+            return None
+        g = rhs[:, 1]
+        H = dd - float(g.dot(sol[:, 1]))
+        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
+        if not H > 0:
+            return None
+        chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
+        inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
+        part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
+        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k), part
+
+    def others_part(self, yw, By, rho, rhs, sol, dd, H00, b0, chi2, k) -> tuple | None:
+        """The other states' measurement by the frame, the load's force and the scale profiled out (the
+        Schur complements of the joint least squares over force, scale and others): their information ``H``
+        (n_o, n_o), its vector ``b`` (``H^-1 b`` their estimate), inflated by the frame's misfit beyond the
+        noise; and the force's step per unit of each, the scale held (3, n_o)."""
+        Dy = np.dot(self._Dw, yw)
+        BD = self._BD
+        G = rhs[:, 1:]  # (3, 1 + n_o): J^T [d_w, D_o]
+        Q = self._Q
+        Q[0, 0] = dd
+        Q[0, 1:] = Q[1:, 0] = self._Dr + Dy
+        Hf = Q - np.dot(G.T, sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
+        c = np.dot(rho, BD) + Dy - np.dot(By, BD) - np.dot(G[:, 1:].T, sol[:, 0])  # the others' vector
+        h0 = Hf[1:, 0]
+        Ho = Hf[1:, 1:] - np.multiply.outer(h0, h0) / H00  # ... and the scale profiled
+        bo = c - h0 * (b0 / H00)
+        try:
+            est = solve_small(Ho, bo)
+        except np.linalg.LinAlgError:
+            return None
+        inflate = max(1.0, (chi2 - float(bo.dot(est))) / self.dof)
+        return Ho / inflate, bo / inflate, k * sol[:, 2:]
