@@ -178,6 +178,7 @@ class DriftTracker:
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
             self._other_n = np.maximum(np.linalg.norm(self._Wo, axis=0), 1e-12)  # its norm: N per unit
             self._floor2 = (LOADED_OTHER_N / self._other_n) ** 2  # the loaded frames' floor (LOADED_OTHER_N)
+            self._floor2l = self._floor2.tolist()
             self.rest_force = max(REST_FORCE_MIN, REST_FORCE_SIGMAS * sigma)
             self._quiet = QuietTest(sigma, self.rest_force)
         self._N00, self._N0 = float(self._N[0, 0]), np.ascontiguousarray(self._N[:, 0])
@@ -230,7 +231,7 @@ class DriftTracker:
         new._unmeasured, new._t_rest, new._restarted = self._unmeasured, self._t_rest, self._restarted
         if self._W is not None and new._W is not None:  # the quiet test's means and verdict (its noise the new one's)
             q, o = new._quiet, self._quiet
-            q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
+            q.fast, q.slow, q.quiet, q.post = list(o.fast), list(o.slow), o.quiet, o.post
         return new
 
     def with_directions(self, rows: np.ndarray, per_scale: np.ndarray, sigma: float) -> DriftTracker:
@@ -264,7 +265,7 @@ class DriftTracker:
         new._unmeasured, new._t_rest, new._restarted = self._unmeasured, self._t_rest, self._restarted
         if self._W is not None and new._W is not None:
             q, o = new._quiet, self._quiet
-            q.fast, q.slow, q.quiet, q.post = o.fast.copy(), o.slow.copy(), o.quiet, o.post
+            q.fast, q.slow, q.quiet, q.post = list(o.fast), list(o.slow), o.quiet, o.post
         return new
 
     # the named blocks of the states (positions counted here only): the other states (:attr:`gradient`, the
@@ -352,8 +353,8 @@ class DriftTracker:
         best = b0 / self._N00  # the uniform change that explains the most of the frame
         rest = float(yw.dot(yw)) - b0 * best < self._rest
         if self._W is not None:
-            f = np.dot(self._W, y) - self._Wr * best
-            rest = rest and math.sqrt(float(f.dot(f))) < self.rest_force
+            f = (np.dot(self._W, y) - self._Wr * best).tolist()  # 3 Python floats: the quiet test's too
+            rest = rest and math.hypot(*f) < self.rest_force
             # ... and, with the joint fit, after quiet frames (force/slow_states/drift_parts.py); the linear estimator
             # measures the scale at rest only: not quieted
             quiet = self._quiet.step(f, rest, dt)
@@ -361,7 +362,7 @@ class DriftTracker:
                 self._restarted -= dt
                 if rest and joint is not None and math.hypot(*joint[4]) < self.rest_force:
                     q = self._quiet
-                    q.slow[:] = q.fast
+                    q.slow = list(q.fast)
                     q.quiet = quiet = True
             rest = rest and (quiet or joint is None)
         step = self.rate * dt
@@ -514,7 +515,7 @@ class DriftTracker:
         which of the two the frame's measurement is for."""
         if self._W is None or self.m < 2:
             return False
-        self._wanted = bool(np.any(self.P.diagonal()[1:self.m] > self._floor2))
+        self._wanted = any(p > f for p, f in zip(self._Pa.diagonal()[1:self.m].tolist(), self._floor2l))
         if self._wanted:
             return True
         self._frames += 1  # a check after unrested frames only (a rest measures them all)
