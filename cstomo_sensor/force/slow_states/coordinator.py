@@ -61,6 +61,7 @@ class SlowStates:
         self.offset: np.ndarray | None = None  # ... and the drift's and the creep's offsets, summed (y units)
         self.gradient: list | None = None  # ... and the resistivity gradients' states (force/estimators/scale_fit.py), 3 floats
         self._sum = np.zeros(n_meas)
+        self._block, self._block_for = slice(0), None  # the gradients' block of the tracker (_offsets)
         self._gradients: np.ndarray | None = None  # the tracker's gradient directions (the model's)
         self._sigma: ForceSigma | None = None  # the force's uncertainty (force/slow_states/sigma.py), for _sigma_for
         self._sigma_for: tuple = (None,) * 4  # ... made for this estimator, tracker, creep and calibration
@@ -224,7 +225,10 @@ class SlowStates:
 
     def _offsets(self) -> None:
         # the resistivity gradients' states (the tracker's own block: after the contacts', before the learned)
-        self.gradient = self.drift.gradient[self.drift.gradients_block].tolist() if self.drift is not None else None
+        drift = self.drift
+        if drift is not None and self._block_for is not drift:  # the tracker's blocks are fixed when it is made
+            self._block, self._block_for = drift.gradients_block, drift
+        self.gradient = drift.gradient[self._block].tolist() if drift is not None else None
         d = self.drift.offset if self.drift is not None else None
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)

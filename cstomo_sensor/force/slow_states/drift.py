@@ -194,6 +194,7 @@ class DriftTracker:
         self._F = np.eye(n)  # the prediction: the scale by its rate; unrested, the other states by their slope
         self._unfitted2[self.contacts_block] = RESTART_CONTACT ** 2
         self._Fs = (np.arange(1, m), np.arange(m + 1, n))  # ... its entries of the slopes (their step each frame)
+        self._Fda = 0.0  # ... their value now
         self.scale = 1.0
         self.rate = 0.0  # the scale's relative change per second
         self.gradient = np.zeros(m - 1)
@@ -371,14 +372,15 @@ class DriftTracker:
         tot = self._tot  # the states' change since the frame was formed: the step, then the updates
         tot[:] = 0.0
         tot[0] = step
+        da = 0.0
         if rest:
             self._unmeasured, self._t_rest = 0.0, self._t
-            self._F[self._Fs] = 0.0
         elif m > 1:  # unmeasured, the other states follow the scale by their slope (FOLLOW_SIGMA)
             da = abs(step)
             self._unmeasured += da
-            self._F[self._Fs] = da
             tot[1:m] = da * self._slope
+        if da != self._Fda:  # the slopes' entries of the prediction (unchanged over a run of rest frames)
+            self._F[self._Fs] = self._Fda = da
         # predicted: the scale moves on at its rate, which fades; unrested, the other states by their slope:
         # F P F^T + Q dt with F = I + dt e_0 e_m^T + da E_os, F_mm = a (two small products: half the cost of row
         # and column updates)
@@ -395,7 +397,7 @@ class DriftTracker:
             if rest:
                 self._bias.rest()
                 Pc = P[:, 0].copy()
-                gain = Pc / (Pc[0] + var / REST_WEIGHT)
+                gain = Pc / (float(Pc[0]) + var / REST_WEIGHT)
                 delta = gain * (z - step)
                 if math.isfinite(float(delta.sum())):
                     tot += delta

@@ -118,14 +118,14 @@ class FollowSlope:
         """A rest frame's other states ``g`` at the scale's change ``s``, ``dt`` s after the previous frame."""
         F = self._fit
         F *= math.exp(-dt / FOLLOW_MEMORY)
-        F[0, 0] += 1.0
-        F[1, 0] += s
-        F[2, 0] += s * s
+        n, s1, s2 = F[:, 0].tolist()  # the scale's sums on Python floats
+        n, s1, s2 = n + 1.0, s1 + s, s2 + s * s
+        F[:, 0] = n, s1, s2
         F[0, 1:] += g
         F[1, 1:] += s * g
-        n, ss = F[0, 0], F[2, 0] - F[1, 0] ** 2 / F[0, 0]  # the scale's weighted spread, times n
+        ss = s2 - s1 * s1 / n  # the scale's weighted spread, times n
         if ss > n * FOLLOW_SPAN ** 2:
-            self.slope[:] = (F[1, 1:] - F[1, 0] * F[0, 1:] / n) / ss
+            self.slope[:] = (F[1, 1:] - s1 * F[0, 1:] / n) / ss
             self.fitted = True
 
 
