@@ -64,6 +64,7 @@ class JointScale:
             self._Dw, self._BD = Dw, np.ascontiguousarray(estimator.basis @ Dw.T)  # (k, n_keep), (kb, k)
             self._Dr, self._DD = Dw @ rw, Dw @ Dw.T
             self._Mx = np.empty((len(self.Brw), 2 + k))
+            self._Mx[:, 2:] = self._BD  # the others' columns: fixed (measure sets the first two per frame)
             self._Q = np.empty((1 + k, 1 + k))
             self._Q[1:, 1:] = self._DD
 
@@ -90,8 +91,6 @@ class JointScale:
         M = self._Mx if ext else self._M
         M[:, 0] = rho
         M[:, 1] = Bd
-        if ext:
-            M[:, 2:] = self._BD
         rhs = np.dot(Jt, M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
         if expected is not None:
             f, sig = expected
