@@ -188,3 +188,82 @@ class PlainCreep:
             if self.f_last is not None:
                 d[:, self.f_last] = 0.0
             self.offset = self.offset + (self.cw * factor(part)[:, 0]) @ d
+
+
+class PlainQuietTest:
+    """``drift_parts.QuietTest`` as it was: its means as numpy arrays."""
+
+    def __init__(self, sigma: float, rest_force: float) -> None:
+        from cstomo_sensor.force.slow_states.drift_parts import QUIET_BIG
+
+        self.sigma, self.big = sigma, QUIET_BIG * rest_force
+        self.fast, self.slow, self.quiet, self.post = np.zeros(3), np.zeros(3), True, 0.0
+
+    def step(self, f: np.ndarray, rest: bool, dt: float) -> bool:
+        from cstomo_sensor.force.slow_states.drift_parts import QUIET_FAST, QUIET_N, QUIET_POST, QUIET_SIGMAS, QUIET_SLOW
+
+        af = 1.0 - math.exp(-dt / QUIET_FAST)
+        bound = max(QUIET_N, QUIET_SIGMAS * self.sigma * math.sqrt(af / (2.0 - af)))
+        aslow, bound2 = 1.0 - math.exp(-dt / QUIET_SLOW), bound * bound
+        fast, slow = self.fast, self.slow
+        fast += af * (f - fast)
+        d = fast - slow
+        verdict = self.quiet
+        if float(d.dot(d)) > self.big * self.big:
+            self.post = QUIET_POST
+        if self.post > 0.0:
+            self.post -= dt
+            slow[:] = fast
+            self.quiet = True
+            return verdict
+        if rest:
+            slow += aslow * d
+            d = fast - slow
+        self.quiet = float(d.dot(d)) < bound2
+        return verdict
+
+
+class PlainUnloaded:
+    """``learned.Unloaded`` as it was: its means as numpy arrays."""
+
+    def __init__(self) -> None:
+        self.fast = self.slow = None
+        self.clear = self.broke = False
+
+    def step(self, force, rest: bool, sigma: float, dt: float, known: bool) -> bool:
+        from cstomo_sensor.force.slow_states.learned import STEP_FAST, STEP_N, STEP_SIGMAS, STEP_SLOW
+
+        if force is None or not np.isfinite(force).all():
+            self.clear, self.broke = False, True
+            return rest
+        a, b = 1.0 - math.exp(-dt / STEP_FAST), 1.0 - math.exp(-dt / STEP_SLOW)
+        sd = math.sqrt(max(a / (2.0 - a) + b / (2.0 - b) - 2.0 * a * b / (1.0 - (1.0 - a) * (1.0 - b)), 0.0))
+        if self.fast is None:
+            self.fast, self.slow = np.array(force, float), np.array(force, float)
+        else:
+            self.fast += a * (force - self.fast)
+            self.slow += b * (force - self.slow)
+        d = self.fast - self.slow
+        bound = max(STEP_N, STEP_SIGMAS * sd * sigma)
+        self.broke = float(d.dot(d)) > bound * bound or known
+        self.clear = (self.clear or rest) and not self.broke
+        return self.clear or rest
+
+
+def follow_add(fit: np.ndarray, slope: np.ndarray, dt: float, s: float, g: np.ndarray) -> bool:
+    """``drift_parts.FollowSlope.add`` as it was, on its sums ``fit`` (3, m) and ``slope`` (m - 1,), in place;
+    returns whether the slope is fitted by this frame."""
+    from cstomo_sensor.force.slow_states.drift_parts import FOLLOW_MEMORY, FOLLOW_SPAN
+
+    F = fit
+    F *= math.exp(-dt / FOLLOW_MEMORY)
+    F[0, 0] += 1.0
+    F[1, 0] += s
+    F[2, 0] += s * s
+    F[0, 1:] += g
+    F[1, 1:] += s * g
+    n, ss = F[0, 0], F[2, 0] - F[1, 0] ** 2 / F[0, 0]
+    if ss > n * FOLLOW_SPAN ** 2:
+        slope[:] = (F[1, 1:] - F[1, 0] * F[0, 1:] / n) / ss
+        return True
+    return False

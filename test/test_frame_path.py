@@ -234,3 +234,46 @@ def test_creep_compensator_equals_its_previous_formulation(rate):
         plain.observe(y, t, f)
         np.testing.assert_allclose(ours.offset, plain.offset, rtol=0, atol=1e-12 * np.abs(plain.offset).max() + 1e-300)
     assert np.abs(plain.offset).max() > 1e-3  # the loads crept
+
+
+def test_slow_states_small_tests_equal_their_numpy_formulations():
+    """The quiet test, the learner's unloaded test and the follow slope's sums on Python floats give the
+    verdicts and means their numpy forms did, frame for frame, to rounding: forces at rest, loads put on and
+    taken off (a step the tests see, then its post time), a NaN force, a known load, two frame rates."""
+    from reference_frame_path import PlainQuietTest, PlainUnloaded, follow_add
+
+    from cstomo_sensor.force.slow_states.drift_parts import FollowSlope, QuietTest
+    from cstomo_sensor.force.slow_states.learned import Unloaded
+
+    rng = np.random.default_rng(11)
+    for dt in (0.01, 1 / 30):
+        quiet, plain_q = QuietTest(0.05, 0.5), PlainQuietTest(0.05, 0.5)
+        unl, plain_u = Unloaded(), PlainUnloaded()
+        follow, fit, slope = FollowSlope(8), np.zeros((3, 8)), np.zeros(7)
+        verdicts, clears, fitted = [], [], []
+        for k in range(3000):
+            load = np.array([3.0, -1.0, -8.0]) * ((k // 400) % 2) + (0.3 if 1500 <= k < 1700 else 0.0)
+            f = load + 0.05 * rng.normal(size=3)
+            rest = not load.any() and rng.random() < 0.9
+            v = quiet.step(f, rest, dt)
+            assert v == plain_q.step(f, rest, dt)
+            np.testing.assert_allclose(quiet.fast, plain_q.fast, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(quiet.slow, plain_q.slow, rtol=1e-12, atol=1e-15)
+            assert quiet.quiet == plain_q.quiet and quiet.post == plain_q.post
+            force = None if k == 2100 else np.array([np.nan, 0.0, 1.0]) if k == 2101 else f
+            known = 2500 <= k < 2510
+            c = unl.step(force, rest, 0.05, dt, known)
+            assert c == plain_u.step(force, rest, 0.05, dt, known)
+            assert (unl.clear, unl.broke) == (plain_u.clear, plain_u.broke)
+            np.testing.assert_allclose(unl.fast, plain_u.fast, rtol=1e-12, atol=1e-15)
+            if rest:  # the scale's change drifting, the other states along it
+                s = 0.02 * k / 3000 + 1e-4 * rng.normal()
+                g = s * np.arange(1, 8) * 0.1 + 1e-5 * rng.normal(size=7)
+                follow.add(dt, s, g)
+                fitted.append(follow_add(fit, slope, dt, s, g))
+                assert follow.fitted == any(fitted)
+                np.testing.assert_allclose(follow._fit, fit, rtol=1e-12)
+                np.testing.assert_allclose(follow.slope, slope, rtol=1e-9, atol=1e-15)
+            verdicts.append(v)
+            clears.append(c)
+        assert 0 < np.mean(verdicts) < 1 and 0 < np.mean(clears) < 1 and follow.fitted  # both kinds, a fitted slope
