@@ -200,18 +200,18 @@ class SlowStates:
         force, :class:`~.learned.Unloaded`); the learner's decomposition a step on; a direction learned: one
         more state."""
         drift, learner = self.drift, self.learner
-        quiet = getattr(drift, "_quiet", None)  # the force's per-frame noise (None: no force map, rest frames only)
-        if quiet is None:
+        noise = drift.force_noise  # the force's per-frame noise (None: no force map, rest frames only)
+        if noise is None:
             clear = rest
         else:
             e = self.expected.pending
             known = e is not None and float(np.dot(e[0], e[0])) > drift.rest_force ** 2
-            clear = learner.unloaded.step(result.force if result.valid else None, rest, quiet.sigma, drift._dt, known)
+            clear = learner.unloaded.step(result.force if result.valid else None, rest, noise, drift.frame_period, known)
             if learner.unloaded.broke:  # its samples not yet counted may hold a load's first frames
                 learner.discard()
         if clear:
             learner.add(drift, y)
-        new = learner.tick(drift, drift._dt)
+        new = learner.tick(drift, drift.frame_period)
         if new is None:
             return
         row, per_scale = new
@@ -243,7 +243,7 @@ class SlowStates:
             fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
             creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
             self._sigma = ForceSigma(force_map(pipe), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
-                                     None if drift is None else drift._D, k_rel, creep_rel, est)
+                                     None if drift is None else drift.state_directions, k_rel, creep_rel, est)
             self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
         return self._sigma
 

@@ -298,6 +298,31 @@ class DriftTracker:
         return slice(self.m + 1, self.n)
 
     @property
+    def state_directions(self) -> np.ndarray:
+        """(m, n_meas): each measured state's direction in the voltages (the masked channels' entries zero)."""
+        return self._D
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(n_meas,): each channel's weight, 1 / its noise (0: masked)."""
+        return self._w
+
+    @property
+    def whitened_directions(self) -> np.ndarray:
+        """(m, n_meas): :attr:`state_directions` times :attr:`weights`."""
+        return self._Dw
+
+    @property
+    def force_noise(self) -> float | None:
+        """The force's per-frame noise at zero load (N) the rest test judges by; None without a force map."""
+        return None if self._W is None else self._quiet.sigma
+
+    @property
+    def frame_period(self) -> float:
+        """The frame period (s) of the latest :meth:`observe` (-1 before the first)."""
+        return self._dt
+
+    @property
     def P(self) -> np.ndarray:
         """(m + 1, m + 1): the covariance of the measured states (the scale, the other states) and the scale's
         rate (the slopes' own: not here)."""

@@ -347,10 +347,10 @@ class DirectionLearner:
 
     def _projection(self, tracker) -> None:
         """The least-squares residual's operator for ``tracker``'s directions (whitened)."""
-        Dw = tracker._Dw
+        Dw = tracker.whitened_directions
         N = Dw @ Dw.T
         self._A = np.linalg.solve(N + 1e-12 * np.trace(N) * np.eye(len(N)), Dw)  # (m, p): coefficients of yw
-        self._Dw, self._w, self._keep = Dw, tracker._w, tracker._w > 0
+        self._Dw, self._w, self._keep = Dw, tracker.weights, tracker.weights > 0
         self._rho = float(np.linalg.norm(Dw[0]))
         self._m = len(Dw)
         self._for = tracker
