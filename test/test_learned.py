@@ -287,3 +287,20 @@ def test_the_chain_of_clear_frames_follows_a_slow_phantom_and_breaks_at_a_load()
     assert all(frames(lambda t: np.zeros(3), 5, rest=True))
     assert not u.step(None, False, sigma, dt, False)  # a refused frame (no force)
     assert not any(frames(lambda t: np.zeros(3), 5))
+
+
+def test_frames_on_one_stamp_neither_raise_nor_move_the_chains_means():
+    """Frames that share a stamp (a simulated clock at 20 Hz under 100 frames/s, a coarse host clock): the frame
+    period is 0 s for most of them. The chain takes them without an error (a ZeroDivisionError dropped every such
+    frame in the node) and still sees a load's step on the frames that advance the clock."""
+    rng = np.random.default_rng(5)
+    sigma, u = 0.27, Unloaded()
+    dts = [0.05 if i % 5 == 0 else 0.0 for i in range(4000)]  # a 20 Hz clock under 100 frames/s
+    assert all(u.step(rng.normal(0, sigma, 3), True, sigma, dt, False) for dt in dts[:20])  # rest frames
+    fast = list(u.fast)
+    assert u.step(np.array([9.0, 9.0, 9.0]), False, sigma, 0.0, False)  # no time: the means stay ...
+    assert u.fast == fast  # ... where they were
+    clear = [u.step(rng.normal(0, sigma, 3), False, sigma, dt, False) for dt in dts[20:1000]]
+    assert all(clear)  # no load: the chain holds
+    load = [u.step(np.array([0.0, 0.0, -3.0]) + rng.normal(0, sigma, 3), False, sigma, dt, False) for dt in dts[:200]]
+    assert not load[-1] and sum(load) < 40  # a 3 N load's step ends it within a few clock ticks

@@ -201,10 +201,14 @@ class Unloaded:
             self.clear, self.broke = False, True
             return rest
         if dt != self._dt:  # frames come at one rate: the factors once
-            a, b = 1.0 - math.exp(-dt / STEP_FAST), 1.0 - math.exp(-dt / STEP_SLOW)
-            # the per-axis variance of the two means' difference for white noise of unit variance
-            var = a / (2.0 - a) + b / (2.0 - b) - 2.0 * a * b / (1.0 - (1.0 - a) * (1.0 - b))
-            self._dt, self._k = dt, (a, b, math.sqrt(max(var, 0.0)))
+            if dt > 0:
+                a, b = 1.0 - math.exp(-dt / STEP_FAST), 1.0 - math.exp(-dt / STEP_SLOW)
+                # the per-axis variance of the two means' difference for white noise of unit variance
+                var = a / (2.0 - a) + b / (2.0 - b) - 2.0 * a * b / (1.0 - (1.0 - a) * (1.0 - b))
+                self._k = (a, b, math.sqrt(max(var, 0.0)))
+            else:  # a frame on its predecessor's stamp (a coarse or simulated clock): no time for the means to move
+                self._k = (0.0, 0.0, self._k[2] if self._k is not None else 0.0)
+            self._dt = dt
         a, b, sd = self._k
         if self.fast is None:  # the means on 3 Python floats each (2 us, where numpy's small-array calls took 10)
             self.fast, self.slow = f, list(f)
