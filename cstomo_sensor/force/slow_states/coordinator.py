@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from ...angles import force_angles3
+from ...model.material import RESISTIVITY_PER_K
 from ..checks.consistency import change_noise
 from ..checks.expected import ExpectedLoad, bounded
 from ..estimators.scale_fit import JointScale, gradient_directions
@@ -32,9 +33,6 @@ log = logging.getLogger(__name__)
 #: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
 VALIDATED = 0.10
-#: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
-#: to express the tracked change in kelvin.
-RESISTIVITY_PER_K = 0.008
 #: The diagnostics warn when the states only a rest measures (the contacts', the gradient's) leave more
 #: than this many newtons (1-sigma) at zero load (:data:`~.drift.FOLLOW_SIGMA`).
 UNMEASURED_N = 2.0

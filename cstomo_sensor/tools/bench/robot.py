@@ -66,8 +66,9 @@ from ...frame_path.loop import Trace, run, step
 from ...frame_path.pipeline import Pipeline
 from ...frame_path.sources import ArraySource
 from ...frame_path.stream import FrameStream
+from ...model.material import RESISTIVITY_PER_K
 from ...model.simulate import Load, Scene, add_noise
-from ...model.timeline import RESISTIVITY_PER_K, ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
 from ...settings import ESTIMATORS
 from .scenes import SCENES, random_forces
 
