@@ -332,7 +332,7 @@ class DirectionLearner:
         self.n = 0  # samples (AVG rest frames each) in the sums
         self._S1 = np.zeros(n_meas)
         self._S2 = np.zeros((n_meas, n_meas))
-        self._Ss = np.zeros(3)  # sum of s, s^2 (and unused)
+        self._Ss = np.zeros(2)  # sums of s and of s^2
         self._Sxs = np.zeros(n_meas)
         self._for = None  # the tracker the projection is for
         self._proj = None
@@ -404,7 +404,7 @@ class DirectionLearner:
             # a decision: the sums now, decomposed STEPS at a time over the next frames (tick)
             self._next = self.n * 2 if self.n < DECIDE else self.n + DECIDE
             self._run = _Lanczos(self._S2, self._S1, self.n, self._keep,
-                                 (self._Ss[:2].copy(), self._Sxs.copy(), self._m))
+                                 (self._Ss.copy(), self._Sxs.copy(), self._m))
 
     def tick(self, tracker, dt: float | None = None) -> tuple[np.ndarray, float] | None:
         """A frame (every one, clear or not; ``dt`` s after the previous): the samples held HOLD_S counted, the
