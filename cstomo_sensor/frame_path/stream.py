@@ -115,10 +115,11 @@ class FrameStream:
         return report
 
     def init_reference(self, tare_on_start: bool) -> str:
-        """The saved tare if usable, else a tare on the first frames (``tare_on_start``: always): never a
-        force against the model's own reference (a phantom force of newtons at zero load). Returns ''
-        when the saved tare is used, else why a tare is pending."""
-        saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
+        """The saved tare if usable, else a tare on the first frames (``tare_on_start``: always, judged
+        against the saved tare or the calibration's reference where one is usable, so a tare at start
+        under a load is refused): never a force against the model's own reference (a phantom force of
+        newtons at zero load). Returns '' when a saved reference is in use, else why a tare is pending."""
+        saved, why = self.tares.saved(self.pipe.n_meas)
         path = self.tare_file
         if saved is None:
             # no saved tare of this device: its calibration's own unloaded reference, if it has one (a
