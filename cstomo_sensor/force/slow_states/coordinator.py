@@ -50,9 +50,10 @@ class SlowStates:
     """The drift tracker (``config.drift_tracking``) and the creep compensator (``config.creep_per_decade``,
     0: off) of a pipeline's reference, the offset and scale they give, and the checks of a controller's
     expected load (:class:`~..checks.expected.ExpectedLoad`: a sensor of range ``max_force``, the stream ``config``'s
-    ``frame_id`` and ``expected_wrench_tolerance``)."""
+    ``frame_id`` and ``expected_wrench_tolerance``); ``directions``: the device's own directions it starts with
+    (force/slow_states/learned.py: its calibration's; None: none), until a saved tare brings its own (:meth:`reset`)."""
 
-    def __init__(self, n_meas: int, config, max_force: float = math.inf) -> None:
+    def __init__(self, n_meas: int, config, max_force: float = math.inf, directions: Directions | None = None) -> None:
         self.tracking = bool(config.drift_tracking)
         self.creep_setting = float(config.creep_per_decade)
         self.drift: DriftTracker | None = None  # made with each reference (tracking)
@@ -72,9 +73,10 @@ class SlowStates:
         self.expected = ExpectedLoad(max_force, config.expected_wrench_tolerance, config.frame_id)
         self._frame_sigma: tuple | None = None
         self.age_s: float | None = None  # the reference is a saved tare this old (reset)
-        # the device's own directions (force/slow_states/learned.py): learned from its rests, or read with a saved tare; the
-        # device's, so kept over a re-tare; learned_new: a direction learned since the stream last saved them
-        self.directions: Directions = empty(n_meas)
+        # the device's own directions (force/slow_states/learned.py): its calibration's, learned from its rests, or read
+        # with a saved tare; the device's, so kept over a re-tare; learned_new: a direction learned since the stream last
+        # saved them
+        self.directions: Directions = directions if directions is not None and len(directions) else empty(n_meas)
         self.learner: DirectionLearner | None = None
         self.learned_new = False
 
