@@ -156,7 +156,7 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
     label = plateaus(tw, forces)
     order = np.argsort(tw)
     return (*out, HeldLoads(np.array(tf)[i], label[j], plateau_starts(tw[order], label[order])),
-            Recording(np.array(frames), np.array(tf)))
+            Recording(np.array(frames), np.array(tf), i))
 
 
 @dataclass
@@ -172,11 +172,21 @@ class HeldLoads:
 
 @dataclass
 class Recording:
-    """The whole calibration recording: every frame (``frames`` (n, n_meas) volts) and when it was measured
-    (``times``, s; any order): what the device's own directions are learned from (:func:`recording_directions`)."""
+    """The whole calibration recording: every frame (``frames`` (n, n_meas) volts), when it was measured
+    (``times``, s; any order) and which are the paired ones (``paired``: their indices, in the order of the
+    pairs); ``rest``: the frames known to be unloaded (their reference force under ``--unloaded-below``): what the
+    device's own directions are learned from (:func:`recording_directions`)."""
 
     frames: np.ndarray
     times: np.ndarray
+    paired: np.ndarray
+    rest: np.ndarray | None = None
+
+    def rests(self, unloaded: np.ndarray) -> Recording:
+        """This recording with ``rest`` the paired frames ``unloaded`` (bool, one per pair)."""
+        rest = np.zeros(len(self.frames), bool)
+        rest[np.asarray(self.paired)[np.asarray(unloaded, bool)]] = True
+        return replace(self, rest=rest)
 
 
 def plateau_starts(t: np.ndarray, label: np.ndarray) -> np.ndarray:
@@ -313,10 +323,10 @@ def recording_directions(pipe, reference: tuple, recording: Recording | None, wh
     calibration ``recording`` (None: ``why_not``): its frames in time order through the frame stream of ``pipe``
     (its calibration set: the node's stream of this calibration, the calibration's creep) from ``reference`` (the
     reference, its noise and its frame count), its drift tracker learning from the rests between the loads
-    (force/slow_states/learned.py)."""
+    (force/slow_states/learned.py): each frame known to be unloaded (``recording.rest``) feeds it
+    whatever the rest test says (:meth:`~..force.slow_states.coordinator.SlowStates.known_unloaded`), so a
+    change whose phantom force keeps the rest test from counting them is learned too."""
     from ..frame_path.config import StreamConfig
-    from ..frame_path.loop import run as run_frames
-    from ..frame_path.sources import ArraySource
     from ..frame_path.stream import FrameStream
 
     if recording is None:
@@ -325,7 +335,10 @@ def recording_directions(pipe, reference: tuple, recording: Recording | None, wh
     stamps = np.round(np.asarray(recording.times, float)[order] * 1e9).astype(np.int64)
     stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0))
     stream.set_reference(*reference, source="the calibration's reference")
-    run_frames(ArraySource(recording.frames[order], stamps), stream)
+    rest = np.zeros(len(order), bool) if recording.rest is None else np.asarray(recording.rest, bool)[order]
+    for values, stamp, known in zip(recording.frames[order], stamps.tolist(), rest.tolist()):
+        stream.slow.known_unloaded(known)
+        stream.push(values, stamp_ns=stamp)
     learner, found = stream.slow.learner, stream.slow.directions
     fed = learner.fed if learner is not None else 0
     note = (f"learned by cstomo calibrate from {fed} clear frames of its recording of {len(order)} "
@@ -382,6 +395,7 @@ def run(a) -> int:
         else:
             raise ConfigError(f"no --reference and no paired frame under {a.unloaded_below:g} N to tare on")
         frames, forces = frames[~unloaded], forces[~unloaded]
+        whole = whole.rests(unloaded)
     else:
         if not (a.reference and a.frames and a.forces):
             raise ConfigError("give --reference, --frames and --forces (or --bag with its topics)")
@@ -392,7 +406,7 @@ def run(a) -> int:
             raise ConfigError.bad_value("frame", int(idx.max()), f"a frame of {a.frames} (0..{len(all_frames) - 1})")
         recording, loads = all_frames[idx], None if a.rate is None else file_loads(idx, forces, a.rate)
         why_not = "a frames file has no time: give --rate, its frames per second, when it is one recording in time order"
-        whole = None if a.rate is None else Recording(all_frames, np.arange(len(all_frames)) / a.rate)
+        whole = None if a.rate is None else Recording(all_frames, (np.arange(len(all_frames)) + 1) / a.rate, idx).rests(~load)
         load = np.linalg.norm(forces, axis=1) >= a.unloaded_below  # rows below: rests (the creep's history)
         frames, forces = recording[load], forces[load]
         source = {"frames": str(a.frames), "forces": str(a.forces)}
