@@ -406,8 +406,8 @@ def run(a) -> int:
             raise ConfigError.bad_value("frame", int(idx.max()), f"a frame of {a.frames} (0..{len(all_frames) - 1})")
         recording, loads = all_frames[idx], None if a.rate is None else file_loads(idx, forces, a.rate)
         why_not = "a frames file has no time: give --rate, its frames per second, when it is one recording in time order"
-        whole = None if a.rate is None else Recording(all_frames, (np.arange(len(all_frames)) + 1) / a.rate, idx).rests(~load)
         load = np.linalg.norm(forces, axis=1) >= a.unloaded_below  # rows below: rests (the creep's history)
+        whole = None if a.rate is None else Recording(all_frames, (np.arange(len(all_frames)) + 1) / a.rate, idx).rests(~load)
         frames, forces = recording[load], forces[load]
         source = {"frames": str(a.frames), "forces": str(a.forces)}
     if a.reference:
