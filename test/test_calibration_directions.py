@@ -225,11 +225,13 @@ correction_per_newton:
 
 
 @pytest.mark.parametrize("change, says", [
-    (lambda b: b.update(rows=[r[:-1] for r in b["rows"]]), r"learned_directions\.rows of shape \(2, 207\): expected 1 to 2 rows of 208 finite numbers"),
+    (lambda b: b.update(rows=[r[:-1] for r in b["rows"]]),
+     r"learned_directions\.rows of shape \(2, 207\): expected 1 to 2 rows of 208 finite numbers"),
     (lambda b: b.update(rows=b["rows"] * 2, restart_per_scale=[1.0] * 4), r"of shape \(4, 208\): expected 1 to 2 rows of 208"),
     (lambda b: b["rows"][0].__setitem__(-1, float("nan")), r"learned_directions\.rows: row 1 is not finite or all zero"),
     (lambda b: b["rows"][1].__setitem__(slice(None), [0.0] * 208), r"row 2 is not finite or all zero"),
-    (lambda b: b.update(restart_per_scale=[0.4]), r"learned_directions\.restart_per_scale=\[0\.4\]: expected 2 finite number\(s\) >= 0, one per row"),
+    (lambda b: b.update(restart_per_scale=[0.4]),
+     r"learned_directions\.restart_per_scale=\[0\.4\]: expected 2 finite number\(s\) >= 0, one per row"),
     (lambda b: b.update(restart_per_scale=[0.4, -1.0]), r"restart_per_scale=\[0\.4, -1\.0\]: expected 2 finite"),
     (lambda b: b.update(rows="damaged"), r"learned_directions\.rows not a table of numbers: expected 1 to 2 rows"),
     (lambda b: b.pop("rows"), r"learned_directions: \['note', 'restart_per_scale'\], expected a mapping with 'rows'"),

@@ -45,8 +45,12 @@ widens its state by that slope (at least :data:`~.drift.RESTART_GRADIENT`; :data
 the scale did not span :data:`~.drift_parts.FOLLOW_SPAN` while it was learned) times the scale's restart 1-sigma.
 The directions are saved beside the tare (:func:`write_directions`, ``<tare>.directions.csv``) each time
 one is learned, and read back at a restart (the node's start, ``cstomo estimate --reference``, ``cstomo
-replay --reference``): a restart starts with them. A tare file without one (older, or a device that
-learned none) starts with the model's only.
+replay --reference``): a restart starts with them. A calibration recording teaches them too: ``cstomo calibrate``
+runs it through the calibration's stream, the frames its reference sensor says are unloaded feeding the learner
+(tools/calibrate.py ``recording_directions``), and saves them in the calibration file (:func:`directions_doc`,
+``learned_directions``); a stream of that calibration starts with them, and a saved tare's own, newer, take their
+place. A tare file without one and a calibration without them (older, or a device that learned none) start with
+the model's only.
 docs/node.md, *The device's own directions*.
 """
 from __future__ import annotations
