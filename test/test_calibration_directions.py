@@ -246,3 +246,14 @@ def test_a_damaged_directions_block_is_refused_naming_it_and_the_shape_expected(
     with pytest.raises(ConfigError, match=says) as err:
         DeviceCalibration.load(path, pipe.n_meas)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_recordings_rests_are_its_paired_frames_under_no_load():
+    """tools/calibrate.py Recording.rests: the frames of a recording the reference sensor says are unloaded, by their
+    place in the whole recording (a bag's unpaired frames, taken while the load changed, are none)."""
+    from cstomo_sensor.tools.calibrate import Recording
+
+    rec = Recording(np.zeros((8, 208)), np.arange(8.0), np.array([6, 1, 2, 4]))
+    marked = rec.rests(np.array([True, False, True, False]))
+    assert marked.rest.tolist() == [False, False, True, False, False, False, True, False]
+    assert rec.rest is None  # a new recording, this one unchanged
