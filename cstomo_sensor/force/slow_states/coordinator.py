@@ -208,8 +208,8 @@ class SlowStates:
     def _learn(self, y: np.ndarray, rest: bool, result) -> None:
         """A frame's change ``y`` into the learner (force/slow_states/learned.py) if it is clear: counted as rest (``rest``),
         or refused by the rest test with no load since the latest rest frame and none known (its ``result``'s
-        force, :class:`~.learned.Unloaded`); the learner's decomposition a step on; a direction learned: one
-        more state."""
+        force, :class:`~.learned.Unloaded`), or known to be unloaded (:meth:`known_unloaded`); the learner's
+        decomposition a step on; a direction learned: one more state."""
         drift, learner = self.drift, self.learner
         noise = drift.force_noise  # the force's per-frame noise (None: no force map, rest frames only)
         known_rest = self._known_rest  # a reference sensor says no load (known_unloaded)
