@@ -59,7 +59,9 @@ class FrameStream:
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.tares = Taring(pipe.n_meas, tare_file, tare_comment, on_tare, started)
         self.channels = ChannelMask(pipe.geometry, pipe.bad_channels)
-        self.slow = SlowStates(pipe.n_meas, config, pipe.max_force)
+        # the device's own directions (force/slow_states/learned.py) start as its calibration's (learned from its
+        # recording); a saved tare's, newer, take their place (init_reference)
+        self.slow = SlowStates(pipe.n_meas, config, pipe.max_force, getattr(pipe.calibration, "directions", None))
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
@@ -148,11 +150,14 @@ class FrameStream:
         return why
 
     def _saved_directions(self) -> Directions | None:
-        """The learned directions saved beside the tare file (None: none, or unreadable: said once, the model's only)."""
+        """The learned directions saved beside the tare file (None: none, or unreadable: said once; the stream keeps
+        those it has, its calibration's or none: the model's only)."""
         try:
             return read_directions(self.tare_file, self.pipe.n_meas)
         except (CstomoError, OSError) as err:
-            log.warning("the device's learned directions not used (%s): the model's directions only", err)
+            n = len(self.slow.directions)
+            log.warning("the device's learned directions not used (%s): %s", err,
+                        f"the calibration's {n} direction(s) and the model's" if n else "the model's directions only")
             return None
 
     def _save_directions(self) -> None:
