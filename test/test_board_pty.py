@@ -434,3 +434,44 @@ def test_board_sim_stopped_by_sigint_exits_cleanly_through_repeated_sigints(tmp_
     text = err.read_text()
     assert code == 0, (code, text)
     assert "Traceback" not in text and "frames whole and unharmed" in text, text
+
+
+
+def test_the_nodes_queue_keeps_the_frames_reads_bring_together_at_1000_frames_per_second():
+    """The node's queue (ros/node.py frame_queue: 40 ms of frames, at least 4): one read of a pty brings
+    up to 4 KB, 4-5 frames of 880 bytes, whenever they arrive together (a late board, a USB link). At
+    1000 frames/s a burst of 37 frames (the largest seen from the simulated board on a loaded host)
+    all reach the frame thread, none dropped; the old queue of 4 frames dropped some of them although
+    the frame thread was waiting for them."""
+    import os
+    import threading
+    import tty
+
+    from cstomo_sensor.ros.node import FRAME_QUEUE, frame_queue
+
+    n = 37
+    wire = b"".join(encode(DataFrame(s, 1000 * s, np.full(208, float(s)))) for s in range(1, n + 1))
+
+    def read_burst(queue_size: int):
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        try:
+            with BoardDriver(os.ttyname(slave), read_timeout=0.01, thread=False, queue_size=queue_size) as driver:
+                assert driver.get(0.05) is None and driver.stats().connected  # the reading thread opens the port
+                writer = threading.Thread(target=os.write, args=(master, wire))  # blocks while the pty is full
+                writer.start()
+                got = []
+                while len(got) + driver.stats().dropped_overflow < n:
+                    frame = driver.get(2.0)
+                    assert frame is not None, (len(got), driver.stats())
+                    got.append(frame.seq)
+                writer.join()
+                return got, driver.stats().dropped_overflow
+        finally:
+            os.close(master)
+            os.close(slave)
+
+    got, dropped = read_burst(frame_queue(1000.0))
+    assert got == list(range(1, n + 1)) and dropped == 0, (got, dropped)
+    got, dropped = read_burst(FRAME_QUEUE)  # 4 frames: the reads' extra frames are dropped
+    assert dropped > 0 and len(got) == n - dropped and got[-1] == n, (got, dropped)
