@@ -96,8 +96,8 @@ def test_the_node_reads_the_firmware(ros, tmp_path, source, warm_model):
             assert wait_for(lambda: h.state() == "active", 30.0), h.state()
             wrenches = h.record("/cstomo_fw/wrench", WrenchStamped)
             assert wait_for(lambda: len(wrenches) >= 300, 20.0), len(wrenches)
-            st = h.node._driver.stats()
-            identity = h.node._driver.identity
+            st = h.node.driver.stats()
+            identity = h.node.driver.identity
         finally:
             h.close()
     assert identity.firmware == "cstomo-fw 1.0 (host)"

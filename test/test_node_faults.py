@@ -251,7 +251,7 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
         board.start()
         assert wait_for(lambda: h.node.reference_source.startswith("tare saved"), 10.0), h.node.reference_source
         saved, ref = tare_file.read_bytes(), h.node.pipe.reference.copy()
-        assert wait_for(lambda: not h.node._driver.stats().connected, 5.0)
+        assert wait_for(lambda: not h.node.driver.stats().connected, 5.0)
         r = h.call_tare()
         assert not r.success
         assert "tare cancelled: 0 of 5 frames" in r.message and "board disconnected" in r.message, r.message

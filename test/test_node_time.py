@@ -189,7 +189,7 @@ def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path
         dg = diag_records(h)
         board.start()
         time.sleep(6.5)
-        st = h.node._driver.stats()
+        st = h.node.driver.stats()
     finally:
         board.close()
         h.close()

@@ -154,7 +154,7 @@ def test_a_tare_pending_across_an_outage_is_refused_when_the_board_returns_loade
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         board.start()
         saved, ref = _tared(h, tare_file)
-        assert wait_for(lambda: not h.node._driver.stats().connected, 10.0)
+        assert wait_for(lambda: not h.node.driver.stats().connected, 10.0)
         t_call = time.monotonic()
         r = h.call_tare()
         waited = time.monotonic() - t_call

@@ -88,12 +88,18 @@ class CstomoSensorNode(LifecycleNode):
     tare_refused = property(lambda self: self.stream.tare_refused if self.stream is not None else "")
 
     @property
-    def _driver(self):
+    def active(self) -> bool:
+        """The lifecycle state is active (frames are published)."""
+        return self._active
+
+    @property
+    def driver(self):
         """The board's driver (serial input), else None."""
         return self._source.driver if isinstance(self._source, SerialSource) else None
 
     @property
-    def _published(self) -> dict[str, int]:
+    def published(self) -> dict[str, int]:
+        """Messages published per topic (the diagnostics' ``messages_published``)."""
         return self._pubs.published if self._pubs is not None else {}
 
     @property
