@@ -63,7 +63,7 @@ class FrameStream:
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
-        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them)
+        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them: want_fields)
         self.first_tare: FirstTareWatch | None = None  # the frames after a first tare (force/reference/first_tare.py)
 
     def with_config(self, **changes) -> None:
@@ -71,6 +71,11 @@ class FrameStream:
         self.config = replace(self.config, **changes)
         if self.filter is not None:
             self.filter.max_gap = self.config.stale_timeout
+
+    def want_fields(self, wanted: bool) -> None:
+        """Whether the stress fields are wanted (a sink's subscribers, :class:`~cstomo_sensor.ros.sinks.Publishers`):
+        False, they are not computed (``stress_field_every`` still counts the frames)."""
+        self.fields_wanted = bool(wanted)
 
     # what the stages hold, where the callers read it
     counts = property(lambda self: self.counter.counts)

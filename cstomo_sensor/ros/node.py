@@ -169,7 +169,7 @@ class CstomoSensorNode(LifecycleNode):
         qos = cfg.qos()
         serial = cfg.input == "serial"
         self._pubs = Publishers(self, self.stream.outputs + ((RAW_TOPIC,) if serial else ()), pipe.centers,
-                                cfg.stream.frame_id, qos, self.stream, lambda: self._active)
+                                cfg.stream.frame_id, qos, pipe.geometry, lambda: self._active, self.stream.want_fields)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
