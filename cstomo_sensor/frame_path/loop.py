@@ -29,7 +29,7 @@ def connect(source: FrameSource, stream) -> None:
     (:meth:`~cstomo_sensor.frame_path.stream.FrameStream.reconnected`), an input that is no frame is counted
     as corrupt."""
     source.on_reconnect = stream.reconnected
-    source.on_corrupt = lambda err: stream.counter.drop(err, corrupt=True)
+    source.on_corrupt = stream.corrupt
 
 
 def step(stream, sinks: Sequence[Callable], frame: StampedFrame, process: bool = True):

@@ -203,6 +203,10 @@ class FrameStream:
                 self._end_tare(outcome)
         self.tares.finish()
 
+    def corrupt(self, err: Exception) -> None:
+        """An input that is no frame (the source could not decode it): counted as corrupt and logged (throttled)."""
+        self.counter.drop(err, corrupt=True)
+
     def cancel_tare(self) -> int:
         """Drop a pending tare (it stays pending without any reference); returns the frames it had taken."""
         return self.tares.cancel(keep_pending=self.pipe.reference is None)
