@@ -85,7 +85,7 @@ class FrameStream:
     drift = property(lambda self: self.slow.drift)
     creep_per_decade = property(lambda self: self.slow.creep_per_decade(self.pipe.calibration))
     noise = property(lambda self: self.noise_state.estimate)
-    noise_text = property(lambda self: self.noise_state.text(self.pipe))
+    noise_text = property(lambda self: self.noise_state.text(self.pipe.noise_measured, self.pipe.noise_source))
     tare_file = property(lambda self: self.tares.tare_file)
     tare_taken = property(lambda self: self.tares.taken)
     tare_refused = property(lambda self: self.tares.refused)
@@ -115,7 +115,7 @@ class FrameStream:
                        directions: Directions | None = None):
         report = self.pipe.set_reference(ref, noise, n_frames)
         self.first_tare = None  # a first tare's watch is set by _end_tare (force/reference/first_tare.py)
-        self._use_noise(self.noise_state.kept(self.pipe))  # an estimated noise stays in use
+        self._use_noise(self.noise_state.kept(self.pipe.noise_measured))  # an estimated noise stays in use
         self.slow.reset(self.pipe, age_s, directions)
         return report
 
@@ -257,9 +257,18 @@ class FrameStream:
             return self.noise_text
 
     def _use_noise(self, found: tuple[float, str] | None) -> None:
-        """An estimated (level, source) into the pipeline and, if it took it, the drift tracker."""
-        if found is not None and self.noise_state.use(self.pipe, *found):
-            self.slow.renoised(self.pipe)
+        """An estimated (level, source) into the pipeline and, if it took it, the drift tracker; the noise
+        stage is told which (frame_path/noise_in_use.py)."""
+        if found is None:
+            return
+        pipe, noise, (level, source) = self.pipe, self.noise_state, found
+        try:
+            pipe.set_noise(np.full(pipe.n_meas, level), noise.named(level, source, pipe.reference))
+        except ConfigError as err:
+            noise.refused(err)
+            return
+        noise.took(level, source, pipe.noise_source)
+        self.slow.renoised(pipe)
 
     # --- per frame -------------------------------------------------------------------------------
 
