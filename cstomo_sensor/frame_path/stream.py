@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..angles import force_angles3
 from ..errors import ConfigError, CstomoError
 from ..force.reference.files import read_reference, tare_age
 from ..force.reference.first_tare import FirstTareWatch
@@ -237,7 +238,7 @@ class FrameStream:
             report = self._new_reference(outcome.reference, outcome.noise, outcome.frames)
             if self.filter is not None:
                 self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
-            self.first_tare = FirstTareWatch.of(self.pipe) if first else None
+            self.first_tare = FirstTareWatch.of(self.pipe.in_use) if first else None
         self.tares.end(outcome, self.pipe.reference is not None, self.noise_text, report)
         if self.taring:  # refused without a reference: it starts over
             self.noise_state.restart()
@@ -256,19 +257,20 @@ class FrameStream:
                 self._use_noise(self.noise_state.from_frames(frames, ~self.pipe.bad_channels, source))
             return self.noise_text
 
-    def _use_noise(self, found: tuple[float, str] | None) -> None:
+    def _use_noise(self, found: tuple[float, str] | None) -> bool:
         """An estimated (level, source) into the pipeline and, if it took it, the drift tracker; the noise
-        stage is told which (frame_path/noise_in_use.py)."""
+        stage is told which (frame_path/noise_in_use.py). True if the pipeline took it."""
         if found is None:
-            return
+            return False
         pipe, noise, (level, source) = self.pipe, self.noise_state, found
         try:
             pipe.set_noise(np.full(pipe.n_meas, level), noise.named(level, source, pipe.reference))
         except ConfigError as err:
             noise.refused(err)
-            return
+            return False
         noise.took(level, source, pipe.noise_source)
-        self.slow.renoised(pipe)
+        self.slow.renoised(pipe.in_use)
+        return True
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -282,7 +284,7 @@ class FrameStream:
             return False
         self.pipe.set_bad_channels(new[0].copy())  # raises before changing anything if refused
         self.channels.use(*new)
-        self.slow.masked(self.pipe)
+        self.slow.masked(self.pipe.in_use)
         if new[1].channels:
             log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
                         new[1].channels, new[1].saturated, new[1].dead_electrodes)
@@ -314,17 +316,25 @@ class FrameStream:
         self.update_mask(saturated, contact_ok)
         every, k = self.config.stress_field_every, self.processed
         self.processed += 1
-        result = pipe.process(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset,
-                              slow.gradient)
+        frame = pipe.step(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset,
+                          slow.gradient)
+        result = frame.result
         if not result.valid or self.counter.implausible_run:
             self.counter.plausible(result)
-        if self.noise_state.estimate is not None and not pipe.noise_measured:
-            self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
-        slow.observe(pipe, result, t, self.channels.frozen)
+        if (self.noise_state.estimate is not None and not pipe.noise_measured
+                and self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))):
+            # the noise now in use (a new estimator, its consistency) is the one the slow states see this frame with
+            frame = frame._replace(fit=getattr(pipe.estimator, "last_fit", None), in_use=pipe.in_use)
+        fix = slow.observe(frame, t, self.channels.frozen)  # the device's slow states: the force corrected, its 1-sigma
+        if fix.force is not None:
+            result.force = fix.force
+            result.magnitude, result.elevation, result.azimuth = force_angles3(fix.force)
+        if fix.sigma is not None:
+            result.sigma, result.sigma_n = fix.sigma, fix.sigma_n
         if slow.learned_new:
             self._save_directions()
         if (self.first_tare is not None and result.valid and not result.foreign_load  # a press elsewhere: no pull
-                and self.first_tare.observe(pipe.last_y)):
+                and self.first_tare.observe(frame.change)):
             # the first tare carried a load (force/reference/first_tare.py): dropped, nothing published until a tare
             self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tare_file))
             self.first_tare, pipe.reference = None, None
