@@ -55,7 +55,7 @@ def forces(pipe, frames, n_tare: int) -> np.ndarray:
     stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0))
     tare = np.array([f.values for f in frames[:n_tare]])
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_tare, "tare")
-    return np.array([stream.process(f.values, f.saturated, f.contact_ok).force for f in frames[n_tare:]])
+    return np.array([stream.push(f.values, f.saturated, f.contact_ok).result.force for f in frames[n_tare:]])
 
 
 @pytest.mark.slow

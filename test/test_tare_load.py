@@ -209,7 +209,7 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
     stream = FrameStream(pipe, on_tare=ended.append)
     stream.start_tare()
     for v in _frames(ref, ref, 50, rng):
-        stream.process(v)
+        stream.push(v)
     assert ended[-1].ok and math.isnan(ended[-1].check.load)  # the first tare: no load check
     first = pipe.reference.copy()
     raw = np.linalg.norm(pipe.estimator.estimate((warm - first) / y_scale(pipe, first)))
@@ -219,7 +219,7 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
         pipe.set_reference(first, ended[0].noise, 50)
         stream.start_tare()
         for f in _frames(v, ref, 50, rng):
-            stream.process(f)
+            stream.push(f)
         return ended[-1]
 
     out = tare_on(warm)
@@ -244,16 +244,16 @@ def test_reconnect_ends_a_pending_tare_and_a_tare_at_start_starts_over(pipe, dev
     stream = FrameStream(pipe, on_tare=ended.append)
     stream.start_tare(10)
     for v in _frames(ref, ref, 4, rng):
-        stream.process(v)
+        stream.push(v)
     stream.reconnected()  # no reference yet: the tare at start starts over on the returning frames
     assert ended[-1].reason == TARE_RECONNECTED and ended[-1].frames == 4
     assert stream.taring and stream.tares.left == 10 and pipe.reference is None
     for v in _frames(ref, ref, 10, rng):
-        stream.process(v)
+        stream.push(v)
     assert ended[-1].ok and not stream.taring
     first = pipe.reference.copy()
     stream.start_tare(10)
-    stream.process(ref)
+    stream.push(ref)
     stream.reconnected()
     assert not stream.taring and ended[-1].reason == TARE_RECONNECTED
     np.testing.assert_array_equal(pipe.reference, first)

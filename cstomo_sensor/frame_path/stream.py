@@ -290,17 +290,6 @@ class FrameStream:
                         new[1].channels, new[1].saturated, new[1].dead_electrodes)
         return True
 
-    def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
-                contact_ok: np.ndarray | None = None, t: float | None = None) -> FrameResult | None:
-        """The :class:`FrameResult` of one frame at ``t`` s (None: 10 ms after the previous), or None (a
-        tare frame, no reference); :class:`FrameError` for a frame to drop. :meth:`push` adds the
-        accounting, the filter and the stamps."""
-        try:
-            with self.lock:
-                return self._process(values, saturated, contact_ok, t)
-        finally:
-            self.tares.finish()
-
     def _process(self, values: np.ndarray, saturated: np.ndarray | None, contact_ok: np.ndarray | None,
                  t: float | None) -> FrameResult | None:
         tares, pipe, slow = self.tares, self.pipe, self.slow
@@ -351,9 +340,11 @@ class FrameStream:
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> FrameOutput | None:
-        """One frame measured ``age_ns`` ago, stamped ``stamp_ns``: counted, dropped if late, processed
-        unless ``process`` is False. Its :class:`~cstomo_sensor.frame_path.outputs.FrameOutput` (an implausible one too: no filtered force),
-        else None (a tare frame, no reference, late, dropped: counted, never raised)."""
+        """One frame measured ``age_ns`` ago, stamped ``stamp_ns`` (its time for the filter and the slow
+        states; 0: none, 10 ms after the previous): counted, dropped if late, processed unless ``process``
+        is False. Its :class:`~cstomo_sensor.frame_path.outputs.FrameOutput` (an implausible one too: no
+        filtered force), else None (a tare frame, no reference, late, dropped: counted, never raised). The
+        one entry of a frame (the frame loop's, frame_path/loop.py)."""
         t0 = time.perf_counter()
         if self.counter.arrived(age_ns > self.config.stale_timeout * 1e9) or not process:
             return None
