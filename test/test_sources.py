@@ -230,8 +230,8 @@ def test_a_topic_nobody_subscribes_to_is_not_built(ros, tmp_path, source, warm_m
         board.start()
         node = h.node
         assert wait_for(lambda: node.stream is not None and node.stream.ready, 20.0)
-        n0 = node.stream.counts.frames
-        assert wait_for(lambda: node.stream.counts.frames > n0 + 20)
+        n0 = node.stream.counter.counts.frames
+        assert wait_for(lambda: node.stream.counter.counts.frames > n0 + 20)
         assert node.published == {} and not node.stream.fields_wanted
         wrenches = h.record("/cstomo_sensor/wrench", WrenchStamped)
         assert wait_for(lambda: len(wrenches) >= 20)

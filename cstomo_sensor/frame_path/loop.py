@@ -89,7 +89,7 @@ class Results:
         if out is not None:
             self.results.append(out.result)
         elif self.every_frame:
-            self.results.append(FrameResult.implausible(self.stream.counts.reject_reason))
+            self.results.append(FrameResult.implausible(self.stream.counter.counts.reject_reason))
         else:
             self._seen += 1
             return

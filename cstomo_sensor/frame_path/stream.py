@@ -78,21 +78,15 @@ class FrameStream:
         False, they are not computed (``stress_field_every`` still counts the frames)."""
         self.fields_wanted = bool(wanted)
 
-    # what the stages hold, where the callers read it
-    counts = property(lambda self: self.counter.counts)
-    frame_period = property(lambda self: self.counter.frame_period)
-    implausible = property(lambda self: self.counter.counts.implausible)
-    excluded = property(lambda self: self.channels.excluded)
-    drift = property(lambda self: self.slow.drift)
-    creep_per_decade = property(lambda self: self.slow.creep_per_decade(self.pipe.calibration))
-    noise = property(lambda self: self.noise_state.estimate)
-    noise_text = property(lambda self: self.noise_state.text(self.pipe.noise_measured, self.pipe.noise_source))
-    tare_file = property(lambda self: self.tares.tare_file)
-    tare_taken = property(lambda self: self.tares.taken)
-    tare_refused = property(lambda self: self.tares.refused)
-    reference_source = property(lambda self: self.tares.source)
-    taring = property(lambda self: self.tares.pending)
-    ready = property(lambda self: not self.taring and self.pipe.reference is not None)  # frames give results
+    @property
+    def ready(self) -> bool:
+        """Frames give results: no tare pending and a reference in use."""
+        return not self.tares.pending and self.pipe.reference is not None
+
+    @property
+    def noise_text(self) -> str:
+        """What noise the estimators use, in words (frame_path/noise_in_use.py)."""
+        return self.noise_state.text(self.pipe.noise_measured, self.pipe.noise_source)
 
     # --- reference and tare ----------------------------------------------------------------------
 
@@ -125,7 +119,7 @@ class FrameStream:
         force against the model's own reference (a phantom force of newtons at zero load). Returns ''
         when the saved tare is used, else why a tare is pending."""
         saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
-        path = self.tare_file
+        path = self.tares.tare_file
         if saved is None:
             # no saved tare of this device: its calibration's own unloaded reference, if it has one (a
             # first start under a load is then read as a restart, not taken as the zero)
@@ -140,9 +134,9 @@ class FrameStream:
             try:
                 # the device moved since the tare was saved: its age (force/reference/files.py tare_age) widens the slow states;
                 # the device's own directions saved beside a saved tare (force/slow_states/learned.py) are tracked from the first frame
-                kind = "saved tare" if path == self.tare_file else "the calibration's unloaded reference"
+                kind = "saved tare" if path == self.tares.tare_file else "the calibration's unloaded reference"
                 self.set_reference(*saved, source=f"{kind} {path}", age_s=tare_age(path, time.time()) or 0.0,
-                                   directions=self._saved_directions() if path == self.tare_file else None)
+                                   directions=self._saved_directions() if path == self.tares.tare_file else None)
                 if tare_on_start:  # a tare at start is checked against it: not taken under a load
                     self.start_tare()
                 return ""
@@ -155,7 +149,7 @@ class FrameStream:
     def _saved_directions(self) -> Directions | None:
         """The learned directions saved beside the tare file (None: none, or unreadable: said once, the model's only)."""
         try:
-            return read_directions(self.tare_file, self.pipe.n_meas)
+            return read_directions(self.tares.tare_file, self.pipe.n_meas)
         except (CstomoError, OSError) as err:
             log.warning("the device's learned directions not used (%s): the model's directions only", err)
             return None
@@ -164,7 +158,7 @@ class FrameStream:
         """A direction learned (force/slow_states/learned.py): the device's directions saved beside its tare file, by a
         thread of its own (frames keep flowing while a slow disk writes it)."""
         self.slow.learned_new = False
-        path, directions = self.tare_file, self.slow.directions
+        path, directions = self.tares.tare_file, self.slow.directions
         if path is None:
             return
 
@@ -186,7 +180,7 @@ class FrameStream:
         """A controller's hint that the joint is free: a tare now, with every rule of a tare; False (and
         nothing changes) while one is pending."""
         with self.lock:
-            if self.taring:
+            if self.tares.pending:
                 return False
             self.start_tare()
         log.info("the joint is free (a controller's hint): re-zeroing on the next %d frames", self.config.tare_frames)
@@ -214,8 +208,8 @@ class FrameStream:
 
     def tare_deadline(self, rate_hz: float = 0.0) -> float:
         """Seconds a tare of ``tare_frames`` frames may take (:func:`~..force.reference.tare_rules.tare_deadline`): from the
-        measured :attr:`frame_period`, never shorter than the nominal ``rate_hz``'s (0: unknown)."""
-        return tare_deadline(self.config.tare_frames, self.frame_period, rate_hz, self.config.stale_timeout)
+        measured frame period (:attr:`~.health.Health.frame_period`), never shorter than the nominal ``rate_hz``'s (0: unknown)."""
+        return tare_deadline(self.config.tare_frames, self.counter.frame_period, rate_hz, self.config.stale_timeout)
 
     def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
         """A tare transaction: a tare awaited up to ``timeout`` s (:meth:`tare_deadline`), else cancelled
@@ -240,7 +234,7 @@ class FrameStream:
                 self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
             self.first_tare = FirstTareWatch.of(self.pipe.in_use) if first else None
         self.tares.end(outcome, self.pipe.reference is not None, self.noise_text, report)
-        if self.taring:  # refused without a reference: it starts over
+        if self.tares.pending:  # refused without a reference: it starts over
             self.noise_state.restart()
 
     def close(self, timeout: float = 5.0) -> list[str]:
@@ -253,7 +247,7 @@ class FrameStream:
         """The noise from a file of consecutive ``frames`` (n, n_meas) before they are processed, unless
         measured or not estimated (frame_path/noise_in_use.py); returns :attr:`noise_text`."""
         with self.lock:
-            if self.noise is not None and not self.pipe.noise_measured and self.pipe.reference is not None:
+            if self.noise_state.estimate is not None and not self.pipe.noise_measured and self.pipe.reference is not None:
                 self._use_noise(self.noise_state.from_frames(frames, ~self.pipe.bad_channels, source))
             return self.noise_text
 
@@ -325,7 +319,7 @@ class FrameStream:
         if (self.first_tare is not None and result.valid and not result.foreign_load  # a press elsewhere: no pull
                 and self.first_tare.observe(frame.change)):
             # the first tare carried a load (force/reference/first_tare.py): dropped, nothing published until a tare
-            self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tare_file))
+            self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tares.tare_file))
             self.first_tare, pipe.reference = None, None
             slow.reset(pipe)
             self.start_tare()

@@ -83,9 +83,15 @@ class CstomoSensorNode(LifecycleNode):
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
-    processor = property(lambda self: self.stream, doc="The frame stream (the name the tests and tools knew it by).")
-    reference_source = property(lambda self: self.stream.reference_source if self.stream is not None else "none")
-    tare_refused = property(lambda self: self.stream.tare_refused if self.stream is not None else "")
+    @property
+    def reference_source(self) -> str:
+        """Where the reference in use comes from, in words ("none" before configure)."""
+        return self.stream.tares.source if self.stream is not None else "none"
+
+    @property
+    def tare_refused(self) -> str:
+        """Why the latest tare was refused ('' if none was)."""
+        return self.stream.tares.refused if self.stream is not None else ""
 
     @property
     def active(self) -> bool:
@@ -279,7 +285,7 @@ class CstomoSensorNode(LifecycleNode):
         return self._on_tare(request, response, forced=True)  # the load checks do not refuse (docs/node.md#tare)
 
     def _process_now(self) -> bool:
-        return self._active or self.stream.taring
+        return self._active or self.stream.tares.pending
 
     def _serial_loop(self) -> None:
         set_os_thread_name(FRAME_THREAD)

@@ -14,7 +14,7 @@ def stale_reason(cfg, stream, source) -> str:
     """Why the data is stale ('' when fresh)."""
     if cfg is None or stream is None:
         return "not configured"
-    last = stream.counts.last_frame
+    last = stream.counter.counts.last_frame
     age = math.inf if last is None else time.monotonic() - last
     if age <= cfg.stream.stale_timeout:
         return ""
@@ -79,7 +79,7 @@ def tare_answer(node, outcome, taken: int, wait: float, forced: bool) -> tuple[b
         why = node.stale_reason() or "frames late, dropped or rejected"
         msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call {name} " \
               "again once frames arrive"
-        if stream.taring:
+        if stream.tares.pending:
             msg += " (the tare at start stays pending: no reference yet)"
         node.get_logger().warning(msg)
         return False, msg
