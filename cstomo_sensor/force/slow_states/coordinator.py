@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -48,6 +48,39 @@ UNMEASURED_N = 2.0
 def force_map(estimator) -> np.ndarray | None:
     """The ``estimator``'s linear map of a change to a force (the drift tracker's rest bound)."""
     return getattr(getattr(estimator, "linear", estimator), "W", None)
+
+
+class InUse(Protocol):
+    """What the slow states read of what a pipeline makes its frames with (frame_path/pipeline.py ``InUse``:
+    a value, replaced when any of it changes; the force layer does not import the frame path)."""
+
+    estimator: Any
+    calibration: Any
+    keep: np.ndarray
+    reference_frames: int
+    consistency: Any
+
+
+class Reference(Protocol):
+    """What the slow states read of a pipeline when its reference changes (:meth:`SlowStates.reset`;
+    frame_path/pipeline.py ``Pipeline``): the reference (volts; None: none), what a change is divided by,
+    the reconstruction model (its contacts' and gradients' directions) and :class:`InUse`."""
+
+    reference: np.ndarray | None
+    y_scale: float
+    model: Any
+    n_meas: int
+    in_use: InUse
+
+
+class Frame(Protocol):
+    """What the slow states read of a frame through the pipeline (frame_path/pipeline.py ``FrameRecord``)."""
+
+    result: Any  # its FrameResult (read, never written)
+    change: np.ndarray
+    plausible: bool
+    fit: Any
+    in_use: InUse
 
 
 class Correction(NamedTuple):
@@ -104,7 +137,7 @@ class SlowStates:
         fitted = getattr(calibration, "creep_per_decade", None) if calibration is not None else None
         return float(fitted) if fitted is not None else self.creep_setting
 
-    def reset(self, pipe, age_s: float | None = None, directions: Directions | None = None) -> None:
+    def reset(self, pipe: Reference, age_s: float | None = None, directions: Directions | None = None) -> None:
         """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
         ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states;
         ``directions``: the device's own directions saved with it (force/slow_states/learned.py; None: those learned so far)."""
@@ -115,40 +148,41 @@ class SlowStates:
         self._frame_sigma = None  # the previous reference's frames' sigma is not this one's (expected load)
         self.age_s = age_s  # the reference's age (a restart), for the diagnostics and the tests
         if pipe.reference is not None:
+            in_use = pipe.in_use
             if self.tracking:
                 if self._gradients is None:  # the contacts' change, then the resistivity's gradient
                     g = gradient_directions(pipe.model)
                     c = pipe.model.contact
                     self._gradients = g if c is None else np.vstack([c, g])
                 self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
-                                          change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                          ~pipe.bad_channels, force_map(pipe.estimator),
+                                          change_noise(in_use.estimator.noise, in_use.reference_frames),
+                                          in_use.keep.copy(), force_map(in_use.estimator),
                                           contacts=0 if pipe.model.contact is None else len(pipe.model.contact))
                 if len(self.directions):  # the device's own directions: states after the model's
                     self.drift = self.drift.with_directions(self.directions.rows, self.directions.per_scale, 0.0)
                 self.learner = DirectionLearner(pipe.n_meas, len(self.directions))
                 if age_s is not None:
                     self.drift.widen(age_s)
-            c = self.creep_per_decade(pipe.calibration)
+            c = self.creep_per_decade(in_use.calibration)
             if c > 0:
                 self.creep = CreepCompensator(c, pipe.n_meas)
         self.scale = 1.0
         self._offsets()
 
-    def masked(self, in_use) -> None:
+    def masked(self, in_use: InUse) -> None:
         """The pipeline's mask changed (``in_use``: its ``InUse`` now): the tracker (its state kept) over its channels."""
         if self.drift is not None:
             self.drift = self.drift.rebuilt(keep=in_use.keep.copy(), force_map=force_map(in_use.estimator))
             self._offsets()
 
-    def renoised(self, in_use) -> None:
+    def renoised(self, in_use: InUse) -> None:
         """The pipeline's noise changed (``in_use``: its ``InUse`` now): the tracker (its state kept) with the change's noise."""
         if self.drift is not None:
             est = in_use.estimator
             self.drift = self.drift.rebuilt(noise=change_noise(est.noise, in_use.reference_frames), force_map=force_map(est))
             self._offsets()
 
-    def observe(self, frame, t: float | None, frozen: np.ndarray | None) -> Correction:
+    def observe(self, frame: Frame, t: float | None, frozen: np.ndarray | None) -> Correction:
         """A frame at ``t`` (s; None: 10 ms after the previous) through the pipeline (``frame``: its
         ``FrameRecord``): the tracker and the compensator follow its change (``frozen``: the excluded
         channels, the creep's history held there); returns what it adds to its result (:class:`Correction`:
@@ -189,7 +223,7 @@ class SlowStates:
         self._frame_sigma = sigma
         return Correction(corrected, sigma, sigma_n)
 
-    def _joint_scale(self, frame, t: float | None):
+    def _joint_scale(self, frame: Frame, t: float | None):
         """The frame's (its ``FrameRecord``) joint measurement of the scale (force/estimators/scale_fit.py JointScale),
         None for an estimator without a joint fit (``linear``); with the controller's expected load when one is in
         effect for this frame and agrees with it (:meth:`..checks.expected.ExpectedLoad.for_frame`), bounded by
@@ -254,7 +288,7 @@ class SlowStates:
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)
 
-    def _sigma_model(self, in_use) -> ForceSigma:
+    def _sigma_model(self, in_use: InUse) -> ForceSigma:
         """The force's uncertainty for the estimator and calibration (``in_use``: the pipeline's ``InUse`` of
         the frame), tracker and creep in use (rebuilt when one changes)."""
         drift, f, est, cal = self.drift, self._sigma_for, in_use.estimator, in_use.calibration
