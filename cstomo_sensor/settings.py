@@ -142,7 +142,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("tare_file", "", "Where the tare is saved and read back at start; '' = "
             "<cache_dir>/tare_[<namespace>-]<sensor>-<geometry digest>-<port>.csv"),
     Setting("tare_on_start", False, "true: tare on the first tare_frames frames at start (the joint must be "
-            "unloaded); false: the saved tare of this device (tare_file), else a tare at start too (WARN); no force "
+            "unloaded: judged against the saved tare or the calibration's reference, if any); false: the saved "
+            "tare of this device (tare_file), else a tare at start too (WARN); no force "
             "is published before a reference of this device exists"),
     Setting("frame_id", "cstomo_socket", "Frame of the wrench, the angles and the stress cloud: origin at the "
             "socket centre"),

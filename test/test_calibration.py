@@ -334,7 +334,7 @@ def test_a_tare_at_start_is_checked_against_the_calibrations_reference(tmp_path,
     runs). On a joint loaded from the first frame the tare is refused as carrying the load, the
     calibration's reference stays and the load is read; on the unloaded joint the same start takes the
     tare. Without the reference file the loaded tare is taken (nothing to compare it with): the
-    reference is what refuses it."""
+    reference is what refuses it. A tare saved by an earlier start (the tare file) refuses it the same way."""
     import time
 
     from conftest import PIPE
@@ -382,3 +382,9 @@ def test_a_tare_at_start_is_checked_against_the_calibrations_reference(tmp_path,
     reference_path_of(path).unlink()  # the loaded start without the reference: the tare is taken under the load
     read, taken, refused, source = start("noref", loaded)
     assert taken and not refused and np.linalg.norm(read) < 0.2 * np.linalg.norm(truth), (read, taken, refused)
+    # a tare saved by an earlier run of this device plays the reference's part: the loaded start is refused
+    write_reference(tmp_path / "saved.csv", ref, noise, frames=len(tare), comment="tare taken at an earlier start")
+    read, taken, refused, source = start("saved", loaded)
+    assert not taken and "carries a load" in refused, (taken, refused)
+    assert source.startswith("saved tare "), source
+    assert np.linalg.norm(read - truth) < 0.15 * np.linalg.norm(truth), (read, truth)

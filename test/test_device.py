@@ -85,11 +85,11 @@ def test_tare_measures_the_noise_and_the_estimators_use_it(pipes, device):
     for v in add_noise(np.repeat(ref0[None], 50, 0), ref0, 40, rng):
         proc.push(v)
     assert proc.ready and pipe.noise_measured
-    measured = pipe.estimator.noise * pipe._y_scale  # back to volts
+    measured = pipe.estimator.noise * pipe.y_scale  # back to volts
     assert np.median(measured) == pytest.approx(std, rel=0.1)
     pipe.set_reference(ref0)  # one frame: the documented default (60 dB)
     assert not pipe.noise_measured
-    assert np.median(pipe.estimator.noise * pipe._y_scale) == pytest.approx(std / 10, rel=0.1)
+    assert np.median(pipe.estimator.noise * pipe.y_scale) == pytest.approx(std / 10, rel=0.1)
 
 
 def test_40db_linear_within_1_5x_model_with_a_50_frame_tare(pipes, device):

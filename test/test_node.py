@@ -290,7 +290,7 @@ def test_tare_service_sets_saves_and_reuses_the_reference(ros, tmp_path, source,
         assert h.node.reference_source.startswith("saved tare")
         np.testing.assert_allclose(h.node.pipe.reference, saved[0], rtol=1e-12)
         assert h.node.pipe.noise_measured and h.node.pipe.reference_frames == 50  # saved with the tare
-        np.testing.assert_allclose(h.node.pipe.estimator.noise * h.node.pipe._y_scale,
+        np.testing.assert_allclose(h.node.pipe.estimator.noise * h.node.pipe.y_scale,
                                    np.maximum(noise[0], 0.1 * np.median(noise)), rtol=1e-8)
     finally:
         h.close()

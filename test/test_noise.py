@@ -88,7 +88,7 @@ def test_estimate_within_20_percent_of_the_simulated_noise(device, warm_model, s
     _run(stream, frames)
     text = stream.noise_text
     assert text.startswith("estimated from") and "dB" in text, text
-    running = float(np.median(stream.pipe.estimator.noise * stream.pipe._y_scale))  # back to volts
+    running = float(np.median(stream.pipe.estimator.noise * stream.pipe.y_scale))  # back to volts
     assert abs(running / want - 1) < 0.2, (running, want)
     snr_said = float(text.split("(")[-1].split(" dB")[0])
     assert abs(snr_said - snr) < 20 * math.log10(1.2), text

@@ -60,7 +60,9 @@ class FrameStream:
         self.filter = LowPass(config.wrench_filter_hz, max_gap=config.stale_timeout) if config.wrench_filter_hz else None
         self.tares = Taring(pipe.n_meas, tare_file, tare_comment, on_tare, started)
         self.channels = ChannelMask(pipe.geometry, pipe.bad_channels)
-        self.slow = SlowStates(pipe.n_meas, config, pipe.max_force)
+        # the device's own directions (force/slow_states/learned.py) start as its calibration's (learned from its
+        # recording); a saved tare's, newer, take their place (init_reference)
+        self.slow = SlowStates(pipe.n_meas, config, pipe.max_force, getattr(pipe.calibration, "directions", None))
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
@@ -115,10 +117,11 @@ class FrameStream:
         return report
 
     def init_reference(self, tare_on_start: bool) -> str:
-        """The saved tare if usable, else a tare on the first frames (``tare_on_start``: always): never a
-        force against the model's own reference (a phantom force of newtons at zero load). Returns ''
-        when the saved tare is used, else why a tare is pending."""
-        saved, why = self.tares.saved(self.pipe.n_meas, tare_on_start)
+        """The saved tare if usable, else a tare on the first frames (``tare_on_start``: always, judged
+        against the saved tare or the calibration's reference where one is usable, so a tare at start
+        under a load is refused): never a force against the model's own reference (a phantom force of
+        newtons at zero load). Returns '' when a saved reference is in use, else why a tare is pending."""
+        saved, why = self.tares.saved(self.pipe.n_meas)
         path = self.tares.tare_file
         if saved is None:
             # no saved tare of this device: its calibration's own unloaded reference, if it has one (a
@@ -147,11 +150,14 @@ class FrameStream:
         return why
 
     def _saved_directions(self) -> Directions | None:
-        """The learned directions saved beside the tare file (None: none, or unreadable: said once, the model's only)."""
+        """The learned directions saved beside the tare file (None: none, or unreadable: said once; the stream keeps
+        those it has, its calibration's or none: the model's only)."""
         try:
             return read_directions(self.tares.tare_file, self.pipe.n_meas)
         except (CstomoError, OSError) as err:
-            log.warning("the device's learned directions not used (%s): the model's directions only", err)
+            n = len(self.slow.directions)
+            log.warning("the device's learned directions not used (%s): %s", err,
+                        f"the calibration's {n} direction(s) and the model's" if n else "the model's directions only")
             return None
 
     def _save_directions(self) -> None:

@@ -40,8 +40,10 @@ from numpy.typing import ArrayLike
 from ..errors import ConfigError, require_positive
 
 __all__ = [
+    "CONTACT_PER_K",
     "CREEP_T0",
     "Material",
+    "RESISTIVITY_PER_K",
     "SIGMA_FLOOR_FRACTION",
     "StressField",
     "conductivity_floor",
@@ -100,6 +102,13 @@ SIGMA_FLOOR_FRACTION = 1.0e-6
 #: c of its initial value per decade of time, counted from this many seconds after the load changed
 #: (log10(max(t, CREEP_T0) / CREEP_T0)). The simulation's law and the stream's compensation both use it.
 CREEP_T0 = 0.1
+
+#: The typical device's temperature coefficients (docs/physics.md#device-changes), per K: the rubber's
+#: resistivity (+0.2..+1.5 %/K; so a 2 % change is 2.5 K) and each contact's impedance (-0.5..-1.5 %/K):
+#: the defaults of a timeline, the warm-up's and the full change's, what the robot bench converts with,
+#: and what the diagnostics express the tracked change in.
+RESISTIVITY_PER_K = 0.008
+CONTACT_PER_K = -0.01
 
 
 def conductivity_floor(mat: Material) -> float:

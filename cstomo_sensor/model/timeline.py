@@ -64,7 +64,7 @@ from ..progress import steps
 from ..settings import DEFAULT_SENSOR, MAX_LOAD, TYPICAL_CREEP_PER_DECADE
 from . import elasticity
 from .geometry import DEFAULT_SNR_DB, load_sensor, noise_std
-from .material import CREEP_T0, conductivity_of_theta
+from .material import CONTACT_PER_K, CREEP_T0, RESISTIVITY_PER_K, conductivity_of_theta
 from .simulate import (
     CONTACT_MISMATCH,
     ELECTRODE_JITTER,
@@ -86,11 +86,6 @@ TIMELINE_KEYS = ("duration", "rate_hz", "temperature", "resistivity_per_k", "con
                  "state_step_s", "creep_knot_ratio")
 TASK_KEYS = ("start", "end", "duration_s", "rest_s", "magnitude", "elevation_deg", "seed")
 DRIFT_KEYS = ("kind", "max", "step_s", "over_s", "seed", "values")
-#: The typical device's temperature coefficients (docs/physics.md#device-changes), per K: the rubber's
-#: resistivity (+0.2..+1.5 %/K; so a 2 % change is 2.5 K) and each contact's impedance (-0.5..-1.5 %/K):
-#: the defaults of a timeline, the warm-up's and the full change's, and what the robot bench converts with.
-RESISTIVITY_PER_K = 0.008
-CONTACT_PER_K = -0.01
 
 
 # --- the description ---------------------------------------------------------------------------

@@ -22,6 +22,12 @@ The rubber's creep per decade goes into the file too, fitted on the recording's 
 (3 at least; a bag's frames have their stamps, a frames file its ``--rate``; the rows of a forces file
 under ``--unloaded-below`` N are its rests), else on ``--creep-hold``, else given by
 ``--creep-per-decade``; one line says which, or why none (docs/calibration.md#the-creep).
+
+The device's own directions go into the file too: the whole recording in time order (a bag's frames with
+their stamps; a frames file with ``--rate``) through the frame stream of the fitted calibration, from the
+reference, as the node would run it; the directions its rests between the loads teach the drift tracker
+(force/slow_states/learned.py) are saved as ``learned_directions``, and a stream of this calibration starts
+with them. One line says how many, or why none (docs/calibration.md#the-devices-own-directions).
 """
 from __future__ import annotations
 
@@ -37,6 +43,7 @@ from ..errors import ConfigError, CstomoError
 from ..force.reference.calibration import calibrate, reference_path_of
 from ..force.reference.files import read_reference, reference_of, saved_at, write_reference
 from ..force.slow_states.creep import HELD_FOR, MIN_HELD
+from ..force.slow_states.learned import AVG, FIRST, Directions
 from ..frame_path.pipeline import Pipeline
 from ..frames_io import atomic_write, read_force_rows, read_frames
 from .common import ToolParser, add_pipeline_args, help_text, pipeline_config, positive
@@ -148,7 +155,8 @@ def read_bag(path: str | Path, voltages_topic: str, wrench_topic: str, tolerance
         return out
     label = plateaus(tw, forces)
     order = np.argsort(tw)
-    return (*out, HeldLoads(np.array(tf)[i], label[j], plateau_starts(tw[order], label[order])))
+    return (*out, HeldLoads(np.array(tf)[i], label[j], plateau_starts(tw[order], label[order])),
+            Recording(np.array(frames), np.array(tf), i))
 
 
 @dataclass
@@ -160,6 +168,25 @@ class HeldLoads:
     times: np.ndarray
     load: np.ndarray
     starts: np.ndarray
+
+
+@dataclass
+class Recording:
+    """The whole calibration recording: every frame (``frames`` (n, n_meas) volts), when it was measured
+    (``times``, s; any order) and which are the paired ones (``paired``: their indices, in the order of the
+    pairs); ``rest``: the frames known to be unloaded (their reference force under ``--unloaded-below``): what the
+    device's own directions are learned from (:func:`recording_directions`)."""
+
+    frames: np.ndarray
+    times: np.ndarray
+    paired: np.ndarray
+    rest: np.ndarray | None = None
+
+    def rests(self, unloaded: np.ndarray) -> Recording:
+        """This recording with ``rest`` the paired frames ``unloaded`` (bool, one per pair)."""
+        rest = np.zeros(len(self.frames), bool)
+        rest[np.asarray(self.paired)[np.asarray(unloaded, bool)]] = True
+        return replace(self, rest=rest)
 
 
 def plateau_starts(t: np.ndarray, label: np.ndarray) -> np.ndarray:
@@ -290,6 +317,43 @@ def recording_creep(pipe, frames: np.ndarray, loads: HeldLoads | None, why_not: 
                   "(hold loads longer, or give --creep-hold or --creep-per-decade)")
 
 
+def recording_directions(pipe, reference: tuple, recording: Recording | None, why_not: str = ""
+                         ) -> tuple[Directions | None, str, str]:
+    """(the device's own directions or None, the note for the file, the line that says so) learned from a
+    calibration ``recording`` (None: ``why_not``): its frames in time order through the frame stream of ``pipe``
+    (its calibration set: the node's stream of this calibration, the calibration's creep) from ``reference`` (the
+    reference, its noise and its frame count), its drift tracker learning from the rests between the loads
+    (force/slow_states/learned.py): each frame known to be unloaded (``recording.rest``) feeds it
+    whatever the rest test says (:meth:`~..force.slow_states.coordinator.SlowStates.known_unloaded`), so a
+    change whose phantom force keeps the rest test from counting them is learned too."""
+    from ..frame_path.config import StreamConfig
+    from ..frame_path.stream import FrameStream
+
+    if recording is None:
+        return None, "", f"directions: not learned from the recording ({why_not})"
+    order = np.argsort(recording.times, kind="stable")
+    stamps = np.round(np.asarray(recording.times, float)[order] * 1e9).astype(np.int64)
+    stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0))
+    stream.set_reference(*reference, source="the calibration's reference")
+    rest = np.zeros(len(order), bool) if recording.rest is None else np.asarray(recording.rest, bool)[order]
+    for values, stamp, known in zip(recording.frames[order], stamps.tolist(), rest.tolist()):
+        stream.slow.known_unloaded(known)
+        stream.push(values, stamp_ns=stamp)
+    learner, found = stream.slow.learner, stream.slow.directions
+    fed = learner.fed if learner is not None else 0
+    note = (f"learned by cstomo calibrate from {fed} clear frames of its recording of {len(order)} "
+            f"({learner.decisions if learner is not None else 0} decisions)")
+    if learner is not None and not learner.decisions:
+        return None, "", (f"directions: none learned: the recording's {fed} clear frames (of {len(order)}: its rests) "
+                          f"are too few to decide ({FIRST * AVG} needed: record longer rests between the loads)")
+    if not len(found):
+        return None, "", (f"directions: none learned from the recording's {fed} clear frames (of {len(order)}: its "
+                          "rests): over it the device changed as the model's states say, or less than its rests' noise")
+    return found, note, (f"directions: {len(found)} of the device's own learned from the recording's {fed} clear frames "
+                         f"(of {len(order)}: its rests), saved in the calibration: a stream of it tracks them from its "
+                         "first frame")
+
+
 def run(a) -> int:
     from ..force.slow_states.creep import creep_problem
 
@@ -314,7 +378,8 @@ def run(a) -> int:
         if not a.wrench_topic:
             raise ConfigError("--bag needs --wrench-topic: the reference sensor's WrenchStamped topic in the bag "
                               f"(frames from --voltages-topic, default {a.voltages_topic})")
-        frames, forces, n_v, n_w, loads = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance, timing=True)
+        frames, forces, n_v, n_w, loads, whole = read_bag(a.bag, a.voltages_topic, a.wrench_topic, a.stamp_tolerance,
+                                                          timing=True)
         recording, why_not = frames, ""
         source = {"bag": str(a.bag), "voltages_topic": a.voltages_topic, "wrench_topic": a.wrench_topic,
                   "stamp_tolerance_s": a.stamp_tolerance}
@@ -330,6 +395,7 @@ def run(a) -> int:
         else:
             raise ConfigError(f"no --reference and no paired frame under {a.unloaded_below:g} N to tare on")
         frames, forces = frames[~unloaded], forces[~unloaded]
+        whole = whole.rests(unloaded)
     else:
         if not (a.reference and a.frames and a.forces):
             raise ConfigError("give --reference, --frames and --forces (or --bag with its topics)")
@@ -341,6 +407,7 @@ def run(a) -> int:
         recording, loads = all_frames[idx], None if a.rate is None else file_loads(idx, forces, a.rate)
         why_not = "a frames file has no time: give --rate, its frames per second, when it is one recording in time order"
         load = np.linalg.norm(forces, axis=1) >= a.unloaded_below  # rows below: rests (the creep's history)
+        whole = None if a.rate is None else Recording(all_frames, (np.arange(len(all_frames)) + 1) / a.rate, idx).rests(~load)
         frames, forces = recording[load], forces[load]
         source = {"frames": str(a.frames), "forces": str(a.forces)}
     if a.reference:
@@ -363,6 +430,11 @@ def run(a) -> int:
     cal = calibrate(pipe, frames, forces, fitted_on=source)
     if creep is not None:
         cal = replace(cal, creep_per_decade=float(creep))
+    # the device's own directions: the recording through the stream of this calibration (recording_directions)
+    pipe.set_calibration(cal)
+    directions, note, line = recording_directions(pipe, (ref, noise, n_ref), whole, why_not)
+    print(line)
+    cal = replace(cal, directions=directions, directions_note=note)
     out = Path(a.out)
     cal.save(out)
     # the device's unloaded reference beside it: a first start without a saved tare starts from it

@@ -24,8 +24,12 @@ calibration (a new tare fixes only the reference and a global resistivity factor
 
 File (YAML, no pickle): format, sensor, model hash (:func:`model_hash`: the forward model the
 normalisation and ``y_model`` come from), estimator, prior, the data it was fitted on, the
-cross-validated accuracy before and after, ``A`` and ``D``. Loading refuses a file of another format,
-a damaged one, or one fitted against another model (naming both hashes).
+cross-validated accuracy before and after, ``A`` and ``D``; optionally the rubber's creep and the
+device's own directions its recording's rests taught the drift tracker (``learned_directions``,
+force/slow_states/learned.py: a stream of this calibration starts with them; a saved tare's own, newer,
+take their place). Loading refuses a file of another format, a damaged one (a directions block too:
+naming its value and the shape expected), or one fitted against another model (naming both hashes); a
+file without directions (every one written before them) loads as before.
 """
 from __future__ import annotations
 
@@ -42,6 +46,7 @@ from ...cache import input_hash
 from ...errors import ConfigError, ModelMismatchError
 from ...frames_io import atomic_write
 from ..slow_states.creep import creep_problem
+from ..slow_states.learned import CALIBRATION_KEY, Directions, directions_doc, directions_of_doc
 
 FORMAT = "cstomo_sensor device calibration 1"
 #: Prior std of each correction, relative to the channel's model sensitivity (rms over x, y, z).
@@ -152,6 +157,9 @@ class DeviceCalibration:
     cv: dict = field(default_factory=dict)
     path: str = ""
     creep_per_decade: float | None = None  # the rubber's creep (force/slow_states/creep.py); None: the stream's setting
+    # the device's own directions learned from the calibration's recording (force/slow_states/learned.py); None: none
+    directions: Directions | None = None
+    directions_note: str = ""  # how they were learned (the file's note)
 
     def corrected_set(self, forces: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The model's training set (``forces`` (n, 3), ``y`` (n, n_meas)) corrected to this device:
@@ -189,6 +197,7 @@ class DeviceCalibration:
         doc = {"format": FORMAT, "sensor": self.sensor, "model_hash": self.model_hash, "estimator": self.estimator,
                "prior_rel": self.prior_rel, "fitted_on": self.fitted_on, "cross_validation": self.cv,
                **({} if self.creep_per_decade is None else {"creep_per_decade": float(self.creep_per_decade)}),
+               **({CALIBRATION_KEY: directions_doc(self.directions, self.directions_note)} if self.directions else {}),
                "force_map": [[float(f"{v:.12g}") for v in row] for row in self.force_map],
                "correction_per_newton": [[float(f"{v:.9g}") for v in row] for row in self.correction]}
         text = "# cstomo_sensor device calibration: y_device(F) = y_model(force_map F) + correction F (README)\n"
@@ -231,9 +240,14 @@ class DeviceCalibration:
         why = creep_problem(creep) if creep is not None else ""
         if why:
             raise ConfigError.bad_value(f"{where}: creep_per_decade", creep, why)
+        # the device's own directions (force/slow_states/learned.py): optional (a file written before them, or of a
+        # device whose recording learned none, has none); a block present is checked whole
+        block = doc.get(CALIBRATION_KEY)
+        directions = None if block is None else directions_of_doc(block, n_meas, where)
+        note = str(block.get("note", "")) if isinstance(block, dict) else ""
         return cls(str(doc["sensor"]), str(doc["model_hash"]), str(doc["estimator"]), A, D,
                    float(doc.get("prior_rel", PRIOR_REL)), doc.get("fitted_on") or {}, doc.get("cross_validation") or {},
-                   str(path), None if creep is None else float(creep))
+                   str(path), None if creep is None else float(creep), directions, note)
 
 
 def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | None = None,

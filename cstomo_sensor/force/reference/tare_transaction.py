@@ -207,13 +207,11 @@ class Taring:
         with self._lock:
             return self._outcome
 
-    def saved(self, n_meas: int, tare_on_start: bool) -> tuple[tuple | None, str]:
+    def saved(self, n_meas: int) -> tuple[tuple | None, str]:
         """At a start (the history starts anew): the saved tare (what :func:`~.files.read_reference`
-        reads), else None and why not (``tare_on_start``: never the saved tare)."""
+        reads), else None and why not."""
         path = self.tare_file
         self.taken = self.refused = ""
-        if tare_on_start:
-            return None, "tare_on_start is true"
         if path is None or not path.is_file():
             return None, f"no saved tare of this device at {path}"
         try:

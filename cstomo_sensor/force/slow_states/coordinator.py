@@ -23,6 +23,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+from ...model.material import RESISTIVITY_PER_K
 from ..checks.consistency import change_noise
 from ..checks.expected import ExpectedLoad, bounded
 from ..estimators.scale_fit import JointScale, gradient_directions
@@ -37,9 +38,6 @@ log = logging.getLogger(__name__)
 #: outside what it was validated for (``cstomo bench --drift``: uniform changes up to 10 %).
 RETARE_ADVISED = 0.05
 VALIDATED = 0.10
-#: The rubber's stated resistivity coefficient, per kelvin (docs/physics.md#device-changes: 0.2..1.5 %),
-#: to express the tracked change in kelvin.
-RESISTIVITY_PER_K = 0.008
 #: The diagnostics warn when the states only a rest measures (the contacts', the gradient's) leave more
 #: than this many newtons (1-sigma) at zero load (:data:`~.drift.FOLLOW_SIGMA`).
 UNMEASURED_N = 2.0
@@ -102,9 +100,10 @@ class SlowStates:
     """The drift tracker (``config.drift_tracking``) and the creep compensator (``config.creep_per_decade``,
     0: off) of a pipeline's reference, the offset and scale they give, and the checks of a controller's
     expected load (:class:`~..checks.expected.ExpectedLoad`: a sensor of range ``max_force``, the stream ``config``'s
-    ``frame_id`` and ``expected_wrench_tolerance``)."""
+    ``frame_id`` and ``expected_wrench_tolerance``); ``directions``: the device's own directions it starts with
+    (force/slow_states/learned.py: its calibration's; None: none), until a saved tare brings its own (:meth:`reset`)."""
 
-    def __init__(self, n_meas: int, config, max_force: float = math.inf) -> None:
+    def __init__(self, n_meas: int, config, max_force: float = math.inf, directions: Directions | None = None) -> None:
         self.tracking = bool(config.drift_tracking)
         self.creep_setting = float(config.creep_per_decade)
         self.drift: DriftTracker | None = None  # made with each reference (tracking)
@@ -124,11 +123,13 @@ class SlowStates:
         self.expected = ExpectedLoad(max_force, config.expected_wrench_tolerance, config.frame_id)
         self._frame_sigma: tuple | None = None
         self.age_s: float | None = None  # the reference is a saved tare this old (reset)
-        # the device's own directions (force/slow_states/learned.py): learned from its rests, or read with a saved tare; the
-        # device's, so kept over a re-tare; learned_new: a direction learned since the stream last saved them
-        self.directions: Directions = empty(n_meas)
+        # the device's own directions (force/slow_states/learned.py): its calibration's, learned from its rests, or read
+        # with a saved tare; the device's, so kept over a re-tare; learned_new: a direction learned since the stream last
+        # saved them
+        self.directions: Directions = directions if directions is not None and len(directions) else empty(n_meas)
         self.learner: DirectionLearner | None = None
         self.learned_new = False
+        self._known_rest = False  # the next frame is known to be unloaded (known_unloaded)
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -250,20 +251,29 @@ class SlowStates:
         of the force in the joint fit of the device's scale for frames within the tolerance of its stamp."""
         return self.expected.offer(force, sigma, stamp_ns, frame_id, source)
 
+    def known_unloaded(self, known: bool) -> None:
+        """Whether the caller knows the joint is unloaded at the next frame (a calibration recording's reference
+        sensor reads no load: tools/calibrate.py, set before each frame): such a frame feeds the learner whatever the
+        rest test and the step of its force say, and never discards the samples held (:class:`~.learned.Unloaded`
+        guesses what a reference sensor knows), so a change whose phantom force keeps the rest test from counting
+        the frames, or the tracker's settling after a load moves the force at rest, is learned from every rest."""
+        self._known_rest = bool(known)
+
     def _learn(self, y: np.ndarray, rest: bool, force: np.ndarray | None) -> None:
         """A frame's change ``y`` into the learner (force/slow_states/learned.py) if it is clear: counted as rest (``rest``),
         or refused by the rest test with no load since the latest rest frame and none known (its ``force``,
-        None for an implausible frame, :class:`~.learned.Unloaded`); the learner's decomposition a step on; a
-        direction learned: one more state."""
+        None for an implausible frame, :class:`~.learned.Unloaded`), or known to be unloaded (:meth:`known_unloaded`);
+        the learner's decomposition a step on; a direction learned: one more state."""
         drift, learner = self.drift, self.learner
         noise = drift.force_noise  # the force's per-frame noise (None: no force map, rest frames only)
+        known_rest = self._known_rest  # a reference sensor says no load (known_unloaded)
         if noise is None:
-            clear = rest
+            clear = rest or known_rest
         else:
             e = self.expected.pending
             known = e is not None and float(np.dot(e[0], e[0])) > drift.rest_force ** 2
-            clear = learner.unloaded.step(force, rest, noise, drift.frame_period, known)
-            if learner.unloaded.broke:  # its samples not yet counted may hold a load's first frames
+            clear = learner.unloaded.step(force, rest, noise, drift.frame_period, known) or known_rest
+            if learner.unloaded.broke and not known_rest:  # its samples not yet counted may hold a load's first frames
                 learner.discard()
         if clear:
             learner.add(drift, y)

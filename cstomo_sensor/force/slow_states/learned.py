@@ -45,8 +45,12 @@ widens its state by that slope (at least :data:`~.drift.RESTART_GRADIENT`; :data
 the scale did not span :data:`~.drift_parts.FOLLOW_SPAN` while it was learned) times the scale's restart 1-sigma.
 The directions are saved beside the tare (:func:`write_directions`, ``<tare>.directions.csv``) each time
 one is learned, and read back at a restart (the node's start, ``cstomo estimate --reference``, ``cstomo
-replay --reference``): a restart starts with them. A tare file without one (older, or a device that
-learned none) starts with the model's only.
+replay --reference``): a restart starts with them. A calibration recording teaches them too: ``cstomo calibrate``
+runs it through the calibration's stream, the frames its reference sensor says are unloaded feeding the learner
+(tools/calibrate.py ``recording_directions``), and saves them in the calibration file (:func:`directions_doc`,
+``learned_directions``); a stream of that calibration starts with them, and a saved tare's own, newer, take their
+place. A tare file without one and a calibration without them (older, or a device that learned none) start with
+the model's only.
 docs/node.md, *The device's own directions*.
 """
 from __future__ import annotations
@@ -60,7 +64,7 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg import eigh_tridiagonal, eigvalsh_tridiagonal
 
-from ...errors import FrameError
+from ...errors import ConfigError, FrameError
 from ...frames_io import read_frames, write_frames
 from .drift_parts import FOLLOW_SPAN
 
@@ -170,6 +174,48 @@ def read_directions(reference_path: str | Path, n_meas: int = 208) -> Directions
                          "per row of learned directions")
     if not np.isfinite(rows).all():
         raise FrameError(f"{path}: a learned direction is not finite")
+    return Directions(rows, ks)
+
+
+#: The calibration file's key of the directions learned from its recording (force/reference/calibration.py).
+CALIBRATION_KEY = "learned_directions"
+
+
+def directions_doc(directions: Directions, note: str = "") -> dict:
+    """``directions`` as the calibration file's block (:data:`CALIBRATION_KEY`, docs/formats.md#calibration-file):
+    ``restart_per_scale`` (k numbers), ``rows`` (k rows of n_meas numbers) and ``note`` (how they were learned)."""
+    return {**({"note": note} if note else {}),
+            "restart_per_scale": [float(f"{k:.6g}") for k in directions.per_scale],
+            "rows": [[float(f"{v:.9g}") for v in row] for row in directions.rows]}
+
+
+def directions_of_doc(block: object, n_meas: int, where: str) -> Directions:
+    """The calibration file's block (:func:`directions_doc`) read back and checked: 1 to :data:`MAX_DIRECTIONS`
+    rows of ``n_meas`` finite numbers, not all zero, and one slope >= 0 each; else
+    :class:`~cstomo_sensor.errors.ConfigError` naming ``where``, the value and what was expected."""
+    key = f"{where}: {CALIBRATION_KEY}"
+    if not isinstance(block, dict) or "rows" not in block or "restart_per_scale" not in block:
+        found = sorted(block) if isinstance(block, dict) else type(block).__name__
+        raise ConfigError(f"{key}: {found!r}, expected a mapping with 'rows' and 'restart_per_scale' "
+                          "(written by cstomo calibrate); damaged? calibrate again, or delete the block")
+    want = f"1 to {MAX_DIRECTIONS} rows of {n_meas} finite numbers, not all zero"
+    try:
+        rows = np.array(block["rows"], dtype=float)
+    except (TypeError, ValueError):
+        rows = None
+    if rows is None or rows.ndim != 2 or not 1 <= len(rows) <= MAX_DIRECTIONS or rows.shape[1] != n_meas:
+        shape = "not a table of numbers" if rows is None else f"of shape {rows.shape}"
+        raise ConfigError(f"{key}.rows {shape}: expected {want}; damaged? calibrate again, or delete the block")
+    if not np.isfinite(rows).all() or not (np.abs(rows).max(axis=1) > 0).all():
+        bad = int(np.flatnonzero(~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0))[0])
+        raise ConfigError(f"{key}.rows: row {bad + 1} is not finite or all zero: expected {want}")
+    try:
+        ks = np.array(block["restart_per_scale"], dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        ks = None
+    if ks is None or len(ks) != len(rows) or not (np.isfinite(ks).all() and (ks >= 0).all()):
+        raise ConfigError.bad_value(f"{key}.restart_per_scale", block["restart_per_scale"],
+                                    f"{len(rows)} finite number(s) >= 0, one per row")
     return Directions(rows, ks)
 
 
@@ -332,7 +378,7 @@ class DirectionLearner:
         self.n = 0  # samples (AVG rest frames each) in the sums
         self._S1 = np.zeros(n_meas)
         self._S2 = np.zeros((n_meas, n_meas))
-        self._Ss = np.zeros(3)  # sum of s, s^2 (and unused)
+        self._Ss = np.zeros(2)  # sums of s and of s^2
         self._Sxs = np.zeros(n_meas)
         self._for = None  # the tracker the projection is for
         self._proj = None
@@ -404,7 +450,7 @@ class DirectionLearner:
             # a decision: the sums now, decomposed STEPS at a time over the next frames (tick)
             self._next = self.n * 2 if self.n < DECIDE else self.n + DECIDE
             self._run = _Lanczos(self._S2, self._S1, self.n, self._keep,
-                                 (self._Ss[:2].copy(), self._Sxs.copy(), self._m))
+                                 (self._Ss.copy(), self._Sxs.copy(), self._m))
 
     def tick(self, tracker, dt: float | None = None) -> tuple[np.ndarray, float] | None:
         """A frame (every one, clear or not; ``dt`` s after the previous): the samples held HOLD_S counted, the

@@ -12,12 +12,14 @@ import numpy as np
 from ...angles import force_angles
 from ...force.reference.calibration import DeviceCalibration
 from ...force.reference.files import reference_of
+from ...settings import default
 from .models import Builder, Setting
 from .report import write_rows
 from .scenes import NOISE_SEED, SNR_DB, SNRS, SceneSet, errors, quantile
 from .timing import run_frames, time_frames
 
-TARE_FRAMES = 50
+#: Frames of each tare: the node's default (``tare_frames``).
+TARE_FRAMES = default("tare_frames")
 
 
 def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibration: str = "") -> list[dict]:
@@ -57,10 +59,10 @@ def heldout(n: int, out: str | os.PathLike, cache_dir=None, say=print, calibrati
 HOLD_FRAMES = 10
 RATE_HZ = 100.0
 #: The cases of the study: (name, reference frames, the noise given with the reference, the stream's
-#: noise estimation). "measured" is the 50-frame tare of :func:`heldout`; "given" a one-frame
+#: noise estimation). "measured" is the tare of :func:`heldout` (TARE_FRAMES); "given" a one-frame
 #: reference with the noise measured apart (the best a one-frame reference can do); "assumed" the
 #: one-frame reference before the noise estimation; "estimated" the same with it.
-ONE_FRAME_CASES = (("tare 50, noise measured", TARE_FRAMES, True, False),
+ONE_FRAME_CASES = ((f"tare {TARE_FRAMES}, noise measured", TARE_FRAMES, True, False),
                    ("1 frame, noise given", 1, True, False),
                    ("1 frame, assumed 60 dB", 1, False, False),
                    ("1 frame, estimated", 1, False, True))

@@ -77,6 +77,7 @@ from geometry_msgs.msg import WrenchStamped
 from ...errors import CstomoError
 from ...frame_path.config import PipelineConfig
 from ...frame_path.pipeline import Pipeline
+from ...settings import default
 from ..common import NodeWithBoard, ToolParser, add_setting_arg, executable, help_text, local_ros_env, positive
 
 COLUMNS = ["rate_hz", "stress_field_every", "window_s", "wrenches", "wrench_rate_hz", "node_frame_rate_hz",
@@ -290,7 +291,7 @@ class _Sensors:
         self.params = {"sensor": a.sensor, "estimator": a.estimator, "rate_hz": float(rate), "protocol": "binary",
                        "tare_on_start": True,
                        # the tare within the load script's unloaded 2 s at a low (cold) rate too
-                       "tare_frames": int(min(50, max(5, rate // 2))), "stress_field_every": stress}
+                       "tare_frames": int(min(default("tare_frames"), max(5, rate // 2))), "stress_field_every": stress}
         board_args = ["--sensor", a.sensor, "--load-script", str(script), "--rate", str(rate), "--duration",
                       str(duration), "--protocol", "binary"]
         self.logs = []

@@ -66,9 +66,10 @@ from ...frame_path.loop import Trace, run, step
 from ...frame_path.pipeline import Pipeline
 from ...frame_path.sources import ArraySource
 from ...frame_path.stream import FrameStream
+from ...model.material import RESISTIVITY_PER_K
 from ...model.simulate import Load, Scene, add_noise
-from ...model.timeline import RESISTIVITY_PER_K, ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
-from ...settings import ESTIMATORS
+from ...model.timeline import ZERO, Profile, Tasks, Timeline, TimelineSpec, warmup_30min
+from ...settings import ESTIMATORS, default
 from .scenes import SCENES, random_forces
 
 #: The devices judged, at two corners of docs/physics.md#real-devices (module docstring).
@@ -83,7 +84,8 @@ LOADED_RATE = 50.0          # a, d, e frames/s (the drift bench's warm-up rate)
 RESTART_S, RESTART_LOADED_S = 20.0, 60.0
 RESTART_AGE_S = 7200.0      # b, c: the saved tare is 2 hours old (FrameStream.set_reference's age_s)
 SEED = 31
-EXPECTED_SIGMA = 2.0        # N: c with a controller's expected load (FrameStream.expect_load), its error drawn per frame
+#: N (the node's default): c with a controller's expected load (FrameStream.expect_load), its error drawn per frame
+EXPECTED_SIGMA = default("expected_wrench_sigma")
 ZERO_TOL_N, LOAD_TOL = 0.5, 0.10   # the "silently wrong" bounds
 WITH_RESTS = ("warm-up 2 % in 5 min, rests", "rests, no warming")   # e's scenarios
 

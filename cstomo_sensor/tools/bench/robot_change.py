@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ...model.timeline import CONTACT_PER_K, RESISTIVITY_PER_K, Timeline, full_change
+from ...model.material import CONTACT_PER_K, RESISTIVITY_PER_K
+from ...model.timeline import Timeline, full_change
 from ...settings import ESTIMATORS
 from . import robot
 from .report import write_csv
