@@ -100,7 +100,7 @@ def run_stream(pipe, frames, tare_file):
         out = s.push(v, stamp_ns=int((i + 1) * 1e7))
         if out is not None and out.result.valid:
             forces[i] = out.result.force
-        if had and s.first_tare is None and s.taring and dropped is None:
+        if had and s.first_tare is None and s.tares.pending and dropped is None:
             dropped = i
     s.close()
     Path(tare_file).unlink(missing_ok=True)

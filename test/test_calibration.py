@@ -366,11 +366,11 @@ def test_a_tare_at_start_is_checked_against_the_calibrations_reference(tmp_path,
         why = stream.init_reference(tare_on_start=True)
         assert why == "" or not reference_path_of(path).is_file(), why
         out = [stream.push(v, stamp_ns=int(1e9 * (1.0 + i / 100.0))) for i, v in enumerate(frames_in)]
-        assert not stream.taring
+        assert not stream.tares.pending
         f = np.array([o.result.force for o in out[-20:] if o is not None and o.result.valid])
         stream.close()
-        return (f.mean(axis=0) if len(f) else np.full(3, np.nan)), stream.tare_taken, stream.tare_refused, \
-            stream.reference_source
+        return (f.mean(axis=0) if len(f) else np.full(3, np.nan)), stream.tares.taken, stream.tares.refused, \
+            stream.tares.source
 
     read, taken, refused, source = start("loaded", loaded)
     assert not taken and "carries a load" in refused, (taken, refused)

@@ -64,7 +64,7 @@ def restart_p99(pipe, truth, spec, tmp_path) -> tuple[float, FrameStream]:
     stream = FrameStream(pipe, CONFIG, tare_file=tmp_path / "no_tare.csv")
     assert stream.init_reference(tare_on_start=False) == ""
     assert stream.slow.age_s == pytest.approx(AGE_S, abs=120.0)  # the calibration's reference: a restart
-    started = (len(stream.slow.directions), stream.drift.m)
+    started = (len(stream.slow.directions), stream.slow.drift.m)
     tl = Timeline(spec, snr_db=SNR_DB, seed=9, truth=truth).prepare()
     times, frames, forces, _ = tl.frames(RATE, rng=np.random.default_rng(9))
     trace = Trace(lambda: stream.slow.scale)
@@ -162,18 +162,18 @@ def test_a_stream_starts_with_its_calibrations_directions_and_a_saved_tares_own_
         # a saved tare without directions beside it: the calibration's
         s = FrameStream(pipe, StreamConfig.offline(), tare_file=tare)
         assert s.init_reference(tare_on_start=False) == ""
-        assert len(s.slow.directions) == 2 and s.drift.m == 10
+        assert len(s.slow.directions) == 2 and s.slow.drift.m == 10
         assert np.allclose(s.slow.directions.rows, dirs.rows, rtol=1e-8)
         # ... kept over a fresh tare
         s.set_reference(pipe.model_reference * 1.002, None, 20, "a fresh tare")
-        assert len(s.slow.directions) == 2 and s.drift.m == 10
+        assert len(s.slow.directions) == 2 and s.slow.drift.m == 10
         # a saved tare's own directions are newer: they take the calibration's place
         own = Directions(dirs.rows[:1] * -2.0, np.array([0.7]))
         write_directions(tare, own)
         s = FrameStream(pipe, StreamConfig.offline(), tare_file=tare)
         assert s.init_reference(tare_on_start=False) == ""
         assert len(s.slow.directions) == 1 and np.allclose(s.slow.directions.rows, own.rows, rtol=1e-8)
-        assert s.drift.m == 9
+        assert s.slow.drift.m == 9
         # an unreadable one beside the tare: said once, the calibration's used
         directions_path(tare).write_text("1,2,3\n")
         s = FrameStream(pipe, StreamConfig.offline(), tare_file=tare)
@@ -182,13 +182,13 @@ def test_a_stream_starts_with_its_calibrations_directions_and_a_saved_tares_own_
         # no saved tare: the calibration's own reference isn't there either, a tare on the first frames: the calibration's
         s = FrameStream(pipe, StreamConfig.offline(), tare_file=tmp_path / "none.csv")
         s.init_reference(tare_on_start=True)
-        assert s.taring and len(s.slow.directions) == 2
+        assert s.tares.pending and len(s.slow.directions) == 2
     finally:
         pipe.set_calibration(None)
     # the nominal model: none
     s = FrameStream(pipe, StreamConfig.offline())
     s.set_reference(pipe.model_reference * 1.001, None, 20, "a tare")
-    assert len(s.slow.directions) == 0 and s.drift.m == 8
+    assert len(s.slow.directions) == 0 and s.slow.drift.m == 8
 
 
 def test_a_calibration_file_written_before_the_directions_still_loads(small, tmp_path):
@@ -216,7 +216,7 @@ correction_per_newton:
     try:
         s = FrameStream(pipe, StreamConfig.offline())
         s.set_reference(pipe.model_reference * 1.001, None, 20, "a tare")
-        assert len(s.slow.directions) == 0 and s.drift.m == 8  # the model's directions only
+        assert len(s.slow.directions) == 0 and s.slow.drift.m == 8  # the model's directions only
     finally:
         pipe.set_calibration(None)
     # ... and one saved without directions has no block

@@ -158,7 +158,7 @@ def test_the_coefficient_is_fitted_from_a_held_load_and_carried_by_the_calibrati
     with pytest.raises(ConfigError, match="creep_per_decade.*0.7"):
         DeviceCalibration.load(tmp_path / "bad.yaml")
     stream = FrameStream(warm_model, StreamConfig(creep_per_decade=0.02))
-    assert stream.creep_per_decade == 0.02  # no calibration: the setting, and the diagnostics say so
+    assert stream.slow.creep_per_decade(stream.pipe.calibration) == 0.02  # no calibration: the setting, and the diagnostics say so
     assert "2.00% per decade, assumed" in stream.health(1e9)[2]["creep"]
     assert "not compensated" in FrameStream(warm_model, StreamConfig(creep_per_decade=0.0)).health(1e9)[2]["creep"]
     with pytest.raises(ValueError, match="decade of time"):

@@ -83,7 +83,7 @@ def test_tare_measures_the_noise_and_the_estimators_use_it(pipes, device):
     proc.start_tare(50)
     std = np.sqrt(np.mean(ref0**2)) * 10 ** (-40 / 20)
     for v in add_noise(np.repeat(ref0[None], 50, 0), ref0, 40, rng):
-        proc.process(v)
+        proc.push(v)
     assert proc.ready and pipe.noise_measured
     measured = pipe.estimator.noise * pipe.y_scale  # back to volts
     assert np.median(measured) == pytest.approx(std, rel=0.1)

@@ -84,9 +84,9 @@ def test_a_small_load_held_straight_down_is_not_taken_for_the_device(model_pipe,
     on, stream = _held(model_pipe, down, held, True)
     off, _ = _held(model_pipe, down, held, False)
     print(f"{held} N held, 1 s means from 2 s: tracking on {on.round(3)}, off {off.round(3)}; tracked change "
-          f"{stream.drift.change:+.5f}")
+          f"{stream.slow.drift.change:+.5f}")
     assert np.all(on >= 0.9 * off) and np.all(on <= 1.1 * off)
-    assert abs(stream.drift.change) < 0.0001  # 1 N straight down looks like a 0.08 % uniform change
+    assert abs(stream.slow.drift.change) < 0.0001  # 1 N straight down looks like a 0.08 % uniform change
 
 
 @pytest.mark.parametrize("held", [1.0, 2.0])
@@ -117,11 +117,11 @@ def test_a_ramp_to_10_n_then_held_30_s_reads_within_10_pct(model_pipe, down):
     rel = np.abs(-f[:, 2] - mags) / np.maximum(mags, 1e-9)
     held = t >= 6.5
     print(f"ramp: median rel err {np.nanmedian(rel[ramp]):.3f}, held: mean {-np.nanmean(f[held, 2]):.3f} N, "
-          f"last 5 s {-np.nanmean(f[t >= 31, 2]):.3f} N, tracked {stream.drift.change:+.5f}")
+          f"last 5 s {-np.nanmean(f[t >= 31, 2]):.3f} N, tracked {stream.slow.drift.change:+.5f}")
     assert np.nanmedian(rel[ramp]) < 0.10
     for s in range(7, 36):
         assert abs(-np.nanmean(f[(t >= s) & (t < s + 1), 2]) - 10.0) < 1.0, s
-    assert abs(stream.drift.change) < 0.002
+    assert abs(stream.slow.drift.change) < 0.002
 
 
 def _restart_under_load(pipe, ref, loaded, expected, rng):
@@ -155,8 +155,8 @@ def test_a_restart_under_load_finds_the_change_and_an_expected_load_helps(model_
         e = np.linalg.norm(out - force, axis=1)
         err[expected] = float(np.nanmedian(e[10:100]))
         print(f"expected {expected}: error 0.1-1 s {err[expected]:.3f} N, 1-3 s {np.nanmedian(e[100:]):.3f} N, "
-              f"tracked {stream.drift.change:+.5f}")
-        assert stream.drift.change == pytest.approx(0.02, abs=0.001)  # found under load from the first frame
+              f"tracked {stream.slow.drift.change:+.5f}")
+        assert stream.slow.drift.change == pytest.approx(0.02, abs=0.001)  # found under load from the first frame
         assert np.nanmedian(e[100:]) < 0.5  # measured 0.45 N, 0.16 N with the expected load; untracked 36 N (18 N per %)
     # measured at 0.1-1 s: 0.17 N with an expected load of 0.5 N per axis against 0.42 N without (the slopes as
     # states: the expected load measures the other states too); it must at least not hurt

@@ -39,7 +39,7 @@ def _run(pipe, bag, n, message=None):
             message(k, stamp, stream)
         o = stream.push(load[k % 50], stamp_ns=stamp)
         out[k] = o.result.force
-        scale[k], sd[k] = stream.drift.scale, math.sqrt(stream.drift.P[0, 0])
+        scale[k], sd[k] = stream.slow.drift.scale, math.sqrt(stream.slow.drift.P[0, 0])
     return out, scale, sd, stream
 
 

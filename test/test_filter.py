@@ -109,7 +109,7 @@ def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_lo
         raw = h.record("/cstomo_filter/wrench", WrenchStamped)
         filt = h.record("/cstomo_filter/wrench_filtered", WrenchStamped)
         board.start()
-        assert wait_for(lambda: h.node._driver is not None and h.node._driver.stats().reconnects >= 1, 10.0)
+        assert wait_for(lambda: h.node.driver is not None and h.node.driver.stats().reconnects >= 1, 10.0)
         n = len(raw)
         assert wait_for(lambda: len(raw) > n + 100, 10.0)
         r = h.call_tare(service="tare_forced")  # under the held load: ~/tare refuses it (issue 20)

@@ -55,7 +55,7 @@ def forces(pipe, frames, n_tare: int) -> np.ndarray:
     stream = FrameStream(pipe, StreamConfig.offline(wrench_filter_hz=0.0))
     tare = np.array([f.values for f in frames[:n_tare]])
     stream.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_tare, "tare")
-    return np.array([stream.process(f.values, f.saturated, f.contact_ok).force for f in frames[n_tare:]])
+    return np.array([stream.push(f.values, f.saturated, f.contact_ok).result.force for f in frames[n_tare:]])
 
 
 @pytest.mark.slow
@@ -96,8 +96,8 @@ def test_the_node_reads_the_firmware(ros, tmp_path, source, warm_model):
             assert wait_for(lambda: h.state() == "active", 30.0), h.state()
             wrenches = h.record("/cstomo_fw/wrench", WrenchStamped)
             assert wait_for(lambda: len(wrenches) >= 300, 20.0), len(wrenches)
-            st = h.node._driver.stats()
-            identity = h.node._driver.identity
+            st = h.node.driver.stats()
+            identity = h.node.driver.identity
         finally:
             h.close()
     assert identity.firmware == "cstomo-fw 1.0 (host)"

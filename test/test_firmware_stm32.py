@@ -125,9 +125,9 @@ def test_the_node_publishes_the_emulated_boards_frames(ros, tmp_path, warm_model
             assert wait_for(lambda: h.state() == "active", 30.0), h.state()
             wrenches = h.record("/cstomo_qemu/wrench", WrenchStamped)
             assert wait_for(lambda: len(wrenches) >= 1, 10.0)  # tared, publishing
-            n0, f0 = len(wrenches), h.node._driver.stats().frames
+            n0, f0 = len(wrenches), h.node.driver.stats().frames
             time.sleep(10.0)
-            n1, st = len(wrenches), h.node._driver.stats()
+            n1, st = len(wrenches), h.node.driver.stats()
         finally:
             h.close()
     frames, published = st.frames - f0, n1 - n0

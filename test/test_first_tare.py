@@ -104,7 +104,7 @@ def test_a_first_tare_under_a_load_is_dropped_once_the_load_goes(warm_model, dev
     assert len(said) == 1 and said[0].levelno == logging.WARNING
     msg = said[0].getMessage()
     assert "unloaded" in msg and "~/tare_forced" in msg and str(tare_file) in msg
-    assert "first tare was taken under a load" in s.tare_refused
+    assert "first tare was taken under a load" in s.tares.refused
     # the dropped tare's file was removed, then the new tare saved in its place
     assert any("loaded first tare removed" in r.getMessage() for r in caplog.records)
     from cstomo_sensor.force.reference.files import read_reference

@@ -125,7 +125,7 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
         flags = np.zeros(pipe.n_meas, bool)
         flags[[7, 8, 100]] = True
         stream.update_mask(flags, None)
-    ours = stream.drift
+    ours = stream.slow.drift
     twin = copy.deepcopy(ours)
     observe = ours.observe
     rests = []
@@ -147,7 +147,7 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
         v = (1 + 0.02 * min(k / 1000, 1)) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale
                                                    if (k // 100) % 2 else 0.0))
         stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
-    assert stream.drift is ours and 0.3 < np.mean(rests) < 0.7  # both kinds of frame
+    assert stream.slow.drift is ours and 0.3 < np.mean(rests) < 0.7  # both kinds of frame
     assert np.abs(ours.follow).max() > 0  # the loaded frames moved the other states (issue 26's follow)
     assert ours.change == pytest.approx(0.02, abs=2e-3)
 
@@ -192,7 +192,7 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
 
         def __call__(self, force, P, creep_f=None, change=0.0, misfit=1.0):
             out = self.sig(force, P, creep_f, change, misfit)
-            plain = model_sigma(self.sig, stream.drift._D, force, P, self.offset, change, misfit)
+            plain = model_sigma(self.sig, stream.slow.drift._D, force, P, self.offset, change, misfit)
             misfits.append(misfit)
             np.testing.assert_allclose(out[0], plain[0], rtol=1e-9)
             assert out[1] == pytest.approx(plain[1], rel=1e-9)
@@ -205,7 +205,7 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
     for k in range(400):
         v = (1 + 0.02 * k / 400) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale if (k // 50) % 2 else 0.0))
         stream.push(v + noise * rng.normal(size=len(ref)), flags, stamp_ns=int(1e9 * (1 + k / 100)))
-    assert len(checked) == 400 and stream.drift.rest_frames > 0 and stream.slow._sigma.est is pipe.estimator
+    assert len(checked) == 400 and stream.slow.drift.rest_frames > 0 and stream.slow._sigma.est is pipe.estimator
     assert max(misfits) > 1.0  # frames whose misfit widened their sigma were checked too
 
 

@@ -329,7 +329,7 @@ def test_a_tare_written_to_a_hung_disk_does_not_stop_the_frames(ros, tmp_path, s
         caller = threading.Thread(target=lambda: answer.append(h.call_tare()), daemon=True)
         caller.start()
         assert writing.wait(10.0)
-        counts = h.node.stream.counts
+        counts = h.node.stream.counter.counts
         n0, f0, late0 = len(wr), counts.frames, counts.late
         # the frame thread goes on while the write hangs: it receives the board's next 200 frames (2 s
         # at 100 frames/s) and each gives a wrench. Judged on the frames the node received, not on 2 s
@@ -364,12 +364,12 @@ def test_a_tare_on_a_1_frame_per_s_board_completes(ros, tmp_path, source, warm_m
     h, board = start(ros, tmp_path, Unloaded(source), rate=1.0, tare_frames=4)
     try:
         board.start()
-        assert wait_for(lambda: h.node.processor.counts.frames >= 3, 10.0)
+        assert wait_for(lambda: h.node.stream.counter.counts.frames >= 3, 10.0)
         t0 = time.monotonic()
         r = h.call_tare(timeout=15.0)
         print(f"~/tare on a 1 frame/s board ({time.monotonic() - t0:.1f} s): {r.message}")
         assert r.success, r.message
-        assert h.node.processor.frame_period == pytest.approx(1.0, rel=0.2)
+        assert h.node.stream.counter.frame_period == pytest.approx(1.0, rel=0.2)
         assert h.node.reference_source.startswith("tare saved") and h.node.pipe.reference_frames == 4
     finally:
         board.close()

@@ -115,7 +115,7 @@ def test_bad_expected_wrenches_are_refused_counted_and_said_once(ros, tmp_path, 
         stream = h.node.stream
         t0 = time.monotonic()
         time.sleep(1.0)
-        scale0, sd0 = stream.drift.scale, math.sqrt(stream.drift.P[0, 0])
+        scale0, sd0 = stream.slow.drift.scale, math.sqrt(stream.slow.drift.P[0, 0])
         phases = [("baseline", t0, time.monotonic())]
 
         def send(force, rel, frame_id="cstomo_socket"):
@@ -145,7 +145,7 @@ def test_bad_expected_wrenches_are_refused_counted_and_said_once(ros, tmp_path, 
         time.sleep(0.3)
         phases.append(("flood", ta, time.monotonic()))
         time.sleep(1.5)  # the diagnostics of the flood's period
-        scale1 = stream.drift.scale
+        scale1 = stream.slow.drift.scale
         refused, accepted = dict(stream.slow.expected.refused), stream.slow.expected.accepted
     finally:
         board.close()

@@ -14,8 +14,6 @@ import numpy as np
 import pytest
 from conftest import BAG_RATE, PIPE, BagSource, diag, diag_records, start, wait_for
 
-from cstomo_sensor.errors import NoUsableChannelsError
-
 rclpy = pytest.importorskip("rclpy")
 
 UNLOADED = slice(0, 20)   # bag frames of the unloaded joint (test/data/make_bag.py)
@@ -69,18 +67,19 @@ def test_a_frame_that_excludes_every_measurement_is_dropped_and_the_masks_stay_i
     def in_step():
         np.testing.assert_array_equal(proc.channels.mask, pipe.bad_channels)
 
-    good = proc.process(v, no_sat, ok)
+    good = proc.push(v, no_sat, ok).result
     one_dead = ok.copy()
     one_dead[3] = False
-    assert np.isfinite(proc.process(v, no_sat, one_dead).force).all()
+    assert np.isfinite(proc.push(v, no_sat, one_dead).result.force).all()
     in_step()
     assert pipe.bad_channels.any()
-    for sat, contact in ((no_sat, ~ok), (~no_sat, ok), (~no_sat, ~ok)):
-        with pytest.raises(NoUsableChannelsError, match="every measurement excluded"):
-            proc.process(v, sat, contact)
+    for k, (sat, contact) in enumerate(((no_sat, ~ok), (~no_sat, ok), (~no_sat, ~ok))):
+        assert proc.push(v, sat, contact) is None  # dropped and counted, never raised
+        counts = proc.counter.counts
+        assert counts.all_excluded == k + 1 and "every measurement excluded" in counts.reject_reason, counts.reject_reason
         in_step()
-        assert proc.excluded.dead_electrodes == (3,)  # the last frame that went through
-    again = proc.process(v, no_sat, ok)  # a later good frame: processed normally
+        assert proc.channels.excluded.dead_electrodes == (3,)  # the last frame that went through
+    again = proc.push(v, no_sat, ok).result  # a later good frame: processed normally
     in_step()
     assert not pipe.bad_channels.any()
     np.testing.assert_allclose(again.force, good.force, rtol=1e-5)
@@ -97,29 +96,29 @@ def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     for n in (2, 5, 20):
         proc.start_tare(n)
         for v in source.frames[:n]:
-            assert proc.process(v) is None
+            assert proc.push(v) is None
         assert ended[-1].ok and ended[-1].spread < TARE_MAX_SPREAD / 3, (n, ended[-1])
     ref = pipe.reference.copy()
     proc.start_tare(10)
     for v in source.frames[15:25]:  # 5 unloaded, then 5 under 20 N
-        proc.process(v)
+        proc.push(v)
     assert not ended[-1].ok and "not steady" in ended[-1].reason and ended[-1].spread > 3 * TARE_MAX_SPREAD
-    assert not proc.taring
+    assert not proc.tares.pending
     np.testing.assert_array_equal(pipe.reference, ref)
     proc.start_tare(10)
-    proc.process(source.frames[0])
-    assert proc.cancel_tare() == 1 and not proc.taring
+    proc.push(source.frames[0])
+    assert proc.cancel_tare() == 1 and not proc.tares.pending
     np.testing.assert_array_equal(pipe.reference, ref)
 
     pipe.reference = None  # no reference yet: a tare stays pending until one is accepted
     proc.start_tare(10)
     for v in source.frames[15:25]:
-        proc.process(v)
-    assert proc.taring and pipe.reference is None
-    assert proc.cancel_tare() == 0 and proc.taring
+        proc.push(v)
+    assert proc.tares.pending and pipe.reference is None
+    assert proc.cancel_tare() == 0 and proc.tares.pending
     for v in source.frames[:10]:
-        proc.process(v)
-    assert ended[-1].ok and not proc.taring and pipe.reference is not None
+        proc.push(v)
+    assert ended[-1].ok and not proc.tares.pending and pipe.reference is not None
 
 
 def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, source, tmp_path, monkeypatch):
@@ -138,22 +137,22 @@ def test_a_tare_that_cannot_be_saved_is_used_and_the_diagnostics_say_so(pipe, so
     monkeypatch.setattr(stream_module, "write_reference", full)
     proc.start_tare(5)
     for v in source.frames[:5]:
-        proc.process(v)
+        proc.push(v)
     assert proc.ready
     assert wait_for(lambda: ended, 5.0)
     assert ended[-1].ok and "not saved to" in ended[-1].note and "No space left" in ended[-1].note, ended[-1]
     level, msgs, kv = proc.health(time.monotonic())
     assert level >= 1 and ended[-1].note in msgs and kv["tare_unsaved"] == ended[-1].note, (level, msgs)
-    assert proc.reference_source.startswith("tare, not saved to") and not (tmp_path / "tare.csv").exists()
+    assert proc.tares.source.startswith("tare, not saved to") and not (tmp_path / "tare.csv").exists()
     monkeypatch.setattr(stream_module, "write_reference", write)
     proc.start_tare(5)
     for v in source.frames[:5]:
-        proc.process(v)
+        proc.push(v)
     assert wait_for(lambda: len(ended) == 2, 5.0)
     assert ended[-1].ok and ended[-1].note == "" and (tmp_path / "tare.csv").is_file()
     level, msgs, kv = proc.health(time.monotonic())
     assert kv["tare_unsaved"] == "" and not any("not saved" in m for m in msgs), msgs
-    assert proc.reference_source.startswith("tare saved to")
+    assert proc.tares.source.startswith("tare saved to")
 
 
 def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_path, monkeypatch):
@@ -172,7 +171,7 @@ def test_closing_the_stream_waits_for_the_tare_being_written(pipe, source, tmp_p
     proc = FrameStream(pipe, tare_file=tmp_path / "tare.csv")
     proc.start_tare(5)
     for v in source.frames[:5]:
-        proc.process(v)
+        proc.push(v)
     assert proc.ready and not (tmp_path / "tare.csv").exists()
     assert proc.close(timeout=0.2) == [str(tmp_path / "tare.csv")]  # a hung disk: said, not waited for ever
     threading.Timer(0.3, release.set).start()
@@ -203,7 +202,7 @@ def test_frames_without_usable_channels_are_counted_and_the_node_keeps_publishin
         assert wait_for(lambda: sum(t > t0 + 3.0 for t, _ in wr) > 50, 15.0), \
             (len(wr), [diag(m)[1] for _, m in dg[-3:]])
         assert wait_for(lambda: any(t > t0 + 4.0 for t, _ in dg), 5.0)
-        np.testing.assert_array_equal(h.node.processor.channels.mask, h.node.pipe.bad_channels)
+        np.testing.assert_array_equal(h.node.stream.channels.mask, h.node.pipe.bad_channels)
         assert not h.node.pipe.bad_channels.any()
         assert h.node._thread.is_alive()
         # the status returns to OK (a loaded host may overflow the frame queue for a moment: those
@@ -251,12 +250,12 @@ def test_tare_during_an_outage_is_cancelled_and_nothing_changes_when_the_board_r
         board.start()
         assert wait_for(lambda: h.node.reference_source.startswith("tare saved"), 10.0), h.node.reference_source
         saved, ref = tare_file.read_bytes(), h.node.pipe.reference.copy()
-        assert wait_for(lambda: not h.node._driver.stats().connected, 5.0)
+        assert wait_for(lambda: not h.node.driver.stats().connected, 5.0)
         r = h.call_tare()
         assert not r.success
         assert "tare cancelled: 0 of 5 frames" in r.message and "board disconnected" in r.message, r.message
         assert "unchanged" in r.message and "call ~/tare again" in r.message
-        assert not h.node.processor.taring
+        assert not h.node.stream.tares.pending
         n_down = len(wr)
         assert wait_for(lambda: len(wr) > n_down + 50, 15.0), len(wr)
         np.testing.assert_array_equal(h.node.pipe.reference, ref)
@@ -282,7 +281,7 @@ def test_tare_on_a_moving_joint_is_refused_and_changes_nothing(ros, tmp_path, so
         assert "tare refused: frames not steady" in r.message and f"limit {TARE_MAX_SPREAD:.2%}" in r.message
         assert "keep the sensor still and unloaded" in r.message and "call ~/tare again" in r.message, r.message
         assert h.node.pipe.reference is None and h.node.reference_source == "tare pending"
-        assert h.node.processor.taring  # without a reference the tare at start stays pending
+        assert h.node.stream.tares.pending  # without a reference the tare at start stays pending
     finally:
         board.close()
         h.close()

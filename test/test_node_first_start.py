@@ -83,7 +83,7 @@ def test_a_refused_tare_at_start_is_logged_and_taken_again(ros, tmp_path, source
         board.start()
         assert wait_for(lambda: h.node.tare_refused != "", 10.0)
         assert wait_for(lambda: any("last tare refused" in diag(m)[1] for _, m in dg), 5.0)
-        assert not wr and h.node.pipe.reference is None and h.node.processor.taring
+        assert not wr and h.node.pipe.reference is None and h.node.stream.tares.pending
     finally:
         board.close()
         h.close()

@@ -51,10 +51,10 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
         assert wait_for(lambda: len(wr) > 50, 30.0), len(wr)
         step["at"] = t_step = time.monotonic() + 0.2
         assert wait_for(lambda: time.monotonic() > t_step, 5.0)
-        frames_at_step = h.node.stream.counts.frames
+        frames_at_step = h.node.stream.counter.counts.frames
         assert wait_for(lambda: time.monotonic() > t_step + 2.5, 5.0)
-        late = h.node.stream.counts.late
-        frames = h.node.stream.counts.frames - frames_at_step
+        late = h.node.stream.counter.counts.late
+        frames = h.node.stream.counter.counts.frames - frames_at_step
     finally:
         stop.set()
         clock.join()
@@ -189,7 +189,7 @@ def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path
         dg = diag_records(h)
         board.start()
         time.sleep(6.5)
-        st = h.node._driver.stats()
+        st = h.node.driver.stats()
     finally:
         board.close()
         h.close()

@@ -110,7 +110,7 @@ def test_one_frame_reference_at_40_db_flags_socket_loads_only_before_the_estimat
     stream.set_reference(ref1, None, 1, "one frame")
     assert "estimated from" in stream.estimate_noise(frames, "frames.csv")
     assert not any(r.foreign_load for r in _run(stream, frames))
-    assert stream.noise is None  # the file's estimate stays
+    assert stream.noise_state.estimate is None  # the file's estimate stays
 
 
 @pytest.mark.slow
@@ -137,7 +137,7 @@ def test_a_measured_noise_stays(device, warm_model):
         stream.set_reference(tare.mean(0), tare.std(0, ddof=1), 20, "tare")
         out[estimation] = np.array([r.force for r in _run(stream, frames)])
         assert stream.noise_text == "measured by the tare"
-        assert stream.noise is None or stream.noise.pairs == 0
+        assert stream.noise_state.estimate is None or stream.noise_state.estimate.pairs == 0
         assert stream.estimate_noise(frames, "frames.csv") == "measured by the tare"
     np.testing.assert_allclose(out[False], out[True], rtol=0, atol=1e-9 * np.abs(out[False]).max())
 

@@ -97,7 +97,7 @@ def test_the_node_restart_is_what_replay_and_estimate_reference_age_read(tmp_pat
                         and h.probe.count_publishers("/cstomo_restart/wrench_sigma"), 30.0)
         age = h.node.stream.slow.age_s
         assert age == pytest.approx(AGE_H * 3600, abs=60)  # the node's restart: its saved tare, 8 h old
-        assert len(h.node.stream.slow.directions) == 1 and h.node.stream.drift.m == 9  # ... and its learned direction
+        assert len(h.node.stream.slow.directions) == 1 and h.node.stream.slow.drift.m == 9  # ... and its learned direction
         # the frames stamped as measured after the restart, the first at the moment the node took the age at
         t0 = int(round((saved + age) * 1e9))
         inputs = [(t0 + int(dt), raw_voltages_msg(f, t0 + int(dt))) for dt, f in zip(bag_t, frames)]

@@ -102,13 +102,13 @@ def test_a_restart_goes_through_the_nodes_start_on_a_tare_file_of_its_age(device
     sc, truth, pipes, tare = device_c
     pipe, config = pipes["model"], StreamConfig.offline()
     node = robot.restarted_stream(pipe, config, tare, rc.AGE_S)
-    assert node.reference_source.startswith("saved tare ")
+    assert node.tares.source.startswith("saved tare ")
     aged, fresh = FrameStream(pipe, config), FrameStream(pipe, config)
     aged.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "tare", age_s=rc.AGE_S)
     fresh.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), len(tare), "tare")
     assert np.allclose(node.pipe.reference, aged.pipe.reference, rtol=1e-7)  # the file holds the tare
-    assert np.allclose(node.drift.P, aged.drift.P, rtol=1e-3)  # its age widened the states as 8 hours do
-    assert not np.allclose(node.drift.P, fresh.drift.P, rtol=0.1)  # ... and not as a tare just taken
+    assert np.allclose(node.slow.drift.P, aged.slow.drift.P, rtol=1e-3)  # its age widened the states as 8 hours do
+    assert not np.allclose(node.slow.drift.P, fresh.slow.drift.P, rtol=0.1)  # ... and not as a tare just taken
 
 
 @pytest.mark.slow

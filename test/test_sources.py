@@ -230,22 +230,22 @@ def test_a_topic_nobody_subscribes_to_is_not_built(ros, tmp_path, source, warm_m
         board.start()
         node = h.node
         assert wait_for(lambda: node.stream is not None and node.stream.ready, 20.0)
-        n0 = node.stream.counts.frames
-        assert wait_for(lambda: node.stream.counts.frames > n0 + 20)
-        assert node._published == {} and not node.stream.fields_wanted
+        n0 = node.stream.counter.counts.frames
+        assert wait_for(lambda: node.stream.counter.counts.frames > n0 + 20)
+        assert node.published == {} and not node.stream.fields_wanted
         wrenches = h.record("/cstomo_sensor/wrench", WrenchStamped)
         assert wait_for(lambda: len(wrenches) >= 20)
-        assert set(node._published) == {"wrench"}, node._published
+        assert set(node.published) == {"wrench"}, node.published
         # no field computed yet: the residual is empty (it read 'nan', which looked like a fault)
         assert {v.key: v.value for v in node.diagnostics().values}["residual"] == ""
         clouds = h.record("/cstomo_sensor/stress_field", PointCloud2)
         assert wait_for(lambda: len(clouds) >= 3)
-        assert node.stream.fields_wanted and set(node._published) == {"wrench", "stress_field"}
+        assert node.stream.fields_wanted and set(node.published) == {"wrench", "stress_field"}
         kv = {v.key: v.value for v in node.diagnostics().values}
         assert "scene_stress_field" not in kv["messages_published"] and "wrench=" in kv["messages_published"]
         assert 0 < float(kv["residual"]) < 1, kv["residual"]  # the image's relative residual, now computed
         assert float(kv["processing_time_mean_ms"]) > 0, kv  # its neighbour in the status, kept
-        assert node._published["wrench"] >= 4 * node._published["stress_field"]  # every 5th frame
+        assert node.published["wrench"] >= 4 * node.published["stress_field"]  # every 5th frame
     finally:
         h.close()
         board.close()

@@ -128,10 +128,10 @@ def test_a_dropped_frame_never_raises_and_repeats_are_logged_once(warm_model, ca
         for _ in range(20):
             assert stream.push(np.ones(207)) is None
         assert stream.push(np.array(["x"] * 208, dtype=object)) is None  # not numbers: an unexpected error
-    assert stream.counts.rejected == 21 and stream.counts.errors <= 1
+    assert stream.counter.counts.rejected == 21 and stream.counter.counts.errors <= 1
     assert len([r for r in caplog.records if "dropped frame" in r.getMessage()]) == 1
     out = stream.push(warm_model.model_reference * 1.0001)
-    assert out is not None and out.result.valid and stream.counts.reject_reason == ""
+    assert out is not None and out.result.valid and stream.counter.counts.reject_reason == ""
 
 
 def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):

@@ -108,7 +108,7 @@ def test_a_tare_under_a_held_5_n_load_is_refused_and_a_forced_one_says_what_it_o
         assert "forced tare, overrode: it carries a load of" in r.message, r.message
         assert tare_file.read_bytes() != saved
         assert not np.array_equal(h.node.pipe.reference, ref)
-        assert "forced" in h.node.processor.tare_taken
+        assert "forced" in h.node.stream.tares.taken
     finally:
         board.close()
         h.close()
@@ -154,7 +154,7 @@ def test_a_tare_pending_across_an_outage_is_refused_when_the_board_returns_loade
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         board.start()
         saved, ref = _tared(h, tare_file)
-        assert wait_for(lambda: not h.node._driver.stats().connected, 10.0)
+        assert wait_for(lambda: not h.node.driver.stats().connected, 10.0)
         t_call = time.monotonic()
         r = h.call_tare()
         waited = time.monotonic() - t_call
@@ -162,7 +162,7 @@ def test_a_tare_pending_across_an_outage_is_refused_when_the_board_returns_loade
         assert not r.success, r.message
         assert "the board reconnected during the tare" in r.message and "unchanged" in r.message, r.message
         assert waited < 0.3 + 50 * 0.1 + 2.0 - 1.0  # ended by the reconnect, well before its deadline
-        assert not h.node.processor.taring
+        assert not h.node.stream.tares.pending
         np.testing.assert_array_equal(h.node.pipe.reference, ref)
         n = len(wr)
         assert wait_for(lambda: len(wr) > n + 30, 10.0)
@@ -209,7 +209,7 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
     stream = FrameStream(pipe, on_tare=ended.append)
     stream.start_tare()
     for v in _frames(ref, ref, 50, rng):
-        stream.process(v)
+        stream.push(v)
     assert ended[-1].ok and math.isnan(ended[-1].check.load)  # the first tare: no load check
     first = pipe.reference.copy()
     raw = np.linalg.norm(pipe.estimator.estimate((warm - first) / y_scale(pipe, first)))
@@ -219,7 +219,7 @@ def test_a_tare_after_a_uniform_1_percent_resistivity_change_is_accepted(pipe, d
         pipe.set_reference(first, ended[0].noise, 50)
         stream.start_tare()
         for f in _frames(v, ref, 50, rng):
-            stream.process(f)
+            stream.push(f)
         return ended[-1]
 
     out = tare_on(warm)
@@ -244,18 +244,18 @@ def test_reconnect_ends_a_pending_tare_and_a_tare_at_start_starts_over(pipe, dev
     stream = FrameStream(pipe, on_tare=ended.append)
     stream.start_tare(10)
     for v in _frames(ref, ref, 4, rng):
-        stream.process(v)
+        stream.push(v)
     stream.reconnected()  # no reference yet: the tare at start starts over on the returning frames
     assert ended[-1].reason == TARE_RECONNECTED and ended[-1].frames == 4
-    assert stream.taring and stream.tares.left == 10 and pipe.reference is None
+    assert stream.tares.pending and stream.tares.left == 10 and pipe.reference is None
     for v in _frames(ref, ref, 10, rng):
-        stream.process(v)
-    assert ended[-1].ok and not stream.taring
+        stream.push(v)
+    assert ended[-1].ok and not stream.tares.pending
     first = pipe.reference.copy()
     stream.start_tare(10)
-    stream.process(ref)
+    stream.push(ref)
     stream.reconnected()
-    assert not stream.taring and ended[-1].reason == TARE_RECONNECTED
+    assert not stream.tares.pending and ended[-1].reason == TARE_RECONNECTED
     np.testing.assert_array_equal(pipe.reference, first)
     stream.reconnected()  # nothing pending: nothing ends
     assert len(ended) == 3
@@ -275,11 +275,11 @@ def test_the_controllers_hint_re_zeros_and_is_refused_under_load(ros, tmp_path, 
         hint = h.probe.create_publisher(Empty, "/cstomo_sensor/joint_free", 10)
         board.start()
         saved, ref = _tared(h, tare_file)
-        first = h.node.processor.tare_taken
+        first = h.node.stream.tares.taken
         assert wait_for(lambda: hint.get_subscription_count() == 1, 5.0)
         time.sleep(1.1)  # tare_taken has a resolution of 0.1 s after start
         hint.publish(Empty())
-        assert wait_for(lambda: h.node.processor.tare_taken != first and tare_file.read_bytes() != saved, 10.0)
+        assert wait_for(lambda: h.node.stream.tares.taken != first and tare_file.read_bytes() != saved, 10.0)
         assert not np.array_equal(h.node.pipe.reference, ref)
         saved, ref = tare_file.read_bytes(), h.node.pipe.reference.copy()
         joint.load = lambda t, t0=joint.last_t: 0.0 if t < t0 + 0.3 else 5.0

@@ -68,7 +68,7 @@ def test_a_tare_file_whose_write_blocks_does_not_stop_the_frames(pipe, unloaded,
     assert not feeder.is_alive(), "the frames stopped while the tare file's write blocked"
     assert outs[:10] == [None] * 10 and all(o is not None and o.result.valid for o in outs[10:])
     assert fifo.exists() and not ended  # the writer still waits in open(): the tare not reported yet
-    assert stream.reference_source == f"tare, being saved to {tare_file}"
+    assert stream.tares.source == f"tare, being saved to {tare_file}"
     assert stream.close(timeout=0.2) == [str(tare_file)]  # a hung disk: said, not waited for ever
     drained = []
     reader = threading.Thread(target=lambda: drained.append(fifo.read_bytes()), daemon=True)
@@ -106,9 +106,9 @@ def test_a_50_frame_tare_on_a_5_frame_per_s_board_completes(pipe, unloaded):
     feeder = threading.Thread(target=board, daemon=True)
     feeder.start()
     try:
-        assert wait_for(lambda: stream.counts.frames >= 3, 10.0)
+        assert wait_for(lambda: stream.counter.counts.frames >= 3, 10.0)
         deadline = stream.tare_deadline()
-        assert stream.frame_period == pytest.approx(0.2, rel=0.1) and deadline > 50 * 0.2 * 1.2, deadline
+        assert stream.counter.frame_period == pytest.approx(0.2, rel=0.1) and deadline > 50 * 0.2 * 1.2, deadline
         t0 = time.monotonic()
         outcome, taken = stream.tare(deadline)
         took = time.monotonic() - t0

@@ -14,8 +14,12 @@ import threading
 import time
 import traceback
 from collections import deque
+from typing import TYPE_CHECKING
 
 from ..errors import FrameError, NoUsableChannelsError
+
+if TYPE_CHECKING:
+    from .pipeline import Pipeline
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +186,7 @@ class Health:
 
     # --- the diagnostics -------------------------------------------------------------------------
 
-    def status(self, now: float, board_losses: dict[str, int] | None, pipe, excluded: tuple[list[str], dict],
+    def status(self, now: float, board_losses: dict[str, int] | None, pipe: Pipeline, excluded: tuple[list[str], dict],
                sigma_source: str, tare: tuple, slow: tuple, noise_text: str) -> tuple[int, list[str], dict]:
         """The level, problems and figures of the period so far (nothing changes). ``board_losses``: the
         board driver's running totals of lost frames by kind (corrupt, gaps, duplicates, reordered,

@@ -29,7 +29,7 @@ def connect(source: FrameSource, stream) -> None:
     (:meth:`~cstomo_sensor.frame_path.stream.FrameStream.reconnected`), an input that is no frame is counted
     as corrupt."""
     source.on_reconnect = stream.reconnected
-    source.on_corrupt = lambda err: stream.counter.drop(err, corrupt=True)
+    source.on_corrupt = stream.corrupt
 
 
 def step(stream, sinks: Sequence[Callable], frame: StampedFrame, process: bool = True):
@@ -89,7 +89,7 @@ class Results:
         if out is not None:
             self.results.append(out.result)
         elif self.every_frame:
-            self.results.append(FrameResult.implausible(self.stream.counts.reject_reason))
+            self.results.append(FrameResult.implausible(self.stream.counter.counts.reject_reason))
         else:
             self._seen += 1
             return

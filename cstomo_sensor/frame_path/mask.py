@@ -25,13 +25,16 @@ class Excluded:
 
 
 class ChannelMask:
-    """The mask (``True``: excluded) of a sensor of ``geometry``, starting as ``bad`` (n_meas,)."""
+    """The mask (``True``: excluded) of a sensor of ``geometry``, starting as ``bad`` (n_meas,; None:
+    nothing excluded, e.g. a sink's own mask for :meth:`flagged`)."""
 
-    def __init__(self, geometry, bad: np.ndarray) -> None:
+    def __init__(self, geometry, bad: np.ndarray | None = None) -> None:
         n_el = len(geometry.electrodes)
         pattern = MeasurementPattern(n_el, geometry.layers)
         self._electrode_rows = np.stack([pattern.electrode_rows(e) for e in range(n_el)])
         self._all_good = np.ones(n_el, bool)
+        if bad is None:
+            bad = np.zeros(self._electrode_rows.shape[1], bool)
         self.use(np.array(bad, bool), Excluded(channels=int(np.count_nonzero(bad))))
 
     def of(self, saturated: np.ndarray | None, contact_ok: np.ndarray | None):

@@ -5,7 +5,9 @@ A stage of the frame stream (frame_path/stream.py). A one-frame reference measur
 estimators then assume :data:`~.pipeline.NOISE_ASSUMED` until the running estimate
 (:class:`~..force.reference.noise_estimate.NoiseEstimate`, ``noise_estimation``) of consecutive frames gives a usable level,
 or a whole frames file does first (:meth:`NoiseState.from_frames`). The stage returns the level to
-use; the stream hands it to the pipeline (:meth:`NoiseState.use`) and the drift tracker.
+use; the stream hands it to the pipeline (``Pipeline.set_noise``, named by :meth:`NoiseState.named`) and
+the drift tracker, and tells the stage whether it was taken (:meth:`NoiseState.took`, :meth:`NoiseState.refused`).
+It never reads nor writes the pipeline: what it needs of it comes as values.
 """
 from __future__ import annotations
 
@@ -46,12 +48,13 @@ class NoiseState:
         if self.estimate is not None:
             self.estimate.restart()
 
-    def text(self, pipe) -> str:
-        """What noise ``pipe``'s estimators use, in words: measured by the tare, estimated from N frame
-        pairs (with its SNR), or assumed (and why no estimate is in use yet)."""
-        if pipe.noise_measured or self.level is not None or self.estimate is None:
-            return pipe.noise_source
-        return f"{pipe.noise_source} ({self._note or f'estimating: {self.estimate.count} of {MIN_PAIRS} frame pairs'})"
+    def text(self, noise_measured: bool, noise_source: str) -> str:
+        """What noise the estimators use, in words (the pipeline's ``noise_source``; ``noise_measured``: by the
+        tare): measured by the tare, estimated from N frame pairs (with its SNR), or assumed (and why no
+        estimate is in use yet)."""
+        if noise_measured or self.level is not None or self.estimate is None:
+            return noise_source
+        return f"{noise_source} ({self._note or f'estimating: {self.estimate.count} of {MIN_PAIRS} frame pairs'})"
 
     def _usable(self, level: float, pairs: int, agree: float, where: str = "") -> bool:
         """Whether an estimate of ``level`` volts from ``pairs`` pairs, ``agree`` of them agreeing, may
@@ -95,27 +98,31 @@ class NoiseState:
             return level, f"estimated from {est.count} frame pairs"
         return None
 
-    def kept(self, pipe) -> tuple[float, str] | None:
-        """After a new reference of ``pipe`` without a measured noise: the (level, source) in use, to
-        use again (the board's noise is constant over a session; docs/physics.md#real-devices)."""
-        if pipe.noise_measured or self.level is None:
+    def kept(self, noise_measured: bool) -> tuple[float, str] | None:
+        """After a new reference (``noise_measured``: its noise measured by the tare): the (level, source) in
+        use, to use again unless measured (the board's noise is constant over a session; docs/physics.md#real-devices)."""
+        if noise_measured or self.level is None:
             return None
         found, self.level = (self.level, self._from), None
         return found
 
-    def use(self, pipe, level: float, source: str) -> bool:
-        """The estimated noise ``level`` (volts, every channel) into ``pipe``'s estimators; ``source``
-        says from what. A level outside a board's range against the reference
-        (device.NOISE_DB_RANGE) is not used (False): the noise in use stays."""
-        try:
-            pipe.set_noise(np.full(pipe.n_meas, level), f"{source} ({snr_db(level, pipe.reference):.1f} dB)")
-        except ConfigError as err:
-            note = f"estimate not used: {err}"
-            if note != self._note:  # once per reason, not every evaluation
-                log.warning("noise %s", note)
-            self._note = note
-            self._next = self.estimate.pairs + UPDATE_EVERY if self.estimate is not None else 0
-            return False
+    @staticmethod
+    def named(level: float, source: str, reference: np.ndarray) -> str:
+        """The pipeline's ``noise_source`` of an estimated ``level`` (volts) from ``source``: with its SNR
+        against ``reference``."""
+        return f"{source} ({snr_db(level, reference):.1f} dB)"
+
+    def refused(self, err: ConfigError) -> None:
+        """The pipeline refused the level offered (outside a board's range against the reference,
+        device.NOISE_DB_RANGE): the noise in use stays; said once per reason, evaluated again later."""
+        note = f"estimate not used: {err}"
+        if note != self._note:  # once per reason, not every evaluation
+            log.warning("noise %s", note)
+        self._note = note
+        self._next = self.estimate.pairs + UPDATE_EVERY if self.estimate is not None else 0
+
+    def took(self, level: float, source: str, in_use: str) -> None:
+        """The pipeline took the estimated ``level`` (volts, every channel) from ``source``; ``in_use``: its
+        ``noise_source`` now."""
         self.level, self._from, self._note = level, source, ""
-        log.info("noise %s: the estimators use it instead of the %s", pipe.noise_source, NOISE_ASSUMED)
-        return True
+        log.info("noise %s: the estimators use it instead of the %s", in_use, NOISE_ASSUMED)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..angles import force_angles3
 from ..errors import ConfigError, CstomoError
 from ..force.reference.files import read_reference, tare_age
 from ..force.reference.first_tare import FirstTareWatch
@@ -65,7 +66,7 @@ class FrameStream:
         self.noise_state = NoiseState(pipe.n_meas, config.noise_estimation)
         self.counter = Health(config.max_sigma_n)
         self.processed = 0  # frames processed (their count picks the stress fields')
-        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them)
+        self.fields_wanted = True  # False: the fields are not computed (nobody subscribes to them: want_fields)
         self.first_tare: FirstTareWatch | None = None  # the frames after a first tare (force/reference/first_tare.py)
 
     def with_config(self, **changes) -> None:
@@ -74,21 +75,20 @@ class FrameStream:
         if self.filter is not None:
             self.filter.max_gap = self.config.stale_timeout
 
-    # what the stages hold, where the callers read it
-    counts = property(lambda self: self.counter.counts)
-    frame_period = property(lambda self: self.counter.frame_period)
-    implausible = property(lambda self: self.counter.counts.implausible)
-    excluded = property(lambda self: self.channels.excluded)
-    drift = property(lambda self: self.slow.drift)
-    creep_per_decade = property(lambda self: self.slow.creep_per_decade(self.pipe.calibration))
-    noise = property(lambda self: self.noise_state.estimate)
-    noise_text = property(lambda self: self.noise_state.text(self.pipe))
-    tare_file = property(lambda self: self.tares.tare_file)
-    tare_taken = property(lambda self: self.tares.taken)
-    tare_refused = property(lambda self: self.tares.refused)
-    reference_source = property(lambda self: self.tares.source)
-    taring = property(lambda self: self.tares.pending)
-    ready = property(lambda self: not self.taring and self.pipe.reference is not None)  # frames give results
+    def want_fields(self, wanted: bool) -> None:
+        """Whether the stress fields are wanted (a sink's subscribers, :class:`~cstomo_sensor.ros.sinks.Publishers`):
+        False, they are not computed (``stress_field_every`` still counts the frames)."""
+        self.fields_wanted = bool(wanted)
+
+    @property
+    def ready(self) -> bool:
+        """Frames give results: no tare pending and a reference in use."""
+        return not self.tares.pending and self.pipe.reference is not None
+
+    @property
+    def noise_text(self) -> str:
+        """What noise the estimators use, in words (frame_path/noise_in_use.py)."""
+        return self.noise_state.text(self.pipe.noise_measured, self.pipe.noise_source)
 
     # --- reference and tare ----------------------------------------------------------------------
 
@@ -112,7 +112,7 @@ class FrameStream:
                        directions: Directions | None = None):
         report = self.pipe.set_reference(ref, noise, n_frames)
         self.first_tare = None  # a first tare's watch is set by _end_tare (force/reference/first_tare.py)
-        self._use_noise(self.noise_state.kept(self.pipe))  # an estimated noise stays in use
+        self._use_noise(self.noise_state.kept(self.pipe.noise_measured))  # an estimated noise stays in use
         self.slow.reset(self.pipe, age_s, directions)
         return report
 
@@ -122,7 +122,7 @@ class FrameStream:
         under a load is refused): never a force against the model's own reference (a phantom force of
         newtons at zero load). Returns '' when a saved reference is in use, else why a tare is pending."""
         saved, why = self.tares.saved(self.pipe.n_meas)
-        path = self.tare_file
+        path = self.tares.tare_file
         if saved is None:
             # no saved tare of this device: its calibration's own unloaded reference, if it has one (a
             # first start under a load is then read as a restart, not taken as the zero)
@@ -137,9 +137,9 @@ class FrameStream:
             try:
                 # the device moved since the tare was saved: its age (force/reference/files.py tare_age) widens the slow states;
                 # the device's own directions saved beside a saved tare (force/slow_states/learned.py) are tracked from the first frame
-                kind = "saved tare" if path == self.tare_file else "the calibration's unloaded reference"
+                kind = "saved tare" if path == self.tares.tare_file else "the calibration's unloaded reference"
                 self.set_reference(*saved, source=f"{kind} {path}", age_s=tare_age(path, time.time()) or 0.0,
-                                   directions=self._saved_directions() if path == self.tare_file else None)
+                                   directions=self._saved_directions() if path == self.tares.tare_file else None)
                 if tare_on_start:  # a tare at start is checked against it: not taken under a load
                     self.start_tare()
                 return ""
@@ -153,7 +153,7 @@ class FrameStream:
         """The learned directions saved beside the tare file (None: none, or unreadable: said once; the stream keeps
         those it has, its calibration's or none: the model's only)."""
         try:
-            return read_directions(self.tare_file, self.pipe.n_meas)
+            return read_directions(self.tares.tare_file, self.pipe.n_meas)
         except (CstomoError, OSError) as err:
             n = len(self.slow.directions)
             log.warning("the device's learned directions not used (%s): %s", err,
@@ -164,7 +164,7 @@ class FrameStream:
         """A direction learned (force/slow_states/learned.py): the device's directions saved beside its tare file, by a
         thread of its own (frames keep flowing while a slow disk writes it)."""
         self.slow.learned_new = False
-        path, directions = self.tare_file, self.slow.directions
+        path, directions = self.tares.tare_file, self.slow.directions
         if path is None:
             return
 
@@ -186,7 +186,7 @@ class FrameStream:
         """A controller's hint that the joint is free: a tare now, with every rule of a tare; False (and
         nothing changes) while one is pending."""
         with self.lock:
-            if self.taring:
+            if self.tares.pending:
                 return False
             self.start_tare()
         log.info("the joint is free (a controller's hint): re-zeroing on the next %d frames", self.config.tare_frames)
@@ -204,14 +204,18 @@ class FrameStream:
                 self._end_tare(outcome)
         self.tares.finish()
 
+    def corrupt(self, err: Exception) -> None:
+        """An input that is no frame (the source could not decode it): counted as corrupt and logged (throttled)."""
+        self.counter.drop(err, corrupt=True)
+
     def cancel_tare(self) -> int:
         """Drop a pending tare (it stays pending without any reference); returns the frames it had taken."""
         return self.tares.cancel(keep_pending=self.pipe.reference is None)
 
     def tare_deadline(self, rate_hz: float = 0.0) -> float:
         """Seconds a tare of ``tare_frames`` frames may take (:func:`~..force.reference.tare_rules.tare_deadline`): from the
-        measured :attr:`frame_period`, never shorter than the nominal ``rate_hz``'s (0: unknown)."""
-        return tare_deadline(self.config.tare_frames, self.frame_period, rate_hz, self.config.stale_timeout)
+        measured frame period (:attr:`~.health.Health.frame_period`), never shorter than the nominal ``rate_hz``'s (0: unknown)."""
+        return tare_deadline(self.config.tare_frames, self.counter.frame_period, rate_hz, self.config.stale_timeout)
 
     def tare(self, timeout: float, forced: bool = False) -> tuple[TareOutcome | None, int]:
         """A tare transaction: a tare awaited up to ``timeout`` s (:meth:`tare_deadline`), else cancelled
@@ -234,9 +238,9 @@ class FrameStream:
             report = self._new_reference(outcome.reference, outcome.noise, outcome.frames)
             if self.filter is not None:
                 self.filter.reset()  # a new reference: the filtered wrench starts again from the next frame
-            self.first_tare = FirstTareWatch.of(self.pipe) if first else None
+            self.first_tare = FirstTareWatch.of(self.pipe.in_use) if first else None
         self.tares.end(outcome, self.pipe.reference is not None, self.noise_text, report)
-        if self.taring:  # refused without a reference: it starts over
+        if self.tares.pending:  # refused without a reference: it starts over
             self.noise_state.restart()
 
     def close(self, timeout: float = 5.0) -> list[str]:
@@ -249,14 +253,24 @@ class FrameStream:
         """The noise from a file of consecutive ``frames`` (n, n_meas) before they are processed, unless
         measured or not estimated (frame_path/noise_in_use.py); returns :attr:`noise_text`."""
         with self.lock:
-            if self.noise is not None and not self.pipe.noise_measured and self.pipe.reference is not None:
+            if self.noise_state.estimate is not None and not self.pipe.noise_measured and self.pipe.reference is not None:
                 self._use_noise(self.noise_state.from_frames(frames, ~self.pipe.bad_channels, source))
             return self.noise_text
 
-    def _use_noise(self, found: tuple[float, str] | None) -> None:
-        """An estimated (level, source) into the pipeline and, if it took it, the drift tracker."""
-        if found is not None and self.noise_state.use(self.pipe, *found):
-            self.slow.renoised(self.pipe)
+    def _use_noise(self, found: tuple[float, str] | None) -> bool:
+        """An estimated (level, source) into the pipeline and, if it took it, the drift tracker; the noise
+        stage is told which (frame_path/noise_in_use.py). True if the pipeline took it."""
+        if found is None:
+            return False
+        pipe, noise, (level, source) = self.pipe, self.noise_state, found
+        try:
+            pipe.set_noise(np.full(pipe.n_meas, level), noise.named(level, source, pipe.reference))
+        except ConfigError as err:
+            noise.refused(err)
+            return False
+        noise.took(level, source, pipe.noise_source)
+        self.slow.renoised(pipe.in_use)
+        return True
 
     # --- per frame -------------------------------------------------------------------------------
 
@@ -270,22 +284,11 @@ class FrameStream:
             return False
         self.pipe.set_bad_channels(new[0].copy())  # raises before changing anything if refused
         self.channels.use(*new)
-        self.slow.masked(self.pipe)
+        self.slow.masked(self.pipe.in_use)
         if new[1].channels:
             log.warning("excluding %d measurements (saturated: %d, dead electrodes: %s)",
                         new[1].channels, new[1].saturated, new[1].dead_electrodes)
         return True
-
-    def process(self, values: np.ndarray, saturated: np.ndarray | None = None,
-                contact_ok: np.ndarray | None = None, t: float | None = None) -> FrameResult | None:
-        """The :class:`FrameResult` of one frame at ``t`` s (None: 10 ms after the previous), or None (a
-        tare frame, no reference); :class:`FrameError` for a frame to drop. :meth:`push` adds the
-        accounting, the filter and the stamps."""
-        try:
-            with self.lock:
-                return self._process(values, saturated, contact_ok, t)
-        finally:
-            self.tares.finish()
 
     def _process(self, values: np.ndarray, saturated: np.ndarray | None, contact_ok: np.ndarray | None,
                  t: float | None) -> FrameResult | None:
@@ -302,19 +305,27 @@ class FrameStream:
         self.update_mask(saturated, contact_ok)
         every, k = self.config.stress_field_every, self.processed
         self.processed += 1
-        result = pipe.process(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset,
-                              slow.gradient)
+        frame = pipe.step(values, every > 0 and k % every == 0 and self.fields_wanted, True, slow.scale, slow.offset,
+                          slow.gradient)
+        result = frame.result
         if not result.valid or self.counter.implausible_run:
             self.counter.plausible(result)
-        if self.noise_state.estimate is not None and not pipe.noise_measured:
-            self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))
-        slow.observe(pipe, result, t, self.channels.frozen)
+        if (self.noise_state.estimate is not None and not pipe.noise_measured
+                and self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))):
+            # the noise now in use (a new estimator, its consistency) is the one the slow states see this frame with
+            frame = frame._replace(fit=getattr(pipe.estimator, "last_fit", None), in_use=pipe.in_use)
+        fix = slow.observe(frame, t, self.channels.frozen)  # the device's slow states: the force corrected, its 1-sigma
+        if fix.force is not None:
+            result.force = fix.force
+            result.magnitude, result.elevation, result.azimuth = force_angles3(fix.force)
+        if fix.sigma is not None:
+            result.sigma, result.sigma_n = fix.sigma, fix.sigma_n
         if slow.learned_new:
             self._save_directions()
         if (self.first_tare is not None and result.valid and not result.foreign_load  # a press elsewhere: no pull
-                and self.first_tare.observe(pipe.last_y)):
+                and self.first_tare.observe(frame.change)):
             # the first tare carried a load (force/reference/first_tare.py): dropped, nothing published until a tare
-            self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tare_file))
+            self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tares.tare_file))
             self.first_tare, pipe.reference = None, None
             slow.reset(pipe)
             self.start_tare()
@@ -329,9 +340,11 @@ class FrameStream:
 
     def push(self, values: np.ndarray, saturated: np.ndarray | None = None, contact_ok: np.ndarray | None = None,
              stamp_ns: int = 0, age_ns: int = 0, process: bool = True) -> FrameOutput | None:
-        """One frame measured ``age_ns`` ago, stamped ``stamp_ns``: counted, dropped if late, processed
-        unless ``process`` is False. Its :class:`~cstomo_sensor.frame_path.outputs.FrameOutput` (an implausible one too: no filtered force),
-        else None (a tare frame, no reference, late, dropped: counted, never raised)."""
+        """One frame measured ``age_ns`` ago, stamped ``stamp_ns`` (its time for the filter and the slow
+        states; 0: none, 10 ms after the previous): counted, dropped if late, processed unless ``process``
+        is False. Its :class:`~cstomo_sensor.frame_path.outputs.FrameOutput` (an implausible one too: no
+        filtered force), else None (a tare frame, no reference, late, dropped: counted, never raised). The
+        one entry of a frame (the frame loop's, frame_path/loop.py)."""
         t0 = time.perf_counter()
         if self.counter.arrived(age_ns > self.config.stale_timeout * 1e9) or not process:
             return None

@@ -92,17 +92,29 @@ class CstomoSensorNode(LifecycleNode):
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
 
-    processor = property(lambda self: self.stream, doc="The frame stream (the name the tests and tools knew it by).")
-    reference_source = property(lambda self: self.stream.reference_source if self.stream is not None else "none")
-    tare_refused = property(lambda self: self.stream.tare_refused if self.stream is not None else "")
+    @property
+    def reference_source(self) -> str:
+        """Where the reference in use comes from, in words ("none" before configure)."""
+        return self.stream.tares.source if self.stream is not None else "none"
 
     @property
-    def _driver(self):
+    def tare_refused(self) -> str:
+        """Why the latest tare was refused ('' if none was)."""
+        return self.stream.tares.refused if self.stream is not None else ""
+
+    @property
+    def active(self) -> bool:
+        """The lifecycle state is active (frames are published)."""
+        return self._active
+
+    @property
+    def driver(self):
         """The board's driver (serial input), else None."""
         return self._source.driver if isinstance(self._source, SerialSource) else None
 
     @property
-    def _published(self) -> dict[str, int]:
+    def published(self) -> dict[str, int]:
+        """Messages published per topic (the diagnostics' ``messages_published``)."""
         return self._pubs.published if self._pubs is not None else {}
 
     @property
@@ -172,7 +184,7 @@ class CstomoSensorNode(LifecycleNode):
         qos = cfg.qos()
         serial = cfg.input == "serial"
         self._pubs = Publishers(self, self.stream.outputs + ((RAW_TOPIC,) if serial else ()), pipe.centers,
-                                cfg.stream.frame_id, qos, self.stream, lambda: self._active)
+                                cfg.stream.frame_id, qos, pipe.geometry, lambda: self._active, self.stream.want_fields)
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._diag_timer = self.create_timer(1.0, self._publish_diagnostics)
         self._tare_srv = self.create_service(Trigger, "~/tare", self._on_tare, callback_group=self._tare_group)
@@ -282,7 +294,7 @@ class CstomoSensorNode(LifecycleNode):
         return self._on_tare(request, response, forced=True)  # the load checks do not refuse (docs/node.md#tare)
 
     def _process_now(self) -> bool:
-        return self._active or self.stream.taring
+        return self._active or self.stream.tares.pending
 
     def _serial_loop(self) -> None:
         set_os_thread_name(FRAME_THREAD)

@@ -9,6 +9,7 @@ from collections.abc import Callable
 
 from rclpy.event_handler import PublisherEventCallbacks
 
+from ..frame_path.mask import ChannelMask
 from ..frame_path.outputs import OUTPUTS, RAW_TOPIC, TOPIC_TYPES
 from .messages import OutputMessages, RawVoltagesCdr
 
@@ -35,13 +36,16 @@ class Publishers:
     executor's thread) and :meth:`refresh` (the node's diagnostics timer), never asked per frame.
     ``published``: messages per topic since they were made (the diagnostics' ``messages_published``).
 
-    ``stream``: the frame stream (its flags of a raw frame; its fields are computed only while someone
-    subscribes to a field's topic: ``fields_wanted``).
+    ``geometry``: the sensor's (a raw frame's flagged measurements, NaN in its message: its own
+    :class:`~cstomo_sensor.frame_path.mask.ChannelMask`); ``on_fields(wanted)`` is told whether someone subscribes to
+    a field's topic (:attr:`fields_wanted`: the stream computes the fields only then,
+    :meth:`~cstomo_sensor.frame_path.stream.FrameStream.want_fields`).
     """
 
-    def __init__(self, node, topics: tuple[str, ...], centers, frame_id: str, qos, stream,
-                 active: Callable[[], bool]) -> None:
-        self.node, self.stream, self.active = node, stream, active
+    def __init__(self, node, topics: tuple[str, ...], centers, frame_id: str, qos, geometry,
+                 active: Callable[[], bool], on_fields: Callable[[bool], None] | None = None) -> None:
+        self.node, self.active, self.on_fields = node, active, on_fields
+        self.flags = ChannelMask(geometry)
         self.out = OutputMessages(centers, frame_id)
         self.raw = RawVoltagesCdr(frame_id)
         self.pubs = {}
@@ -53,6 +57,7 @@ class Publishers:
         self._subscribed: set[str] = set()
         self.wanted: tuple[str, ...] = ()  # the outputs with a subscriber, in publishing order
         self.raw_wanted = False
+        self.fields_wanted = True  # someone subscribes to a field's topic (refresh: the topics' subscribers)
         self.refresh()
 
     def _matched(self, topic: str, count: int) -> None:
@@ -68,14 +73,16 @@ class Publishers:
         subs = self._subscribed
         self.wanted = tuple(t for t in self.pubs if t in subs and t in OUTPUTS)
         self.raw_wanted = RAW_TOPIC in subs
-        self.stream.fields_wanted = any(OUTPUTS[t].heavy for t in self.wanted)
+        self.fields_wanted = any(OUTPUTS[t].heavy for t in self.wanted)
+        if self.on_fields is not None:
+            self.on_fields(self.fields_wanted)
 
     def __call__(self, frame, output) -> None:
         if not self.active():
             return
         counts = self.published
         if self.raw_wanted:  # the raw frame as measured, NaN where the board flagged a measurement
-            flagged = self.stream.channels.flagged(frame.saturated, frame.contact_ok)
+            flagged = self.flags.flagged(frame.saturated, frame.contact_ok)
             _publish(self.pubs[RAW_TOPIC], self.raw(frame.values, frame.stamp_ns, flagged))
             counts[RAW_TOPIC] = counts.get(RAW_TOPIC, 0) + 1
         if output is None or not output.result.valid or not self.wanted:

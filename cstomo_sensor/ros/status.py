@@ -14,7 +14,7 @@ def stale_reason(cfg, stream, source) -> str:
     """Why the data is stale ('' when fresh)."""
     if cfg is None or stream is None:
         return "not configured"
-    last = stream.counts.last_frame
+    last = stream.counter.counts.last_frame
     age = math.inf if last is None else time.monotonic() - last
     if age <= cfg.stream.stale_timeout:
         return ""
@@ -35,13 +35,13 @@ def stale_reason(cfg, stream, source) -> str:
 def diagnostics(node) -> DiagnosticStatus:
     """The node's DiagnosticStatus now (resets the per-period figures): the stream's health, the
     board's link, the staleness and the messages published per topic."""
-    cfg, stream, active = node.config, node.stream, node._active
+    cfg, stream, active = node.config, node.stream, node.active
     serial = cfg is not None and cfg.input == "serial"
     status = DiagnosticStatus(name=node.diagnostics_name, hardware_id=cfg.port if serial else "")
     kv = {"state": "active" if active else "inactive", "input": cfg.input if cfg else "",
           "reference": node.reference_source}
     level, msgs = OK, []
-    driver = node._driver
+    driver = node.driver
     ds = driver.stats() if driver is not None else None
     board = None
     if ds is not None:
@@ -59,7 +59,7 @@ def diagnostics(node) -> DiagnosticStatus:
     kv["checksum"] = ("crc32" if cfg.protocol == "binary" else "none (text mode)") if serial else "n/a"
     reason = node.stale_reason() if active else ""
     kv["stale_reason"] = reason
-    kv["messages_published"] = " ".join(f"{t}={n}" for t, n in sorted(dict(node._published).items()))
+    kv["messages_published"] = " ".join(f"{t}={n}" for t, n in sorted(dict(node.published).items()))
     if reason:
         level = ERROR if ds is not None and not ds.connected else max(level, WARN)
         msgs = [f"stale: {reason}"] + [m for m in msgs if m != "board disconnected"]  # the reason says it
@@ -79,7 +79,7 @@ def tare_answer(node, outcome, taken: int, wait: float, forced: bool) -> tuple[b
         why = node.stale_reason() or "frames late, dropped or rejected"
         msg = f"tare cancelled: {taken} of {n} frames within {wait:.1f} s ({why}); {unchanged}; call {name} " \
               "again once frames arrive"
-        if stream.taring:
+        if stream.tares.pending:
             msg += " (the tare at start stays pending: no reference yet)"
         node.get_logger().warning(msg)
         return False, msg

@@ -140,11 +140,11 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
                 results = Results(path=forces_file)
                 run(source, stream, [bag, results])
             n_in = source.messages
-            corrupt = stream.counts.corrupt + stream.counts.rejected
+            corrupt = stream.counter.counts.corrupt + stream.counter.counts.rejected
             if n_in and corrupt == n_in:
                 raise ConfigError(f"{in_bag}: none of the {n_in} messages of {source.topic} could be read as frames; "
                                   "no output written")
-            if stream.taring:  # no reference ever: no result, not an empty bag and exit 0
+            if stream.tares.pending:  # no reference ever: no result, not an empty bag and exit 0
                 raise ConfigError(f"{in_bag}: the bag ended during the tare ({n_in} frames, none taken as the "
                                   f"reference: the tare needs {stream_cfg.tare_frames} steady unloaded frames); give --reference "
                                   "FILE (unloaded frames of this device), fewer --tare-frames (at most the unloaded "
@@ -160,7 +160,7 @@ def replay(in_bag: str | Path, out_bag: str | Path, config: PipelineConfig, *, r
             shutil.rmtree(work, ignore_errors=True)
     finally:
         source.close()
-    return ReplaySummary(n_in, bag.results, corrupt, source.topic, tuple(prefix + n for n in names), stream.implausible,
+    return ReplaySummary(n_in, bag.results, corrupt, source.topic, tuple(prefix + n for n in names), stream.counter.counts.implausible,
                          sum(r.foreign_load for r in results.results))
 
 

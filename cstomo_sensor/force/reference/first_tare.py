@@ -71,12 +71,14 @@ class FirstTareWatch:
         self.pull = 0.0  # the mean pull (N) of the run that fired
 
     @classmethod
-    def of(cls, pipe) -> FirstTareWatch | None:
-        """The watch of ``pipe``'s reference, just set by a first tare (None: an estimator without a linear map)."""
-        fmap = force_map(pipe)
+    def of(cls, in_use) -> FirstTareWatch | None:
+        """The watch of a reference just set by a first tare (``in_use``: the pipeline's ``InUse`` then; None:
+        an estimator without a linear map)."""
+        est = in_use.estimator
+        fmap = force_map(est)
         if fmap is None:
             return None
-        return cls(fmap, change_noise(pipe.estimator.noise, pipe.reference_frames), ~pipe.bad_channels)
+        return cls(fmap, change_noise(est.noise, in_use.reference_frames), in_use.keep.copy())
 
     def observe(self, y: np.ndarray) -> bool:
         """The change ``y`` (n_meas,) of a frame after the first tare; True once :data:`PULL_FRAMES` frames

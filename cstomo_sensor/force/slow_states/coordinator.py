@@ -7,17 +7,22 @@ and a creep compensator (:class:`~.creep.CreepCompensator`, ``creep_per_decade``
 frame by frame it follows them, and hands the pipeline what it takes as arguments: :attr:`SlowStates.scale`
 (the voltages' uniform scale), :attr:`SlowStates.offset` (the drift's gradient and the creep, summed,
 in y units) and :attr:`SlowStates.gradient` (the resistivity gradients' states, which the ``model``
-estimator's response follows). It never writes the pipeline's attributes: it reads what it needs (the reference, the
-estimator, the mask, the calibration) when the stream tells it one of them changed.
+estimator's response follows). Per frame (:meth:`SlowStates.observe`) it takes the frame's record (the
+pipeline's ``FrameRecord``: its result, its change, whether the change is plausible, the estimator's fit
+and what the pipeline made it with) and returns what it adds to the result, a :class:`Correction`
+(the force the tracker's update corrects it to, its 1-sigma), which the stream applies; it neither
+rewrites the result nor reads the pipeline then. It reads the pipeline (the reference, the estimator,
+the mask) only when the stream tells it one of them changed (:meth:`SlowStates.reset`,
+:meth:`SlowStates.masked`, :meth:`SlowStates.renoised`).
 """
 from __future__ import annotations
 
 import logging
 import math
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from ...angles import force_angles3
 from ...model.material import RESISTIVITY_PER_K
 from ..checks.consistency import change_noise
 from ..checks.expected import ExpectedLoad, bounded
@@ -38,10 +43,57 @@ VALIDATED = 0.10
 UNMEASURED_N = 2.0
 
 
-def force_map(pipe) -> np.ndarray | None:
-    """The estimator's linear map of a change to a force (the drift tracker's rest bound)."""
-    est = pipe.estimator
-    return getattr(getattr(est, "linear", est), "W", None)
+def force_map(estimator) -> np.ndarray | None:
+    """The ``estimator``'s linear map of a change to a force (the drift tracker's rest bound)."""
+    return getattr(getattr(estimator, "linear", estimator), "W", None)
+
+
+class InUse(Protocol):
+    """What the slow states read of what a pipeline makes its frames with (frame_path/pipeline.py ``InUse``:
+    a value, replaced when any of it changes; the force layer does not import the frame path)."""
+
+    estimator: Any
+    calibration: Any
+    keep: np.ndarray
+    reference_frames: int
+    consistency: Any
+
+
+class Reference(Protocol):
+    """What the slow states read of a pipeline when its reference changes (:meth:`SlowStates.reset`;
+    frame_path/pipeline.py ``Pipeline``): the reference (volts; None: none), what a change is divided by,
+    the reconstruction model (its contacts' and gradients' directions) and :class:`InUse`."""
+
+    reference: np.ndarray | None
+    y_scale: float
+    model: Any
+    n_meas: int
+    in_use: InUse
+
+
+class Frame(Protocol):
+    """What the slow states read of a frame through the pipeline (frame_path/pipeline.py ``FrameRecord``)."""
+
+    result: Any  # its FrameResult (read, never written)
+    change: np.ndarray
+    plausible: bool
+    fit: Any
+    in_use: InUse
+
+
+class Correction(NamedTuple):
+    """What the slow states add to a frame's result (:meth:`SlowStates.observe`): ``force`` the force
+    corrected by the tracker's update of this frame (None: unchanged), ``sigma`` its per-axis 1-sigma
+    (N; None: none, an implausible frame) and ``sigma_n`` the rms of its error's norm (N)."""
+
+    force: np.ndarray | None
+    sigma: tuple[float, float, float] | None
+    sigma_n: float
+
+
+#: A frame's :class:`Correction` when there is none (an implausible frame).
+NO_CORRECTION = Correction(None, None, float("nan"))
+_correction = tuple.__new__  # _correction(Correction, (force, sigma, sigma_n)): per frame, without its __new__'s Python frame
 
 
 class SlowStates:
@@ -87,7 +139,7 @@ class SlowStates:
         fitted = getattr(calibration, "creep_per_decade", None) if calibration is not None else None
         return float(fitted) if fitted is not None else self.creep_setting
 
-    def reset(self, pipe, age_s: float | None = None, directions: Directions | None = None) -> None:
+    def reset(self, pipe: Reference, age_s: float | None = None, directions: Directions | None = None) -> None:
         """A tracker and a compensator for the reference ``pipe`` has just set (none without one);
         ``age_s``: the reference is a saved tare this old (a restart), which widens the tracker's states;
         ``directions``: the device's own directions saved with it (force/slow_states/learned.py; None: those learned so far)."""
@@ -98,85 +150,89 @@ class SlowStates:
         self._frame_sigma = None  # the previous reference's frames' sigma is not this one's (expected load)
         self.age_s = age_s  # the reference's age (a restart), for the diagnostics and the tests
         if pipe.reference is not None:
+            in_use = pipe.in_use
             if self.tracking:
                 if self._gradients is None:  # the contacts' change, then the resistivity's gradient
                     g = gradient_directions(pipe.model)
                     c = pipe.model.contact
                     self._gradients = g if c is None else np.vstack([c, g])
                 self.drift = DriftTracker(pipe.reference / pipe.y_scale, self._gradients,
-                                          change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                          ~pipe.bad_channels, force_map(pipe),
+                                          change_noise(in_use.estimator.noise, in_use.reference_frames),
+                                          in_use.keep.copy(), force_map(in_use.estimator),
                                           contacts=0 if pipe.model.contact is None else len(pipe.model.contact))
                 if len(self.directions):  # the device's own directions: states after the model's
                     self.drift = self.drift.with_directions(self.directions.rows, self.directions.per_scale, 0.0)
                 self.learner = DirectionLearner(pipe.n_meas, len(self.directions))
                 if age_s is not None:
                     self.drift.widen(age_s)
-            c = self.creep_per_decade(pipe.calibration)
+            c = self.creep_per_decade(in_use.calibration)
             if c > 0:
                 self.creep = CreepCompensator(c, pipe.n_meas)
         self.scale = 1.0
         self._offsets()
 
-    def masked(self, pipe) -> None:
-        """``pipe``'s mask changed: the tracker (its state kept) over its channels."""
+    def masked(self, in_use: InUse) -> None:
+        """The pipeline's mask changed (``in_use``: its ``InUse`` now): the tracker (its state kept) over its channels."""
         if self.drift is not None:
-            self.drift = self.drift.rebuilt(keep=~pipe.bad_channels, force_map=force_map(pipe))
+            self.drift = self.drift.rebuilt(keep=in_use.keep.copy(), force_map=force_map(in_use.estimator))
             self._offsets()
 
-    def renoised(self, pipe) -> None:
-        """``pipe``'s noise changed: the tracker (its state kept) with the change's noise."""
+    def renoised(self, in_use: InUse) -> None:
+        """The pipeline's noise changed (``in_use``: its ``InUse`` now): the tracker (its state kept) with the change's noise."""
         if self.drift is not None:
-            self.drift = self.drift.rebuilt(noise=change_noise(pipe.estimator.noise, pipe.reference_frames),
-                                            force_map=force_map(pipe))
+            est = in_use.estimator
+            self.drift = self.drift.rebuilt(noise=change_noise(est.noise, in_use.reference_frames), force_map=force_map(est))
             self._offsets()
 
-    def observe(self, pipe, result, t: float | None, frozen: np.ndarray | None) -> None:
-        """After ``pipe`` processed a frame at ``t`` (s; None: 10 ms after the previous) into ``result``:
-        the tracker and the compensator follow its change (``frozen``: the excluded channels, the
-        creep's history held there), and the result gets its force's 1-sigma."""
-        drift, creep = self.drift, self.creep
+    def observe(self, frame: Frame, t: float | None, frozen: np.ndarray | None) -> Correction:
+        """A frame at ``t`` (s; None: 10 ms after the previous) through the pipeline (``frame``: its
+        ``FrameRecord``): the tracker and the compensator follow its change (``frozen``: the excluded
+        channels, the creep's history held there); returns what it adds to its result (:class:`Correction`:
+        the force the tracker's update corrects it to, its 1-sigma)."""
+        drift, creep, result, in_use = self.drift, self.creep, frame.result, frame.in_use
         self.expected.t_frame = t
-        sig = creep_f = None
-        if result.valid:
-            sig = self._sigma_model(pipe)
+        sig = creep_f = corrected = None
+        valid, force = result.valid, result.force
+        if valid:
+            sig = self._sigma_model(in_use)
             if creep is not None:
                 creep_f = sig.creep_force(creep.offset)  # the offset this frame was corrected by
-        if pipe.change_plausible and (drift is not None or creep is not None):  # beyond max_force too
-            y = pipe.last_y  # the change with the creep so far taken out: the load's and the drift's
+        if frame.plausible and (drift is not None or creep is not None):  # beyond max_force too
+            y = frame.change  # the change with the creep so far taken out: the load's and the drift's
             if drift is not None:
                 # every frame measures the scale jointly with its force (force/estimators/scale_fit.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
-                rest = drift.observe(y, t, self._joint_scale(pipe, t, result))
+                rest = drift.observe(y, t, self._joint_scale(frame, t))
                 self.scale = drift.scale
-                if drift.force_step is not None and result.valid:
-                    result.force = result.force + drift.force_step
-                    result.magnitude, result.elevation, result.azimuth = force_angles3(result.force)
+                if drift.force_step is not None and valid:
+                    force = corrected = force + drift.force_step
                 if self.learner is not None:
-                    self._learn(y, rest, result)
+                    self._learn(y, rest, force if valid else None)
                     if drift is not self.drift:  # one more state: its sigma too
                         drift = self.drift
-                        sig = self._sigma_model(pipe) if sig is not None else None
+                        sig = self._sigma_model(in_use) if sig is not None else None
             if creep is not None:
                 creep.observe(y, t, frozen)
             self._offsets()
         elif self.learner is not None:  # an implausible change (beyond max_force): a load, until the next rest
             self.learner.unloaded.clear = False
             self.learner.discard()
-        if sig is not None:  # the tracker's covariance after this frame's predict and update; the frame's misfit
-            result.sigma, result.sigma_n = sig(result.force, drift.P if drift is not None else None, creep_f,
-                                               drift.change if drift is not None else 0.0,
-                                               misfit(result.consistency, pipe.consistency.expected))
-            self._frame_sigma = result.sigma
+        if sig is None:
+            return NO_CORRECTION
+        # the tracker's covariance after this frame's predict and update; the frame's misfit
+        sigma, sigma_n = sig(force, drift.P if drift is not None else None, creep_f, drift.change if drift is not None else 0.0,
+                             misfit(result.consistency, in_use.consistency.expected))
+        self._frame_sigma = sigma
+        return _correction(Correction, (corrected, sigma, sigma_n))
 
-    def _joint_scale(self, pipe, t: float | None, result):
-        """The latest frame's joint measurement of the scale (force/estimators/scale_fit.py JointScale), None for an
-        estimator without a joint fit (``linear``); with the controller's expected load when one is in
+    def _joint_scale(self, frame: Frame, t: float | None):
+        """The frame's (its ``FrameRecord``) joint measurement of the scale (force/estimators/scale_fit.py JointScale),
+        None for an estimator without a joint fit (``linear``); with the controller's expected load when one is in
         effect for this frame and agrees with it (:meth:`..checks.expected.ExpectedLoad.for_frame`), bounded by
         the frame's own (:func:`..checks.expected.bounded`)."""
-        est = pipe.estimator
-        if getattr(est, "last_fit", None) is None:
+        if frame.fit is None:
             return None
+        est, result = frame.in_use.estimator, frame.result
         if self._joint is None or self._joint.est is not est or self._joint_for is not self.drift:
             self._joint, self._joint_for = JointScale(est, self.drift._D[0], self.drift._D[1:]), self.drift
         e = None
@@ -203,11 +259,11 @@ class SlowStates:
         the frames, or the tracker's settling after a load moves the force at rest, is learned from every rest."""
         self._known_rest = bool(known)
 
-    def _learn(self, y: np.ndarray, rest: bool, result) -> None:
+    def _learn(self, y: np.ndarray, rest: bool, force: np.ndarray | None) -> None:
         """A frame's change ``y`` into the learner (force/slow_states/learned.py) if it is clear: counted as rest (``rest``),
-        or refused by the rest test with no load since the latest rest frame and none known (its ``result``'s
-        force, :class:`~.learned.Unloaded`), or known to be unloaded (:meth:`known_unloaded`); the learner's
-        decomposition a step on; a direction learned: one more state."""
+        or refused by the rest test with no load since the latest rest frame and none known (its ``force``,
+        None for an implausible frame, :class:`~.learned.Unloaded`), or known to be unloaded (:meth:`known_unloaded`);
+        the learner's decomposition a step on; a direction learned: one more state."""
         drift, learner = self.drift, self.learner
         noise = drift.force_noise  # the force's per-frame noise (None: no force map, rest frames only)
         known_rest = self._known_rest  # a reference sensor says no load (known_unloaded)
@@ -216,8 +272,7 @@ class SlowStates:
         else:
             e = self.expected.pending
             known = e is not None and float(np.dot(e[0], e[0])) > drift.rest_force ** 2
-            clear = learner.unloaded.step(result.force if result.valid else None, rest, noise, drift.frame_period,
-                                          known) or known_rest
+            clear = learner.unloaded.step(force, rest, noise, drift.frame_period, known) or known_rest
             if learner.unloaded.broke and not known_rest:  # its samples not yet counted may hold a load's first frames
                 learner.discard()
         if clear:
@@ -244,18 +299,17 @@ class SlowStates:
         c = self.creep.offset if self.creep is not None else None
         self.offset = (d if c is None else c) if c is None or d is None else np.add(d, c, out=self._sum)
 
-    def _sigma_model(self, pipe) -> ForceSigma:
-        """The force's uncertainty for the estimator, tracker and creep in use (rebuilt when one changes)."""
-        drift, f = self.drift, self._sigma_for
-        if (self._sigma is None or f[0] is not pipe.estimator or f[1] is not drift or f[2] is not self.creep
-                or f[3] is not pipe.calibration):
-            est = pipe.estimator
-            k_rel, self.sigma_source = relative_error(pipe.calibration, est.name)
-            fitted = getattr(pipe.calibration, "creep_per_decade", None) is not None
+    def _sigma_model(self, in_use: InUse) -> ForceSigma:
+        """The force's uncertainty for the estimator and calibration (``in_use``: the pipeline's ``InUse`` of
+        the frame), tracker and creep in use (rebuilt when one changes)."""
+        drift, f, est, cal = self.drift, self._sigma_for, in_use.estimator, in_use.calibration
+        if self._sigma is None or f[0] is not est or f[1] is not drift or f[2] is not self.creep or f[3] is not cal:
+            k_rel, self.sigma_source = relative_error(cal, est.name)
+            fitted = getattr(cal, "creep_per_decade", None) is not None
             creep_rel = 0.0 if self.creep is None else CREEP_REL_FITTED if fitted else CREEP_REL_ASSUMED
-            self._sigma = ForceSigma(force_map(pipe), change_noise(est.noise, pipe.reference_frames), ~pipe.bad_channels,
+            self._sigma = ForceSigma(force_map(est), change_noise(est.noise, in_use.reference_frames), in_use.keep.copy(),
                                      None if drift is None else drift.state_directions, k_rel, creep_rel, est)
-            self._sigma_for = (pipe.estimator, drift, self.creep, pipe.calibration)
+            self._sigma_for = (est, drift, self.creep, cal)
         return self._sigma
 
     def creep_text(self, calibration) -> str:

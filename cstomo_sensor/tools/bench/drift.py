@@ -111,8 +111,8 @@ def _run(pipe, ref, v_unloaded, v_loaded, forces, tracking, seed, costs: list | 
     return {"zero_bias_n": float(np.linalg.norm(zero[ok].mean(axis=0))) if ok.any() else np.nan,
             "zero_p99_n": float(np.percentile(np.linalg.norm(zero[ok], axis=1), 99)) if ok.any() else np.nan,
             "angle_deg": float(np.median(ang)) if ang else np.nan, "magnitude_pct": float(np.median(mag)) if mag else np.nan,
-            "tracked_change": stream.drift.change if stream.drift is not None else 0.0,
-            "implausible": stream.implausible, "us_per_frame": 1e6 * float(np.median(cost)),
+            "tracked_change": stream.slow.drift.change if stream.slow.drift is not None else 0.0,
+            "implausible": stream.counter.counts.implausible, "us_per_frame": 1e6 * float(np.median(cost)),
             **_sigma(np.array(trace.forces, float), true, np.array(trace.sigma_n))}
 
 

@@ -117,7 +117,7 @@ def one_frame_reference(n: int, out: str | os.PathLike, cache_dir=None, say=prin
                 est = np.array([r.force for r in res])
                 ang, mag = errors(est, forces)
                 rel = 100 * mag / true_mag
-                c = stream.counts
+                c = stream.counter.counts
                 rows.append({"snr_db": snr, "estimator": name, "reference": case, "drift_tracking": tracking,
                              "frames": len(frames),
                              "foreign_pct": 100.0 * sum(r.foreign_load for r in res) / len(frames),
