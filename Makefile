@@ -30,13 +30,19 @@ $(STAMP): setup.py requirements-ros.txt
 	@touch $(STAMP)
 	@echo "$(VENV) ready; its commands: . $(VENV)/bin/activate (then cstomo --help)"
 
+# Two workers (pytest-xdist): the 2 cores the suite is sized for. A test file stays on one worker (its
+# module fixtures are built once), the longest files first (test/conftest.py LONGEST_FIRST), each worker
+# in a ROS domain of its own (test/conftest.py). TEST_JOBS=0 runs the suite in this one process.
+TEST_JOBS ?= 2
+XDIST   = -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
+
 test: $(STAMP)
-	$(VPY) -m pytest -q --durations=15 test
+	$(VPY) -m pytest -q $(XDIST) --durations=15 test
 
 # the fast tier: every test not marked slow (setup.cfg); it starts no process and no ROS node
 # (test/conftest.py fails a test of it that does) and runs in about a minute
 test-fast: $(STAMP)
-	$(VPY) -m pytest -q --durations=10 -m "not slow" test
+	$(VPY) -m pytest -q $(XDIST) --durations=10 -m "not slow" test
 
 demo: $(STAMP)
 	$(VENV)/bin/cstomo demo
