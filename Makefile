@@ -30,13 +30,21 @@ $(STAMP): setup.py requirements-ros.txt
 	@touch $(STAMP)
 	@echo "$(VENV) ready; its commands: . $(VENV)/bin/activate (then cstomo --help)"
 
+# Two workers (pytest-xdist): the 2 cores the suite is sized for. A test file stays on one worker (its
+# module fixtures are built once), the longest files first (test/conftest.py LONGEST_FIRST), each worker
+# in a ROS domain of its own (test/conftest.py). TEST_JOBS=0 runs it in this one process.
+TEST_JOBS ?= 2
+XDIST   = -n $(TEST_JOBS) --dist loadfile --no-loadscope-reorder
+
+# Then the tests marked alone (setup.cfg: they judge a board's real time) run by themselves.
 test: $(STAMP)
-	$(VPY) -m pytest -q --durations=15 test
+	$(VPY) -m pytest -q $(XDIST) --durations=15 -m "not alone" test; a=$$?; \
+	  $(VPY) -m pytest -q --durations=5 -m alone test; b=$$?; [ $$a = 0 ] && [ $$b = 0 ]
 
 # the fast tier: every test not marked slow (setup.cfg); it starts no process and no ROS node
 # (test/conftest.py fails a test of it that does) and runs in about a minute
 test-fast: $(STAMP)
-	$(VPY) -m pytest -q --durations=10 -m "not slow" test
+	$(VPY) -m pytest -q $(XDIST) --durations=10 -m "not slow" test
 
 demo: $(STAMP)
 	$(VENV)/bin/cstomo demo

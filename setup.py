@@ -28,8 +28,9 @@ setup(
     extras_require={
         # Everything a workstation without ROS needs (make test installs this set).
         "full": ["pyvista", "pytetwild", "scikit-fem", "rosbags", "matplotlib"],
-        # colcon and ament_package: test_colcon_install.py builds the package as a robot install does.
-        "test": ["pytest", "hypothesis", "ruff", "colcon-core", "colcon-ros", "ros-kilted-ament-package"],
+        # colcon and ament_package: test_colcon_install.py builds the package as a robot install does;
+        # pytest-xdist: make test runs the suite on two workers.
+        "test": ["pytest", "pytest-xdist", "hypothesis", "ruff", "colcon-core", "colcon-ros", "ros-kilted-ament-package"],
     },
     zip_safe=False,
     maintainer="cstomo_sensor developers",

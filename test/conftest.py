@@ -15,6 +15,12 @@ ROOT = Path(__file__).resolve().parent.parent
 os.environ.setdefault("CSTOMO_CACHE_DIR", str(ROOT / ".cache" / "test"))
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 CALLER_DOMAIN = os.environ.get("ROS_DOMAIN_ID")  # a domain the caller chose: every test and tool keeps it
+# Parallel workers (pytest-xdist, `make test`: gw0, gw1, ...): each worker its own domain, the caller's
+# plus the worker's number, so the nodes, probes and /diagnostics of two workers never meet.
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+if CALLER_DOMAIN is not None and _WORKER:
+    CALLER_DOMAIN = str((int(CALLER_DOMAIN) + _WORKER) % 233)  # 0..232: the domain ids DDS accepts
+    os.environ["ROS_DOMAIN_ID"] = CALLER_DOMAIN
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 
 # --- the two tiers (docs/design.md#tests) ----------------------------------------------------------
@@ -59,6 +65,26 @@ def _install_guards() -> None:
 
 
 _install_guards()
+
+
+# --- the order of the files: the longest first ------------------------------------------------------
+# `make test` runs two workers (pytest-xdist, --dist loadfile --no-loadscope-reorder): each takes the next
+# file of the collection when it is almost done with its own. The files that take longest (a minute or
+# more on a fresh clone: honest simulations over time, benches, nodes in real time) go first, so neither
+# worker starts one of them while the other has nothing left. Only the order changes; a file not named
+# keeps its place, and every file's tests keep theirs.
+LONGEST_FIRST = (  # measured: the per-file sums of `pytest --junitxml` on two workers, a fresh cache
+    "test_robot_bench.py", "test_creep.py", "test_tools.py", "test_forward.py", "test_learned.py",
+    "test_scene_field.py", "test_calibration.py", "test_force.py", "test_first_tare.py", "test_drift.py",
+    "test_sigma.py", "test_timeline.py", "test_node_restart_gradient.py", "test_bench_node.py",
+    "test_robot_bench_change.py", "test_board_pty.py", "test_colcon_install.py", "test_reproducible.py",
+    "test_docs.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
 
 
 @pytest.hookimpl(hookwrapper=True)

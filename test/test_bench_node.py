@@ -121,6 +121,7 @@ def test_bench_node_two_sensors_writes_its_tables(tmp_path):
     assert "| sensors |" in md and "Per sensor" in md and md.count("| /s") == 2
 
 
+@pytest.mark.alone  # judges the share of frames published: no neighbour (setup.cfg)
 def test_bench_node_lean_loop(tmp_path):
     """``--lean``: the lean loop (tools/bench/lean.py) in place of the node, on the same board and pty,
     warm and cold; it publishes every frame its board sends on ~/wrench, with the node's diagnostics

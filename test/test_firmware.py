@@ -224,6 +224,7 @@ def read_driver(device: str, rate: float, seconds: float, protocol: str = "binar
 
 
 @pytest.mark.slow  # starts the firmware as a process
+@pytest.mark.alone  # judges the board's real time: no neighbour (setup.cfg)
 @pytest.mark.parametrize("rate,seconds", [(100.0, 3.0), (1000.0, 1.5)])
 def test_the_driver_reads_every_frame_in_order(fw, rows, rate, seconds):
     r, path = rows

@@ -18,6 +18,7 @@ from cstomo_sensor.board.driver import BoardDriver
 from cstomo_sensor.board.wire import Identity
 
 FLASH, RAM = 64 * 1024, 16 * 1024
+pytestmark = pytest.mark.alone  # QEMU's board in real time: no neighbour (setup.cfg)
 
 
 @pytest.mark.slow  # runs the cross-compiler

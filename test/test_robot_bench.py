@@ -2,6 +2,8 @@
 outside the model, loads back to back, a restart after a 2 % change from a tare of the unchanged
 device, and its "silently wrong" share counts what it says. Expected values come from the issue
 (issue 26 item 1) and docs/physics.md#real-devices, not from the code under test."""
+import functools
+
 import numpy as np
 import pytest
 
@@ -211,10 +213,17 @@ def test_a_tracked_loaded_stream_says_how_sure_it_is_within_2x(device_b):
     assert w["sigma_ratio"] <= 2.0
 
 
-def _restart(device, change: float, loaded: bool, after: float):
+@pytest.fixture(scope="module")
+def unchanged(device_b):
+    """The restart of the unchanged device, untracked, at rest (False) or loaded (True): the baseline of
+    both changes (+-2 %), run once per module (a run reads its frames and returns new arrays)."""
+    return functools.cache(lambda loaded: _run(device_b, robot.restart(0.0, loaded), False, robot.RATE))
+
+
+def _restart(device, unchanged, change: float, loaded: bool, after: float):
     """A restart from a 2 h old tare after a ``change`` of the device, tracked, and the same frames of an
     unchanged device untracked: (the run, its window from ``after`` s, the baseline's window)."""
-    still = _run(device, robot.restart(0.0, loaded), False, robot.RATE)
+    still = unchanged(loaded)
     out = _run(device, robot.restart(change, loaded), True, robot.RATE, tare_age=robot.RESTART_AGE_S)
     late = out[0] >= after
     return out, _win(out, late), _win(still, late)
@@ -222,8 +231,8 @@ def _restart(device, change: float, loaded: bool, after: float):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("change", [0.02, -0.02])
-def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(device_b, change):
-    out, r, base = _restart(device_b, change, False, 1.0)
+def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(device_b, unchanged, change):
+    out, r, base = _restart(device_b, unchanged, change, False, 1.0)
     print(f"restart at rest {change:+.0%}: zero p99 from 1 s {r['zero_p99_n']:.3f} N (no change, untracked "
           f"{base['zero_p99_n']:.3f}); > 3 sigma {r['over3sigma_pct']:.2f} %, tracked {r['tracked_change']:+.4f}")
     # the aim is 0.5 N; this device's own noise at rest gives a p99 near it without any change (the
@@ -234,8 +243,8 @@ def test_a_restart_at_rest_from_an_old_tare_finds_its_zero_within_a_second(devic
 
 @pytest.mark.slow
 @pytest.mark.parametrize("change", [0.02, -0.02])
-def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(device_b, change):
-    out, r, base = _restart(device_b, change, True, 5.0)
+def test_a_restart_under_load_from_an_old_tare_reads_within_the_aims_from_5_s(device_b, unchanged, change):
+    out, r, base = _restart(device_b, unchanged, change, True, 5.0)
     print(f"restart loaded {change:+.0%}: {r['angle_deg']:.2f} deg / {r['magnitude_pct']:.2f} % against "
           f"{base['angle_deg']:.2f} / {base['magnitude_pct']:.2f} unchanged; > 3 sigma {r['over3sigma_pct']:.2f} %, "
           f"sigma/error {r['sigma_ratio']:.2f}, tracked {r['tracked_change']:+.4f}")
