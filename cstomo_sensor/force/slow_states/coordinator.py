@@ -93,7 +93,6 @@ class Correction(NamedTuple):
 
 #: A frame's :class:`Correction` when there is none (an implausible frame).
 NO_CORRECTION = Correction(None, None, float("nan"))
-_correction = tuple.__new__  # _correction(Correction, (force, sigma, sigma_n)): per frame, without its __new__'s Python frame
 
 
 class SlowStates:
@@ -223,7 +222,7 @@ class SlowStates:
         sigma, sigma_n = sig(force, drift.P if drift is not None else None, creep_f, drift.change if drift is not None else 0.0,
                              misfit(result.consistency, in_use.consistency.expected))
         self._frame_sigma = sigma
-        return _correction(Correction, (corrected, sigma, sigma_n))
+        return Correction(corrected, sigma, sigma_n)
 
     def _joint_scale(self, frame: Frame, t: float | None):
         """The frame's (its ``FrameRecord``) joint measurement of the scale (force/estimators/scale_fit.py JointScale),
