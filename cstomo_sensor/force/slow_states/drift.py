@@ -11,9 +11,9 @@ What separates these slow changes from a load (one frame alone only in part: the
 of a uniform scaling, ``r = V_ref / y_scale``, has a cosine of 0.4..0.7 with a socket load's): the
 frame's **shape at rest** (:data:`REST_BOUND`, :data:`REST_FORCE_SIGMAS`, after quiet frames,
 :mod:`.drift_parts`; a rest frame measures every state), **every frame** with the ``model`` estimator
-(the force and the scale fitted jointly, :class:`~..estimators.scale_fit.JointScale`, the tracker's mean and covariance the scale's prior;
-the other states
-follow the scale under load by their slope at rest, :class:`~.drift_parts.FollowSlope`), and **time** (random
+(the force and the scale fitted jointly, :class:`~cstomo_sensor.force.estimators.scale_fit.JointScale`,
+the tracker's mean and covariance the scale's prior; the other states follow the scale under load by
+their slope at rest, :class:`~.drift_parts.FollowSlope`), and **time** (random
 walks of :data:`RATE`, the scale's rate one of :data:`ACCEL`: loads move in tenths of seconds, the
 device in minutes). docs/node.md, *The zero over time* and *Following the device under load*, says
 how, what it measures and what it cannot separate: a change none of the directions describe (single
@@ -151,8 +151,8 @@ class DriftTracker:
                  force_map: np.ndarray | None = None, contacts: int = 0) -> None:
         self._args = (r, gradients, noise, keep, force_map)
         self.contacts = int(contacts)  # the first this many other states are the contacts' (widen)
-        self.learned = np.zeros(0)  # the last this many other states are learned (force/slow_states/learned.py): each one's restart per
-        # scale
+        # the last this many other states are learned (force/slow_states/learned.py): each one's restart per scale
+        self.learned = np.zeros(0)
         # each other state's slope against the scale before a rest measured it: section 9's range (FOLLOW_SIGMA)
         self._unfitted2 = np.full(0 if gradients is None else len(gradients), RESTART_GRADIENT ** 2)
         w = np.where(keep, 1.0 / np.asarray(noise, float), 0.0)
