@@ -3,7 +3,7 @@ comes from. No ROS, no serial.
 
 A stage of the frame stream (frame_path/stream.py). A one-frame reference measures no noise: the
 estimators then assume :data:`~.pipeline.NOISE_ASSUMED` until the running estimate
-(:class:`~..force.reference.noise_estimate.NoiseEstimate`, ``noise_estimation``) of consecutive frames gives a usable level,
+(:class:`~cstomo_sensor.force.reference.noise_estimate.NoiseEstimate`, ``noise_estimation``) of consecutive frames gives a usable level,
 or a whole frames file does first (:meth:`NoiseState.from_frames`). The stage returns the level to
 use; the stream hands it to the pipeline (``Pipeline.set_noise``, named by :meth:`NoiseState.named`) and
 the drift tracker, and tells the stage whether it was taken (:meth:`NoiseState.took`, :meth:`NoiseState.refused`).
@@ -82,10 +82,10 @@ class NoiseState:
     def observe(self, values: np.ndarray, keep: np.ndarray | None, processed: int) -> tuple[float, str] | None:
         """A processed frame (the ``processed``-th; ``keep`` its channels, None: all) into the running
         estimate (every frame's pair until an estimate is in use, then one in
-        :data:`~..force.reference.noise_estimate.SAMPLE_EVERY`). The estimate is evaluated every
-        :data:`~..force.reference.noise_estimate.MIN_PAIRS` pairs
-        until one is in use, then every :data:`~..force.reference.noise_estimate.UPDATE_EVERY`: returns the (level, source) to
-        use when none is or it moved by more than :data:`~..force.reference.noise_estimate.RETUNE`, else None."""
+        :data:`~cstomo_sensor.force.reference.noise_estimate.SAMPLE_EVERY`). The estimate is evaluated every
+        :data:`~cstomo_sensor.force.reference.noise_estimate.MIN_PAIRS` pairs
+        until one is in use, then every :data:`~cstomo_sensor.force.reference.noise_estimate.UPDATE_EVERY`: returns the (level, source) to
+        use when none is or it moved by more than :data:`~cstomo_sensor.force.reference.noise_estimate.RETUNE`, else None."""
         est = self.estimate
         est.observe(values, keep, pair=self.level is None or processed % SAMPLE_EVERY == 0)
         if est.pairs < self._next:

@@ -1,9 +1,9 @@
 """The output set of a sensor, in one place: every output's name, message type, description and the
 value it carries, and which of them a configuration produces. No ROS imports.
 
-The node publishes each output as ``~/<name>`` (:mod:`..ros.node`), ``cstomo replay`` writes each as a
+The node publishes each output as ``~/<name>`` (:mod:`cstomo_sensor.ros.node`), ``cstomo replay`` writes each as a
 topic, ``cstomo_sensor_node --help`` lists them (:func:`help_lines`); the messages are encoded by type
-in :mod:`..ros.messages` (:class:`~..ros.messages.OutputMessages`), from the value :attr:`Output.value`
+in :mod:`cstomo_sensor.ros.messages` (:class:`~cstomo_sensor.ros.messages.OutputMessages`), from the value :attr:`Output.value`
 takes out of a processed frame (:class:`FrameOutput`: what the frame stream emits). An output whose
 value is None for a frame (no sigma, a NaN consistency, no field on this frame) is not built for it.
 """

@@ -188,12 +188,12 @@ class Pipeline:
 
     def set_reference(self, frame: np.ndarray, noise: np.ndarray | None = None, n_frames: int = 1) -> ScaleReport:
         """Use the device's own unloaded frame (tare) as the difference reference; returns how it
-        compares with the model (:class:`~..force.reference.files.ScaleReport`).
+        compares with the model (:class:`~cstomo_sensor.force.reference.files.ScaleReport`).
 
         The change is normalised by ``c * v_scale``, ``c`` the reference's global factor against the
         model's, so a device whose voltages are all scaled alike gives the same forces. ``noise``
         (n_meas,) volts, the per-channel std of one frame (of the tare frames), sets the estimators'
-        noise; None assumes :data:`~..force.reference.files.DEFAULT_NOISE_DB` relative to the reference.
+        noise; None assumes :data:`~cstomo_sensor.force.reference.files.DEFAULT_NOISE_DB` relative to the reference.
         ``n_frames`` (>= 1) is how many frames were averaged into ``frame``: the reference carries
         noise of std ``noise / sqrt(n_frames)`` on every change, so the consistency statistic whitens
         by ``noise * sqrt(1 + 1 / n_frames)`` (force/checks/consistency.py); the estimators keep ``noise``.

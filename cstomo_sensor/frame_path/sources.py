@@ -8,7 +8,7 @@ sets them to the frame stream's): ``on_reconnect()`` when a board came back afte
 :meth:`~FrameSource.close` releases it.
 
 - :class:`SerialSource`: the board on a serial port (any pyserial URL, ``virtual://NAME`` for the
-  in-process simulated board): :class:`~..board.driver.BoardDriver` read by the thread that calls
+  in-process simulated board): :class:`~cstomo_sensor.board.driver.BoardDriver` read by the thread that calls
   :meth:`~SerialSource.recv` (no reader thread, no hand-over), its clock mapped onto the host's.
 - :class:`ArraySource`: recorded frames with their stamps (a frames file at a nominal rate, a
   simulated timeline).
@@ -136,11 +136,11 @@ class ArraySource(FrameSource):
 
 
 class SerialSource(FrameSource):
-    """The board on a serial port: :class:`~..board.driver.BoardDriver` without a reader thread (the
+    """The board on a serial port: :class:`~cstomo_sensor.board.driver.BoardDriver` without a reader thread (the
     thread calling :meth:`recv` reads, decodes and goes on with the frame), each frame stamped with
     the consumer's clock ``now_ns()`` (the node's ROS clock) minus its age (flags None when the board
     flagged nothing, as a source without flags gives them): the board clock mapped
-    onto the host's monotonic clock (:class:`~..board.clock.ClockMapper`, a window of ``clock_window``
+    onto the host's monotonic clock (:class:`~cstomo_sensor.board.clock.ClockMapper`, a window of ``clock_window``
     s; it cannot step); a text-mode frame (no board clock) is stamped now. A reconnect of the board
     calls ``on_reconnect`` from :meth:`recv`, before the returning frames.
 

@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 class FrameStream:
     """The frame stream of one sensor over the pipeline ``pipe``. The tare's ``on_tare``, ``tare_file``,
-    ``tare_comment`` and ``started``: :class:`~..force.reference.tare_transaction.Taring`. A tare pending (at start without a
+    ``tare_comment`` and ``started``: :class:`~cstomo_sensor.force.reference.tare_transaction.Taring`. A tare pending (at start without a
     usable saved tare, :meth:`tare`, replay without a reference) averages the next ``tare_frames``
     frames into the reference (no output); force/reference/tare_rules.py's rules or a reconnect refuse it. Without any
     reference a tare is always pending: a refused or cancelled one starts over."""
@@ -95,10 +95,10 @@ class FrameStream:
     def set_reference(self, ref: np.ndarray, noise: np.ndarray | None, n_frames: int, source: str,
                       age_s: float | None = None, directions: Directions | None = None) -> str:
         """Use ``ref`` (n_meas,) volts, the mean of ``n_frames`` unloaded frames of per-channel ``noise``
-        (None: assumed) if plausible (:func:`~..force.reference.tare_rules.tare_problem`, else :class:`ConfigError` naming
+        (None: assumed) if plausible (:func:`~cstomo_sensor.force.reference.tare_rules.tare_problem`, else :class:`ConfigError` naming
         ``source``); returns the tare report's message. ``age_s``: a saved tare this old (a restart);
         ``directions``: the device's own directions saved with it (force/slow_states/learned.py
-        :func:`~..force.slow_states.learned.read_directions`)."""
+        :func:`~cstomo_sensor.force.slow_states.learned.read_directions`)."""
         why = tare_problem(ref, self.pipe.model_reference)
         if why:
             raise ConfigError(f"{source} not used: {why}")
@@ -194,7 +194,7 @@ class FrameStream:
 
     def reconnected(self) -> None:
         """The board came back after an outage: the filter starts again, a pending tare is refused
-        (:data:`~..force.reference.tare_rules.TARE_RECONNECTED`: the joint may be loaded by then)."""
+        (:data:`~cstomo_sensor.force.reference.tare_rules.TARE_RECONNECTED`: the joint may be loaded by then)."""
         with self.lock:
             if self.filter is not None:
                 self.filter.reset()
@@ -213,7 +213,7 @@ class FrameStream:
         return self.tares.cancel(keep_pending=self.pipe.reference is None)
 
     def tare_deadline(self, rate_hz: float = 0.0) -> float:
-        """Seconds a tare of ``tare_frames`` frames may take (:func:`~..force.reference.tare_rules.tare_deadline`): from the
+        """Seconds a tare of ``tare_frames`` frames may take (:func:`~cstomo_sensor.force.reference.tare_rules.tare_deadline`): from the
         measured frame period (:attr:`~.health.Health.frame_period`), never shorter than the nominal ``rate_hz``'s (0: unknown)."""
         return tare_deadline(self.config.tare_frames, self.counter.frame_period, rate_hz, self.config.stale_timeout)
 
@@ -231,7 +231,7 @@ class FrameStream:
 
     def _end_tare(self, outcome: TareOutcome) -> None:
         """Under the frame lock: an accepted tare is the reference from the next frame (saved and
-        reported once the lock is released: :meth:`~..force.reference.tare_transaction.Taring.finish`)."""
+        reported once the lock is released: :meth:`~cstomo_sensor.force.reference.tare_transaction.Taring.finish`)."""
         report = None
         if outcome.ok:
             first = self.pipe.reference is None and not outcome.forced  # nothing to judge it against: watched
@@ -334,7 +334,7 @@ class FrameStream:
 
     def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None, source=None) -> str:
         """A controller's expected load now (its dynamics model: the link's weight): checked, then a measurement
-        of the device's states; '' or why refused (:meth:`..force.slow_states.coordinator.SlowStates.expect_load`,
+        of the device's states; '' or why refused (:meth:`cstomo_sensor.force.slow_states.coordinator.SlowStates.expect_load`,
         force/checks/expected.py)."""
         return self.slow.expect_load(force, sigma, stamp_ns, frame_id, source)
 

@@ -324,7 +324,7 @@ def recording_directions(pipe, reference: tuple, recording: Recording | None, wh
     (its calibration set: the node's stream of this calibration, the calibration's creep) from ``reference`` (the
     reference, its noise and its frame count), its drift tracker learning from the rests between the loads
     (force/slow_states/learned.py): each frame known to be unloaded (``recording.rest``) feeds it
-    whatever the rest test says (:meth:`~..force.slow_states.coordinator.SlowStates.known_unloaded`), so a
+    whatever the rest test says (:meth:`~cstomo_sensor.force.slow_states.coordinator.SlowStates.known_unloaded`), so a
     change whose phantom force keeps the rest test from counting them is learned too."""
     from ..frame_path.config import StreamConfig
     from ..frame_path.stream import FrameStream

@@ -3,7 +3,8 @@ item 5). No ROS, no serial.
 
 A controller's dynamics model says what load the joint carries now (:meth:`FrameStream.expect_load`);
 the slow states (force/slow_states/coordinator.py) use it as a measurement of the force in the joint fit of the device's
-change (force/estimators/scale_fit.py :class:`~..estimators.scale_fit.JointScale`). Before it is used it must be a load the sensor
+change (force/estimators/scale_fit.py
+:class:`~cstomo_sensor.force.estimators.scale_fit.JointScale`). Before it is used it must be a load the sensor
 can carry and the frames can have: :class:`ExpectedLoad` refuses one
 
 - whose force is not finite (``not_finite``), or beyond the sensor's range ``max_force`` (``beyond_range``);
@@ -184,7 +185,7 @@ class ExpectedLoad:
 
 
 def bounded(with_load: tuple, without: tuple | None) -> tuple:
-    """A frame's joint measurement of the scale (:meth:`~..estimators.scale_fit.JointScale.measure`: (d, var, u, v,
+    """A frame's joint measurement of the scale (:meth:`~cstomo_sensor.force.estimators.scale_fit.JointScale.measure`: (d, var, u, v,
     force, the others' part)) with an expected load, bounded by the one ``without`` it: its ``d`` within
     the frame's own 1-sigma of ``d`` (one message moves the states by no more than one frame's noise
     may), and the force's step and the other states' measurement the frame's own (the published force

@@ -1,6 +1,6 @@
 """One frame's own measurement of the device's uniform scale, its load marginalised (issue 26): the joint
 fit of the force and the scale that lets every frame, loaded or not, inform the drift tracker
-(:mod:`..slow_states.drift`), and the directions the tracker follows besides the scale. docs/node.md, *Following the
+(:mod:`cstomo_sensor.force.slow_states.drift`), and the directions the tracker follows besides the scale. docs/node.md, *Following the
 device under load*."""
 from __future__ import annotations
 

@@ -182,7 +182,7 @@ class DeviceCalibration:
         """The device's unloaded reference of the calibration's recording, beside its file
         (``DEVICE.reference.csv``, written by ``cstomo calibrate``, the time it was recorded in its
         comment): a start without a saved tare starts from it, as from a saved tare of its age
-        (:meth:`~...frame_path.stream.FrameStream.init_reference`). None when the calibration has no file."""
+        (:meth:`~cstomo_sensor.frame_path.stream.FrameStream.init_reference`). None when the calibration has no file."""
         return reference_path_of(self.path) if self.path else None
 
     def check_model(self, model) -> None:

@@ -203,8 +203,8 @@ def tare_age(path: str | Path, now: float, file_time: bool = True) -> float | No
     """How old (s) the saved tare ``path`` is at ``now`` (s since the epoch): from the time it records
     (:func:`saved_at`), else (``file_time``) its file's modification time, else None; None too when it
     was saved after ``now`` (it cannot be the tare a restart at ``now`` read). The node's restart
-    (:meth:`~...frame_path.stream.FrameStream.init_reference`) and ``cstomo replay`` with a tare file take their
-    age from here (:meth:`~..slow_states.drift.DriftTracker.widen`)."""
+    (:meth:`~cstomo_sensor.frame_path.stream.FrameStream.init_reference`) and ``cstomo replay`` with a tare file take their
+    age from here (:meth:`~cstomo_sensor.force.slow_states.drift.DriftTracker.widen`)."""
     t = saved_at(path)
     if t is None and file_time:
         t = Path(path).stat().st_mtime

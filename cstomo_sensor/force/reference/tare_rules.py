@@ -131,7 +131,7 @@ class TareCheck:
 
 
 def y_scale(pipe, reference: np.ndarray) -> np.ndarray:
-    """``c * v_scale`` of ``reference``: the normalisation :meth:`~...frame_path.pipeline.Pipeline.set_reference`
+    """``c * v_scale`` of ``reference``: the normalisation :meth:`~cstomo_sensor.frame_path.pipeline.Pipeline.set_reference`
     gives it (``c`` its global factor against the model's reference)."""
     c = ScaleReport.of(reference, pipe.model_reference).factor
     return (c if np.isfinite(c) and c > 0 else 1.0) * pipe.model.v_scale

@@ -98,7 +98,7 @@ NO_CORRECTION = Correction(None, None, float("nan"))
 class SlowStates:
     """The drift tracker (``config.drift_tracking``) and the creep compensator (``config.creep_per_decade``,
     0: off) of a pipeline's reference, the offset and scale they give, and the checks of a controller's
-    expected load (:class:`~..checks.expected.ExpectedLoad`: a sensor of range ``max_force``, the stream ``config``'s
+    expected load (:class:`~cstomo_sensor.force.checks.expected.ExpectedLoad`: a sensor of range ``max_force``, the stream ``config``'s
     ``frame_id`` and ``expected_wrench_tolerance``); ``directions``: the device's own directions it starts with
     (force/slow_states/learned.py: its calibration's; None: none), until a saved tare brings its own (:meth:`reset`)."""
 
@@ -227,8 +227,8 @@ class SlowStates:
     def _joint_scale(self, frame: Frame, t: float | None):
         """The frame's (its ``FrameRecord``) joint measurement of the scale (force/estimators/scale_fit.py JointScale),
         None for an estimator without a joint fit (``linear``); with the controller's expected load when one is in
-        effect for this frame and agrees with it (:meth:`..checks.expected.ExpectedLoad.for_frame`), bounded by
-        the frame's own (:func:`..checks.expected.bounded`)."""
+        effect for this frame and agrees with it (:meth:`cstomo_sensor.force.checks.expected.ExpectedLoad.for_frame`), bounded by
+        the frame's own (:func:`cstomo_sensor.force.checks.expected.bounded`)."""
         if frame.fit is None:
             return None
         est, result = frame.in_use.estimator, frame.result
@@ -246,7 +246,7 @@ class SlowStates:
         """A controller's expected load now: ``force`` (3,) N in ``frame_id`` (None: the wrench's), its
         1-sigma ``sigma`` (N, per axis), at ``stamp_ns`` (the frames' clock; None: from the next frame),
         from the input ``source`` (its name in the log and the diagnostics; None: as before);
-        checked (:meth:`..checks.expected.ExpectedLoad.offer`: '' accepted, else why refused), then a measurement
+        checked (:meth:`cstomo_sensor.force.checks.expected.ExpectedLoad.offer`: '' accepted, else why refused), then a measurement
         of the force in the joint fit of the device's scale for frames within the tolerance of its stamp."""
         return self.expected.offer(force, sigma, stamp_ns, frame_id, source)
 

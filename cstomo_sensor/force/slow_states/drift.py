@@ -4,7 +4,7 @@ After a tare the device keeps changing (it warms, its contacts and drive drift):
 drive scale every voltage alike, ``V = s (V_ref + dV_load)`` (1 % reads as 18 N at zero load), a
 gradient across the block reads as a lateral load. :class:`DriftTracker` estimates ``s``, its rate,
 and the states of a few more directions (the contacts' impedance changing alike and linearly along x,
-y, z; the resistivity's gradient, :func:`~..estimators.scale_fit.gradient_directions`); the pipeline removes them all:
+y, z; the resistivity's gradient, :func:`~cstomo_sensor.force.estimators.scale_fit.gradient_directions`); the pipeline removes them all:
 ``y = (V / s - V_ref) / y_scale - g . d``.
 
 What separates these slow changes from a load (one frame alone only in part: the normalised change
@@ -70,7 +70,8 @@ RATE_MEMORY = 30.0
 #: 0 until then), its 1-sigma is section 9's range: :data:`RESTART_GRADIENT` and :data:`RESTART_CONTACT` (a
 #: loaded warm-up from the tare, no rest: the loaded frames then measure them).
 FOLLOW_SIGMA = 0.1
-#: A loaded frame's own measurement of the scale (:class:`~..estimators.scale_fit.JointScale`, the load marginalised) counts
+#: A loaded frame's own measurement of the scale
+# (:class:`~cstomo_sensor.force.estimators.scale_fit.JointScale`, the load marginalised) counts
 #: as this fraction of one independent measurement: the frames of one held load share the model's
 #: mismatch with the device (not white noise), so their measurements do not average like noise.
 LOADED_WEIGHT = 0.005
@@ -99,7 +100,7 @@ RESTART_GRADIENT = 0.3
 RESTART_CHANGE = 0.025
 RESTART_CONTACT = 1.9
 RESTART_CONTACT_DRIFT, RESTART_CONTACT_DAYS = 0.2, 3.0
-#: A loaded frame measures the other states too (:meth:`~..estimators.scale_fit.JointScale.others_part`: the load and the
+#: A loaded frame measures the other states too (:meth:`~cstomo_sensor.force.estimators.scale_fit.JointScale.others_part`: the load and the
 #: scale profiled out; their Cramer-Rao bound in docs/physics.md#device-changes), counted as a loaded frame's
 #: scale (:data:`LOADED_WEIGHT` per 10 ms). The model's mismatch with the device for a load reaches into
 #: them as an error that stays while the load is held (device_a, no change: the x and y gradients read
@@ -142,7 +143,7 @@ class DriftTracker:
     the stream gives the contacts' four and the resistivity gradient's three, relative change per
     half extent). ``r`` (n_meas,): the normalised change of a uniform scaling by 1 + 1 (``V_ref /
     y_scale``); ``gradients`` (k, n_meas) or None: the other directions (the model's contact
-    directions, :func:`~..estimators.scale_fit.gradient_directions`; None: the scale alone); ``noise`` (n_meas,): the
+    directions, :func:`~cstomo_sensor.force.estimators.scale_fit.gradient_directions`; None: the scale alone); ``noise`` (n_meas,): the
     per-channel noise std of a change (y units); ``keep`` (n_meas,) bool: the channels in use;
     ``force_map`` (3, n_meas) or None: the estimator's linear map from a change to a force (N), for
     the rest frames' force bound (None: the residual bound alone)."""
@@ -360,7 +361,8 @@ class DriftTracker:
     def observe(self, y: np.ndarray, t: float | None = None, joint: tuple | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
         :data:`DEFAULT_PERIOD` after the previous frame), formed with the current state; returns True
-        if the frame was taken as at rest. ``joint``: the frame's :meth:`~..estimators.scale_fit.JointScale.measure` (None: the
+        if the frame was taken as at rest. ``joint``: the frame's
+        :meth:`~cstomo_sensor.force.estimators.scale_fit.JointScale.measure` (None: the
         linear estimator, no joint fit: a loaded frame measures nothing); then :attr:`force_step` is
         the frame's force step (N) for the scale as updated (None without it)."""
         dt = DEFAULT_PERIOD if t is None or self._t is None else min(max(t - self._t, 0.0), 1.0)
@@ -485,7 +487,8 @@ class DriftTracker:
         return rest
 
     def _loaded_others(self, P: np.ndarray, tot: np.ndarray, part: tuple, w: float) -> None:
-        """A loaded frame's measurement of the other states (``part``: :meth:`~..estimators.scale_fit.JointScale.others_part`'s
+        """A loaded frame's measurement of the other states (``part``:
+        :meth:`~cstomo_sensor.force.estimators.scale_fit.JointScale.others_part`'s
         information and vector), weighted ``w``, with :data:`LOADED_OTHER_N`'s floor: a Kalman update of
         every state through their covariance ``P`` (in place) into ``tot``."""
         Ho, bo, _ = part

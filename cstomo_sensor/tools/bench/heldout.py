@@ -69,7 +69,7 @@ ONE_FRAME_CASES = ((f"tare {TARE_FRAMES}, noise measured", TARE_FRAMES, True, Fa
 
 
 def _observe_us(frames: np.ndarray) -> float:
-    """Microseconds per frame pair of the running noise estimate (:class:`~...force.reference.noise_estimate.NoiseEstimate`)."""
+    """Microseconds per frame pair of the running noise estimate (:class:`~cstomo_sensor.force.reference.noise_estimate.NoiseEstimate`)."""
     from ...force.reference.noise_estimate import NoiseEstimate
 
     est = NoiseEstimate(frames.shape[1])
