@@ -397,6 +397,10 @@ def test_the_boards_counts_are_said_in_words():
 
 
 @pytest.mark.slow
+# a SIGINT every 10 ms through the exit: on a host whose other core runs a neighbour, one landed once between
+# board-sim's handlers being restored and the `cstomo` process ignoring SIGINT (cli.main), as a traceback of an
+# ignored KeyboardInterrupt at exit (a race left to fix: docs/design.md#tests); run with no neighbour
+@pytest.mark.alone
 def test_board_sim_stopped_by_sigint_exits_cleanly_through_repeated_sigints(tmp_path):
     """``cstomo board-sim`` as ros2 launch stops it when not run from a terminal: the group's SIGINT,
     then launch's own SIGINT while the board is exiting (it takes ~0.1 s). A late SIGINT must not turn
