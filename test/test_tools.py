@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -182,6 +183,39 @@ def test_a_scene_file_with_an_unknown_key_is_refused_naming_it(tmp_path, text, k
     f.write_text("loads:\n  - {socket: {force: [0, 0, -10]}}\n" + text)
     with pytest.raises(ConfigError, match=key):
         Scene.load(f)
+
+
+@pytest.mark.parametrize("text,why", [
+    ("snr_db: sixty\n", "snr_db='sixty': expected a number (dB) or null"),
+    ("seed: -3\n", "seed=-3: expected an integer >= 0"),
+    ("seed: abc\n", "seed='abc': expected an integer >= 0"),
+    ("frames_per_load: 0\n", "frames_per_load=0: expected an integer >= 1"),
+    ("truth_mesh_size: 3\n", "truth_mesh_size=3: expected 0.0002..0.02 m"),
+    ("mismatch: {contact_impedance: -0.5}\n", "mismatch.contact_impedance=-0.5: expected a fraction 0..1"),
+])
+def test_a_scene_file_with_a_bad_value_is_refused_naming_it(tmp_path, text, why):
+    """Before: a TypeError or ValueError traceback (snr_db: sixty only once the truth's mesh was built)."""
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.model.simulate import Scene
+
+    f = tmp_path / "scene.yaml"
+    f.write_text("loads:\n  - {socket: {force: [0, 0, -10]}}\n" + text)
+    with pytest.raises(ConfigError) as err:
+        Scene.load(f)
+    assert str(err.value) == f"{f}: {why}"
+    f.write_text("loads:\n  - {socket: {force: [0, 0, -10]}}\ntruth_mesh_size: 3e-3\nsnr_db: 40\n")
+    scene = Scene.load(f)  # YAML reads 3e-3 (no dot) as a string: still a number here
+    assert scene.truth_mesh_size == pytest.approx(0.003) and scene.snr_db == 40
+
+
+def test_a_timeline_load_with_a_time_that_is_no_number_is_refused_naming_it(tmp_path):
+    from cstomo_sensor.errors import ConfigError
+    from cstomo_sensor.model.timeline import Timeline
+
+    f = tmp_path / "scene.yaml"
+    f.write_text("timeline:\n  duration: 5\n  loads:\n    - {time: soon, force: [0, 0, -20]}\n")
+    with pytest.raises(ConfigError, match=re.escape("timeline.loads[0].time='soon': expected seconds, a number")):
+        Timeline.from_scene(f)
 
 
 @pytest.mark.slow  # starts a process

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from ..cache import cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
 from ..progress import steps
-from ..settings import DEFAULT_SENSOR, MAX_LOAD
+from ..settings import DEFAULT_SENSOR, MAX_LOAD, MESH_SIZE_RANGE
 from . import elasticity
 from .cem import ForwardModel
 from .geometry import DEFAULT_SNR_DB, Electrode, SensorGeometry, load_sensor, noise_std
@@ -322,17 +323,43 @@ class Scene:
             if loads[-1].kind == "socket" and not magnitude <= MAX_LOAD:  # before any mesh is built
                 raise ConfigError(f"{p}: loads[{i}] (socket) is {magnitude:g} N; expected a magnitude of "
                                   f"0..{MAX_LOAD:g} N")
+        lo, hi = MESH_SIZE_RANGE
+        snr_db = d.get("snr_db", DEFAULT_SNR_DB)
+        if snr_db is not None:  # checked; kept as written (an int stays one: the cache keys see it)
+            x = _scene_value(p, "snr_db", snr_db, "a number (dB) or null", -math.inf, math.inf)
+            snr_db = snr_db if isinstance(snr_db, (int, float)) else x
         return cls(sensor=sensor, loads=tuple(loads),
-                   snr_db=d.get("snr_db", DEFAULT_SNR_DB), seed=int(d.get("seed", 0)),
-                   truth_mesh_size=float(d.get("truth_mesh_size", TRUTH_MESH_SIZE)),
-                   mechanics_mesh_size=float(d.get("mechanics_mesh_size", MECHANICS_MESH_SIZE)),
-                   z_rel=float(mm.get("contact_impedance", CONTACT_MISMATCH)),
-                   jitter=float(mm.get("electrode_jitter", ELECTRODE_JITTER)),
-                   frames_per_load=int(d.get("frames_per_load", 1)), timeline=d.get("timeline"))
+                   snr_db=snr_db,
+                   seed=int(_scene_value(p, "seed", d.get("seed", 0), "an integer >= 0", integer=True)),
+                   truth_mesh_size=_scene_value(p, "truth_mesh_size", d.get("truth_mesh_size", TRUTH_MESH_SIZE),
+                                                f"{lo:g}..{hi:g} m", lo, hi),
+                   mechanics_mesh_size=_scene_value(p, "mechanics_mesh_size",
+                                                    d.get("mechanics_mesh_size", MECHANICS_MESH_SIZE),
+                                                    f"{lo:g}..{hi:g} m", lo, hi),
+                   z_rel=_scene_value(p, "mismatch.contact_impedance", mm.get("contact_impedance", CONTACT_MISMATCH),
+                                      "a fraction 0..1", 0.0, 1.0),
+                   jitter=_scene_value(p, "mismatch.electrode_jitter", mm.get("electrode_jitter", ELECTRODE_JITTER),
+                                       "a distance >= 0 m", 0.0),
+                   frames_per_load=int(_scene_value(p, "frames_per_load", d.get("frames_per_load", 1),
+                                                    "an integer >= 1", 1, integer=True)),
+                   timeline=d.get("timeline"))
 
     def truth(self, cache_dir=None) -> Truth:
         return Truth(load_sensor(self.sensor), self.truth_mesh_size, self.mechanics_mesh_size, self.z_rel,
                      self.jitter, self.seed, cache_dir)
+
+
+def _scene_value(path: Path, key: str, value: object, expected: str, lo: float = 0.0, hi: float = math.inf, *,
+                 integer: bool = False) -> float:
+    """A scene file's number ``key``, checked before any mesh is built: else one :class:`ConfigError`
+    naming the file, the key, the value and what was expected (before: a traceback, e.g. ``snr_db: sixty``)."""
+    try:  # a string too: YAML reads 3e-3 (no dot) as one
+        x = float(value) if isinstance(value, (int, float, str)) and not isinstance(value, bool) else math.nan
+    except ValueError:
+        x = math.nan
+    if not (lo <= x <= hi and (x.is_integer() or not integer)):
+        raise ConfigError(f"{path}: {key}={value!r}: expected {expected}")
+    return x
 
 
 def _no_timeline(scene: Scene) -> None:

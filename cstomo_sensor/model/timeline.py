@@ -345,6 +345,10 @@ class TimelineSpec:
                     raise ConfigError(f"timeline.loads[{i}]: expected {{time: s, force: [fx, fy, fz]}} or "
                                       "{time: s, magnitude: N, elevation_deg: D, azimuth_deg: D}")
                 _check_keys(f"timeline.loads[{i}]", it, ("time", "force", "magnitude", "elevation_deg", "azimuth_deg"))
+                try:
+                    float(it["time"])
+                except (TypeError, ValueError):
+                    raise ConfigError.bad_value(f"timeline.loads[{i}].time", it["time"], "seconds, a number") from None
             kw["load_times"] = tuple(float(it["time"]) for it in items)
             kw["load_forces"] = tuple(tuple(_force_of(it, f"timeline.loads[{i}]")) for i, it in enumerate(items))
         if "load_script" in d:
