@@ -7,7 +7,7 @@ nearly incompressible rubber (nu = 0.45) does not lock; the volumetric compressi
 theta = -div(u) is then linear in each cell.
 
 Input meshes are plain arrays (``points (n, 3)`` in metres, ``tets (m, 4)`` vertex indices), e.g.
-the fields of ``cstomo_sensor.mesh.TetMesh``; cells of either orientation are accepted. Nothing here
+the fields of ``cstomo_sensor.model.mesh.TetMesh``; cells of either orientation are accepted. Nothing here
 knows the sensor: its faces and loads are :mod:`~cstomo_sensor.model.elasticity`'s.
 
 Solver: the condensed stiffness (symmetric positive definite) is factorised once per mesh and set

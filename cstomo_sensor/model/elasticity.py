@@ -4,7 +4,7 @@ socket and pressure patches, each solved on the P2 problem of :mod:`~cstomo_sens
 are that module's, named here too). The bottom face is fixed.
 
 Input meshes are plain arrays (``points (n, 3)`` in metres, ``tets (m, 4)`` vertex indices), e.g.
-the fields of ``cstomo_sensor.mesh.TetMesh``; cells of either orientation are accepted.
+the fields of ``cstomo_sensor.model.mesh.TetMesh``; cells of either orientation are accepted.
 Faces are found geometrically: the bottom face z = 0 (vertices within ``FACE_TOL`` x height), the
 top face z = height (outward normal +z), and the socket wall (boundary facets on the hemisphere of
 ``geometry.socket_radius`` around ``geometry.socket_center``, below the top face).

@@ -1,7 +1,7 @@
 """``cstomo bench``: speed and accuracy of every knob, measured on the same honest scenes.
 
 One table (docs/benchmark.md). The held-out scenes are simulated once
-per run and kept in memory: a :class:`~cstomo_sensor.simulate.Truth` on an independent 3 mm mesh
+per run and kept in memory: a :class:`~cstomo_sensor.model.simulate.Truth` on an independent 3 mm mesh
 with a seed no calibration uses (:data:`TRUTH_SEED`), random socket forces (magnitude 5-40 N,
 elevation 20-90 deg, any azimuth; seeded), 60 dB noise (docs/physics.md#noise, #honest-simulation).
 Frames are rounded to the precision of the frames file (``%.9e``), so ``cstomo estimate`` on the
