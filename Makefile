@@ -18,10 +18,12 @@ venv: $(STAMP)
 # build prints a boxed warning on every install, which pip shows even with -q; errors (a failed build's
 # output included) still show. setuptools' default editable mode: `editable_mode=compat` is deprecated
 # (to be removed from setuptools), and the demo, the tests and the colcon install need none of it.
+# A .venv without pip is made anew: `python3 -m venv` leaves one when it fails half-way (Debian and
+# Ubuntu without the python3-venv package), and pip would then be missing on every later run.
 $(STAMP): setup.py requirements-ros.txt
 	@echo "setting up $(VENV): the package, its dependencies and rclpy's wheels (once, or when setup.py or"
 	@echo "requirements-ros.txt change; 2-6 minutes)"
-	@test -x $(VPY) || $(PY) -m venv $(VENV)
+	@$(VPY) -m pip --version >/dev/null 2>&1 || $(PY) -m venv --clear $(VENV)
 	@tick=; if [ -t 1 ]; then (t=0; while sleep 5; do t=$$((t + 5)); printf '\r  pip install: %s s' $$t; done) & \
 	    tick=$$!; fi; \
 	  $(VPY) -m pip install -q --upgrade pip && \
