@@ -221,7 +221,8 @@ def load_sensor(name_or_path: str | os.PathLike) -> SensorGeometry:
         is_path = False
     if is_path:
         if not p.is_file():
-            raise ConfigError(f"sensor file {str(p)!r}: not found")
+            raise ConfigError(f"sensor file {str(p)!r}: not found; expected a sensor YAML file "
+                              f"(docs/formats.md#sensor-file) or one of {preset_names()}")
         return sensor_from_dict(_read_yaml(p), source=str(p))
     if NAME_PATTERN.fullmatch(str(name_or_path)):  # a preset name never leaves the preset folders
         for d in preset_dirs():

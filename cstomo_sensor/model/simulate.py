@@ -295,7 +295,8 @@ class Scene:
     def load(cls, path: str | os.PathLike) -> Scene:
         p = Path(path)
         if not p.is_file():
-            raise ConfigError(f"scene file {str(p)!r}: not found")
+            raise ConfigError(f"scene file {str(p)!r}: not found; expected a scene YAML file (docs/formats.md#scene-file, "
+                              "examples in scenes/)")
         d = yaml.safe_load(p.read_text()) or {}
         if not isinstance(d, dict):
             raise ConfigError(f"{p}: expected a mapping of the keys {list(SCENE_KEYS)}")
