@@ -159,6 +159,18 @@ def test_mesh_size_is_in_metres_everywhere(capsys):
     assert "--mesh-size" in err and "metres" in err and "0.004" in err
 
 
+@pytest.mark.parametrize("argv,prog,names", [([], "cstomo", ["demo", "estimate", "record"]),
+                                               (["model"], "cstomo model", ["build", "voltages"])])
+def test_no_command_names_the_commands_expected_in_one_line(capsys, argv, prog, names):
+    """Before: `cstomo: error: the following arguments are required: cmd` (`what` for `cstomo model`)."""
+    with pytest.raises(SystemExit) as done:
+        cstomo(argv)
+    assert done.value.code == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"{prog}: error: no command given; expected one of ") and line.endswith(f"({prog} --help)")
+    assert all(n in line for n in names) and " cmd" not in line and "what" not in line, line
+
+
 def test_simulate_help_names_the_scene_keys_and_describes_every_option(capsys):
     from cstomo_sensor.model.simulate import MISMATCH_KEYS, SCENE_KEYS
     from cstomo_sensor.tools.cli import build_parser

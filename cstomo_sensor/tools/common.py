@@ -70,7 +70,13 @@ class ToolParser(argparse.ArgumentParser):
         return super().format_help()
 
     def error(self, message: str):
-        """A bad command line: one line, ``PROG: error: MESSAGE``, exit 2 (argparse's own adds the usage)."""
+        """A bad command line: one line, ``PROG: error: MESSAGE``, exit 2 (argparse's own adds the usage).
+        No command given (``cstomo``, ``cstomo model``): the commands it expects, not argparse's
+        ``the following arguments are required: cmd``."""
+        for action in self._actions:
+            if (isinstance(action, argparse._SubParsersAction)
+                    and message == f"the following arguments are required: {action.metavar or action.dest}"):
+                message = f"no command given; expected one of {', '.join(action.choices)} ({self.prog} --help)"
         self.exit(2, f"{self.prog}: error: {message}\n")
 
     def fail(self, err: object, code: int = 2) -> int:
