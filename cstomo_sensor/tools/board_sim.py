@@ -58,7 +58,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--link", metavar="PATH", help="symlink kept pointing at the current pty")
     p.add_argument("--snr", type=float, default=None, metavar="DB",
                    help=f"signal-to-noise ratio in dB (default: the scene's snr_db; {DEFAULT_SNR_DB:g} for a load script)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the noise and of the faults")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the noise and of the faults; with --load-script also of the simulated device's "
+                   "mismatch (electrode places, contact impedances): another seed is another device, computed once")
     g = p.add_argument_group("faults (injected, for tests; off by default)")
     g.add_argument("--bit-flip", type=float, default=0.0, metavar="P", help="probability per frame")
     g.add_argument("--drop", type=float, default=0.0, metavar="P", help="probability per frame")
