@@ -3,9 +3,10 @@ PY      ?= python3
 VENV    := .venv
 VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
-# DDS stays on this host in everything the Makefile starts.
+# DDS stays on this host in everything the Makefile starts. A domain id of 20..99 (plus a test worker's
+# number): above 101 a domain's DDS ports fall among Linux's ephemeral ports (ROS 2: 0..101 on Linux).
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
-export ROS_DOMAIN_ID ?= $(shell $(PY) -c "import os; print(os.getpid() % 200 + 20)")
+export ROS_DOMAIN_ID ?= $(shell $(PY) -c "import os; print(os.getpid() % 80 + 20)")
 export PYTHONDONTWRITEBYTECODE := 1
 # BLAS threads fight over 2 cores on the small products of this project: one thread is faster.
 export OPENBLAS_NUM_THREADS ?= 1

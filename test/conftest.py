@@ -21,9 +21,10 @@ _WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
 if CALLER_DOMAIN is not None and _WORKER:
     CALLER_DOMAIN = str((int(CALLER_DOMAIN) + _WORKER) % 233)  # 0..232: the domain ids DDS accepts
     os.environ["ROS_DOMAIN_ID"] = CALLER_DOMAIN
-# none chosen: one from the run's process (xdist's workers share their parent), plus the worker's number
-os.environ.setdefault("ROS_DOMAIN_ID", str(100 + (os.getppid() if "PYTEST_XDIST_WORKER" in os.environ else os.getpid())
-                                           % 60 * 2 + _WORKER))
+# none chosen: one from the run's process (xdist's workers share their parent), plus the worker's number;
+# 20..99, as the Makefile's: above 101 a domain's DDS ports fall among Linux's ephemeral ports
+os.environ.setdefault("ROS_DOMAIN_ID", str(20 + (os.getppid() if "PYTEST_XDIST_WORKER" in os.environ else os.getpid())
+                                           % 40 * 2 + _WORKER))
 
 # --- the two tiers (docs/design.md#tests) ----------------------------------------------------------
 # The fast tier (`make test-fast`, `pytest -m "not slow"`) is pure computation in this process: a test
