@@ -284,7 +284,8 @@ def pipeline_config(a: argparse.Namespace) -> PipelineConfig:
 
 def local_ros_env(domain_base: int) -> None:
     """Keep DDS on this host (and on a domain of its own unless the caller chose one) for a tool
-    that starts rclpy or ROS processes."""
+    that starts rclpy or ROS processes: ``domain_base`` .. ``domain_base`` + 69, at most 101 (above 101 a domain's
+    DDS ports fall among Linux's ephemeral ports)."""
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ.setdefault("ROS_DOMAIN_ID", str(domain_base + os.getpid() % 70))
 
