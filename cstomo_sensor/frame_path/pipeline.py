@@ -214,6 +214,11 @@ class Pipeline:
         self._update_consistency()
         return report
 
+    def drop_reference(self) -> None:
+        """No reference in use any more (a first tare that carried a load, force/reference/first_tare.py): no frame
+        is processed until :meth:`set_reference` sets the next; the noise, the mask and the calibration stay."""
+        self.reference = None
+
     def _noise_y(self, noise: np.ndarray, y_scale: float) -> np.ndarray:
         """Per-channel noise (n_meas,) volts in y units, floored at a tenth of the median channel's (a
         channel that happened to read steady)."""

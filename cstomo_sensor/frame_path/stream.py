@@ -326,7 +326,8 @@ class FrameStream:
                 and self.first_tare.observe(frame.change)):
             # the first tare carried a load (force/reference/first_tare.py): dropped, nothing published until a tare
             self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tares.tare_file))
-            self.first_tare, pipe.reference = None, None
+            self.first_tare = None
+            pipe.drop_reference()
             slow.reset(pipe)
             self.start_tare()
             return None  # measured against the dropped reference
