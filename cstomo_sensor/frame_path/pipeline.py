@@ -238,6 +238,13 @@ class Pipeline:
         self.noise_measured, self.noise_source = False, str(source)
         self._update_consistency()
 
+    def after_noise(self, record: FrameRecord) -> FrameRecord:
+        """The record of this pipeline's latest frame as the stages after it see it once :meth:`set_noise` has
+        changed the noise since it was made: with what the pipeline makes frames with now (:attr:`in_use`: the
+        estimator of the new noise, its consistency) and no fit (that estimator has fitted no frame; the old
+        one's fit whitens the change by the old noise). Its result and change stay."""
+        return record._replace(fit=None, in_use=self.in_use)
+
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the
         device: measured noise at a tare, corrected set with a calibration) and the current mask. Its
