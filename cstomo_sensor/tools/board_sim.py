@@ -164,7 +164,8 @@ def _main(args: argparse.Namespace) -> int:
     except (CstomoError, OSError) as err:
         print(f"cstomo board-sim: error: {err}", file=sys.stderr)
         return 2
-    def stop(*_: object) -> None:
+
+    def stop(*_: object) -> None:  # the first signal stops the board; board-sim ignores the next ones (_stopping)
         _stopping()
         board.stop()
 
