@@ -91,7 +91,7 @@ def run_stream(pipe, frames, tare_file):
     from cstomo_sensor.frame_path.stream import FrameStream
 
     Path(tare_file).unlink(missing_ok=True)  # a first start: no saved tare, no reference
-    pipe.reference = None
+    pipe.drop_reference()
     s = FrameStream(pipe, StreamConfig.offline(tare_frames=TARE_FRAMES), tare_file=tare_file)
     s.init_reference(tare_on_start=False)
     dropped, forces = None, np.full((len(frames), 3), np.nan)

@@ -1,5 +1,6 @@
 """End to end over a real pseudo-terminal: SimulatedBoard (in a thread) -> BoardDriver."""
 import logging
+import signal
 import time
 
 import numpy as np
@@ -343,11 +344,14 @@ def test_cli_prints_device_first_and_streams(tmp_path, monkeypatch, capsys):
     link = tmp_path / "board"
     script = tmp_path / "x.csv"  # read by board-sim itself before its loads are computed (the stand-in's job)
     script.write_text("time,fx,fy,fz\n0,0,0,0\n")
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     with BoardDriver(str(link), reconnect_backoff=(0.01, 0.02)) as driver:
         argv = ["--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "300", "--duration", "0.6",
                 "--link", str(link), "--snr", "40", "--saturate-channel", "3", "--creep", "0"]
         assert board_sim.main(argv) == 0
         frames = drain(driver, quiet=0.2)
+    # called in-process, it gives its caller's handlers back (the `cstomo` process keeps SIGINT ignored instead)
+    assert {sig: signal.getsignal(sig) for sig in before} == before
     captured = capsys.readouterr()
     assert captured.out.splitlines()[0] == f"device: {link}"
     assert captured.err.splitlines()[-1].startswith("sent ") and "frames whole and unharmed" in captured.err
@@ -397,10 +401,9 @@ def test_the_boards_counts_are_said_in_words():
 
 
 @pytest.mark.slow
-# a SIGINT every 10 ms through the exit: on a host whose other core runs a neighbour, one landed once between
-# board-sim's handlers being restored and the `cstomo` process ignoring SIGINT (cli.main), as a traceback of an
-# ignored KeyboardInterrupt at exit (a race left to fix: docs/design.md#tests); run with no neighbour
-@pytest.mark.alone
+# a SIGINT every 10 ms through the exit: before board-sim ignored SIGINT from its first stop to the process's exit
+# (tools/board_sim.py _stopping, common.restore_signals), one landed once, beside a neighbour, between its
+# handlers being restored and the `cstomo` process ignoring SIGINT (cli.main): a KeyboardInterrupt traceback
 def test_board_sim_stopped_by_sigint_exits_cleanly_through_repeated_sigints(tmp_path):
     """``cstomo board-sim`` as ros2 launch stops it when not run from a terminal: the group's SIGINT,
     then launch's own SIGINT while the board is exiting (it takes ~0.1 s). A late SIGINT must not turn

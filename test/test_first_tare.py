@@ -60,7 +60,7 @@ def _run(pipe, frames, tare_file):
     from cstomo_sensor.frame_path.config import StreamConfig
     from cstomo_sensor.frame_path.stream import FrameStream
 
-    pipe.reference = None
+    pipe.drop_reference()
     s = FrameStream(pipe, StreamConfig.offline(tare_frames=TARE), tare_file=tare_file)
     s.init_reference(tare_on_start=False)
     forces, dropped = np.full((len(frames), 3), np.nan), None

@@ -277,3 +277,20 @@ def test_slow_states_small_tests_equal_their_numpy_formulations():
             verdicts.append(v)
             clears.append(c)
         assert 0 < np.mean(verdicts) < 1 and 0 < np.mean(clears) < 1 and follow.fitted  # both kinds, a fitted slope
+
+
+def test_a_noise_change_gives_the_frames_record_the_new_estimator_and_no_fit_of_the_old(model_pipe):
+    """A noise estimate taken mid-stream (frame_path/stream.py, ``Pipeline.set_noise``): the frame's record the slow
+    states then read (``Pipeline.after_noise``) is made with the new noise's estimator and consistency, and carries
+    no fit (the old estimator's whitens the change by the old noise); its result and change stay."""
+    pipe = model_pipe
+    pipe.set_reference(pipe.model_reference)
+    before = pipe.step(pipe.model_reference * (1 + 1e-3 * np.linspace(-1, 1, pipe.n_meas)))
+    assert before.fit is not None and before.in_use.estimator is pipe.estimator  # the model estimator fitted it
+    level = 1e-3 * float(np.sqrt(np.mean(pipe.model_reference**2)))  # 60 dB
+    pipe.set_noise(np.full(pipe.n_meas, level), "test")
+    after = pipe.after_noise(before)
+    assert after.in_use is pipe.in_use and after.in_use is not before.in_use
+    assert after.in_use.estimator is pipe.estimator and after.in_use.estimator is not before.in_use.estimator
+    assert after.in_use.consistency is pipe.consistency and after.fit is None
+    assert after.result is before.result and after.change is before.change and after.plausible == before.plausible

@@ -171,9 +171,21 @@ def test_the_directions_file_round_trips_and_a_bad_one_is_refused_with_its_name(
     back = read_directions(path)
     assert np.allclose(back.rows, d.rows, rtol=1e-8) and np.allclose(back.per_scale, d.per_scale)
     text = directions_path(path).read_text()
-    directions_path(path).write_text(text.replace("restart per scale: 0.5 1.9", "restart per scale: 0.5"))
-    with pytest.raises(FrameError, match="directions.csv"):
-        read_directions(path)
+    row = text.splitlines()[-1]
+    # the calibration block's check (learned.py Directions.checked): one line naming the file, the part and what
+    # was expected
+    for damaged, says in [
+        (text.replace("restart per scale: 0.5 1.9", "restart per scale: 0.5"),
+         r"restart per scale=\['0\.5'\]: expected 2 finite number\(s\) >= 0, one per row"),
+        (text.replace("restart per scale: 0.5 1.9", "restart per scale: 0.5 -1"), r"restart per scale=\['0\.5', '-1'\]"),
+        (text.replace("# restart per scale: 0.5 1.9\n", ""), "restart per scale missing: expected 2 finite"),
+        (f"{text}{row}\n", r"rows of shape \(3, 208\): expected 1 to 2 rows of 208 finite numbers, not all zero"),
+        (text.replace(row, ",".join(["0"] * 208)), "rows: row 2 is not finite or all zero"),
+    ]:
+        directions_path(path).write_text(damaged)
+        with pytest.raises(FrameError, match=says) as err:
+            read_directions(path)
+        assert str(directions_path(path)) in str(err.value) and "\n" not in str(err.value)
     write_directions(path, Directions(np.zeros((0, 208)), np.zeros(0)))
     assert not directions_path(path).exists()  # none learned: no file
 

@@ -110,7 +110,7 @@ def test_tare_is_refused_when_its_frames_are_not_steady(pipe, source):
     assert proc.cancel_tare() == 1 and not proc.tares.pending
     np.testing.assert_array_equal(pipe.reference, ref)
 
-    pipe.reference = None  # no reference yet: a tare stays pending until one is accepted
+    pipe.drop_reference()  # no reference yet: a tare stays pending until one is accepted
     proc.start_tare(10)
     for v in source.frames[15:25]:
         proc.push(v)

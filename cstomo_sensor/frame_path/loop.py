@@ -33,7 +33,9 @@ def connect(source: FrameSource, stream) -> None:
 
 
 def step(stream, sinks: Sequence[Callable], frame: StampedFrame, process: bool = True):
-    """One frame through ``stream`` (``process`` False: only counted) and to every sink; returns its output."""
+    """One frame through ``stream`` (``process`` False: only counted) and to every sink; returns its output.
+    The body of :func:`run`'s loop, and the loop of a caller whose source pushes its frames (the node's topic
+    input, ros/node.py) or who acts between frames (a benchmark's controller, tools/bench/robot.py)."""
     out = stream.push(frame.values, frame.saturated, frame.contact_ok, frame.stamp_ns, frame.age_ns, process)
     for sink in sinks:
         sink(frame, out)
@@ -47,7 +49,6 @@ def run(source: FrameSource, stream, sinks: Sequence[Callable] = (), *, stop: th
     taring). Returns the frames taken. Closes the sinks (not the source) when the source is exhausted."""
     connect(source, stream)
     n = 0
-    push = stream.push
     while not (stop is not None and stop.is_set()):
         frame = source.recv(timeout)
         if frame is None:
@@ -55,10 +56,7 @@ def run(source: FrameSource, stream, sinks: Sequence[Callable] = (), *, stop: th
                 break
             continue
         n += 1
-        out = push(frame.values, frame.saturated, frame.contact_ok, frame.stamp_ns, frame.age_ns,
-                   True if process is None else process())
-        for sink in sinks:
-            sink(frame, out)
+        step(stream, sinks, frame, True if process is None else process())
     if source.exhausted:
         for sink in sinks:
             close = getattr(sink, "close", None)

@@ -214,6 +214,11 @@ class Pipeline:
         self._update_consistency()
         return report
 
+    def drop_reference(self) -> None:
+        """No reference in use any more (a first tare that carried a load, force/reference/first_tare.py): no frame
+        is processed until :meth:`set_reference` sets the next; the noise, the mask and the calibration stay."""
+        self.reference = None
+
     def _noise_y(self, noise: np.ndarray, y_scale: float) -> np.ndarray:
         """Per-channel noise (n_meas,) volts in y units, floored at a tenth of the median channel's (a
         channel that happened to read steady)."""
@@ -232,6 +237,13 @@ class Pipeline:
         self.estimator = self.estimator.with_noise(noise_y)
         self.noise_measured, self.noise_source = False, str(source)
         self._update_consistency()
+
+    def after_noise(self, record: FrameRecord) -> FrameRecord:
+        """The record of this pipeline's latest frame as the stages after it see it once :meth:`set_noise` has
+        changed the noise since it was made: with what the pipeline makes frames with now (:attr:`in_use`: the
+        estimator of the new noise, its consistency) and no fit (that estimator has fitted no frame; the old
+        one's fit whitens the change by the old noise). Its result and change stay."""
+        return record._replace(fit=None, in_use=self.in_use)
 
     def _update_consistency(self) -> None:
         """The foreign-load statistic on the estimator's training set and noise (both follow the

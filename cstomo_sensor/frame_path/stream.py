@@ -313,7 +313,7 @@ class FrameStream:
         if (self.noise_state.estimate is not None and not pipe.noise_measured
                 and self._use_noise(self.noise_state.observe(values, self.channels.kept, self.processed))):
             # the noise now in use (a new estimator, its consistency) is the one the slow states see this frame with
-            frame = frame._replace(fit=getattr(pipe.estimator, "last_fit", None), in_use=pipe.in_use)
+            frame = pipe.after_noise(frame)
         fix = slow.observe(frame, t, self.channels.frozen)  # the device's slow states: the force corrected, its 1-sigma
         if fix.force is not None:
             result.force = fix.force
@@ -326,7 +326,8 @@ class FrameStream:
                 and self.first_tare.observe(frame.change)):
             # the first tare carried a load (force/reference/first_tare.py): dropped, nothing published until a tare
             self.tares.discard(self.first_tare.message(self.config.tare_frames, self.tares.tare_file))
-            self.first_tare, pipe.reference = None, None
+            self.first_tare = None
+            pipe.drop_reference()
             slow.reset(pipe)
             self.start_tare()
             return None  # measured against the dropped reference

@@ -25,7 +25,7 @@ from ..model.geometry import DEFAULT_SNR_DB, load_sensor
 from ..model.simulate import VoltageSource
 from ..model.timeline import Timeline, TimelineSpec, is_timeline_scene
 from ..settings import DEFAULT_SENSOR, MAX_LOAD, RATED_FORCE, TYPICAL_CREEP_PER_DECADE
-from .common import ToolParser, add_setting_arg, positive, setup_logging
+from .common import ToolParser, add_setting_arg, positive, restore_signals, setup_logging
 
 #: Seconds a load script's last load is simulated creeping when no ``--duration`` is given (the
 #: board then runs until stopped, the last load held without further creep after this): an hour,
@@ -98,11 +98,24 @@ def main(argv: list[str] | None = None) -> int:
         print("cstomo board-sim: stopped before streaming", file=sys.stderr)
         return 0
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        restore_signals(previous)  # SIGINT stays ignored in the `cstomo` process (common.SIGINT_AFTER_COMMAND)
+
+
+def _stopping() -> None:
+    """board-sim begins stopping (signalled, or its board ended): further SIGINTs and SIGTERMs are ignored
+    until :func:`main` returns, and in the `cstomo` process SIGINTs until it exits (common.restore_signals;
+    ros2 launch sends its own SIGINT after the group's, at any moment of the exit). Ignored by a handler
+    that does nothing, not ``SIG_IGN``: a signal that arrived just before is then handled by it too."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _ignore)
+
+
+def _ignore(*_: object) -> None:
+    """A signal while board-sim stops: nothing to do."""
 
 
 def _interrupt(*_: object) -> None:
+    _stopping()
     raise KeyboardInterrupt
 
 
@@ -153,8 +166,13 @@ def _main(args: argparse.Namespace) -> int:
     except (CstomoError, OSError) as err:
         print(f"cstomo board-sim: error: {err}", file=sys.stderr)
         return 2
+
+    def stop(*_: object) -> None:  # the first signal stops the board; board-sim ignores the next ones (_stopping)
+        _stopping()
+        board.stop()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: board.stop())
+        signal.signal(sig, stop)
     print(f"device: {board.device}", flush=True)
     streaming = False
     try:
@@ -167,7 +185,8 @@ def _main(args: argparse.Namespace) -> int:
                 t0 = time.time() - (time.monotonic() - board.script_start)
                 print(f"streaming t0={t0:.6f}", flush=True)
     finally:
-        board.close()  # a signal until main() returns only stops the stopped board again (main restores)
+        _stopping()
+        board.close()
     st = board.stats()
     for line in st.describe():
         print(line, file=sys.stderr)

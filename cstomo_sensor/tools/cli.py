@@ -19,6 +19,7 @@ from ..errors import ConfigError, CstomoError
 from ..frames_io import atomic_write, check_out_file, read_frames, write_frames
 from ..model.geometry import load_sensor
 from ..settings import DEFAULT_SENSOR
+from . import common
 from .common import MAX_REPEATS, ToolParser, add_creep_arg, add_pipeline_args, add_setting_arg, pipeline_config, positive, setup_logging
 
 #: Subcommands with a parser of their own: name -> module (relative to this package) with ``main(argv)``.
@@ -264,7 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the `cstomo` process: once its command is done it only exits, and a late SIGINT
         # must not turn that clean exit into a death by SIGINT (ros2 launch not run from a terminal sends
         # its own SIGINT to each process it started, after the group's Ctrl-C: board-sim's exit takes
-        # ~0.1 s, then launch said "process has died [exit code -2]")
+        # ~0.1 s, then launch said "process has died [exit code -2]"); a command that handles SIGINT
+        # itself (board-sim) leaves it ignored once it stops, not restored first (common.restore_signals)
+        common.SIGINT_AFTER_COMMAND = signal.SIG_IGN
         code = main(sys.argv[1:])
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         return code

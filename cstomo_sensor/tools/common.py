@@ -438,6 +438,29 @@ class NodeWithBoard:
         self.stop()
 
 
+#: What SIGINT is left to when a command that handles it itself ends (:func:`restore_signals`): None, the handler
+#: the command replaced (a command called in-process, e.g. by the tests), or ``signal.SIG_IGN`` in the `cstomo`
+#: process (cli.main: once its command is done the process only exits, and a late SIGINT must not turn that exit
+#: into a death by SIGINT or a KeyboardInterrupt traceback; ros2 launch sends its own after the group's Ctrl-C).
+SIGINT_AFTER_COMMAND = None
+
+
+def restore_signals(previous: dict) -> None:
+    """Put back the handlers a command replaced (``previous``: signal -> handler), SIGINT as
+    :data:`SIGINT_AFTER_COMMAND` says: a command that ignores SIGINT once it begins stopping leaves it ignored
+    in the `cstomo` process, with no moment between its own handler and the process's (a SIGINT is held
+    back from this thread while its handler changes: one arriving meanwhile is discarded by ``SIG_IGN``)."""
+    for sig, handler in previous.items():
+        if sig == signal.SIGINT and SIGINT_AFTER_COMMAND is not None:
+            held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+            try:
+                signal.signal(sig, SIGINT_AFTER_COMMAND)
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        else:
+            signal.signal(sig, handler)
+
+
 def interrupt(procs: list, timeout: float = 5.0) -> None:
     """Stop processes one after the other (in the list's order) as Ctrl-C does, killing one that has
     not ended within ``timeout`` s; None and ended ones are skipped."""

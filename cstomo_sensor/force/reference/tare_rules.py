@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -130,7 +131,21 @@ class TareCheck:
         return ", ".join(parts)
 
 
-def y_scale(pipe, reference: np.ndarray) -> np.ndarray:
+class Pipe(Protocol):
+    """What a tare's rules read of a pipeline (frame_path/pipeline.py ``Pipeline``; the force layer does not import
+    the frame path): the reference in use (volts; None: none) and the frames averaged into it, the model's
+    unloaded frame and the reconstruction model (its ``v_scale``), the force estimator (its noise, mask and
+    training set) and the channels excluded. Read, never written."""
+
+    reference: np.ndarray | None
+    reference_frames: int
+    model_reference: np.ndarray
+    model: Any
+    estimator: Any
+    bad_channels: np.ndarray
+
+
+def y_scale(pipe: Pipe, reference: np.ndarray) -> np.ndarray:
     """``c * v_scale`` of ``reference``: the normalisation :meth:`~cstomo_sensor.frame_path.pipeline.Pipeline.set_reference`
     gives it (``c`` its global factor against the model's reference)."""
     c = ScaleReport.of(reference, pipe.model_reference).factor
@@ -147,7 +162,7 @@ def noise_force(estimator, sigma: np.ndarray, project=None) -> float:
     return float(np.sqrt(np.mean(np.sum(f**2, axis=1))))
 
 
-def check_tare(pipe, reference: np.ndarray, drift: np.ndarray | None, noise: np.ndarray | None, frames: int,
+def check_tare(pipe: Pipe, reference: np.ndarray, drift: np.ndarray | None, noise: np.ndarray | None, frames: int,
                used: np.ndarray) -> TareCheck:
     """The figures of a tare whose ``frames`` frames average to ``reference`` (n_meas,) volts, changed
     by ``drift`` (n_meas,) volts from the first to the last along their linear trend (None: not
@@ -240,7 +255,7 @@ class TareOutcome:
         return self.reference is not None
 
 
-def judge_tare(pipe, n: int, x0: np.ndarray, s1: np.ndarray, s2: np.ndarray, st: np.ndarray, used: np.ndarray,
+def judge_tare(pipe: Pipe, n: int, x0: np.ndarray, s1: np.ndarray, s2: np.ndarray, st: np.ndarray, used: np.ndarray,
                max_spread: float, forced: bool) -> TareOutcome:
     """The outcome of a tare of ``n`` frames by every rule above: their sums taken around the first
     frame ``x0`` (``s1`` of the differences, ``s2`` of their squares, ``st`` of k x the k-th's), over

@@ -22,7 +22,7 @@ import numpy as np
 
 from ...errors import ConfigError, CstomoError
 from .files import noise_path, read_reference, write_reference
-from .tare_rules import TARE_RECONNECTED, TareOutcome, judge_tare
+from .tare_rules import TARE_RECONNECTED, Pipe, TareOutcome, judge_tare
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ class Taring:
         taken, self.left = self.n - self.left, 0
         return TareOutcome(None, taken, 0.0, TARE_RECONNECTED)
 
-    def add(self, v: np.ndarray, mask: np.ndarray, pipe, max_spread: float) -> TareOutcome | None:
+    def add(self, v: np.ndarray, mask: np.ndarray, pipe: Pipe, max_spread: float) -> TareOutcome | None:
         """One frame ``v`` (``mask``: its excluded channels) into the pending tare; its outcome when it
         was the last (:func:`~.tare_rules.judge_tare` against ``pipe``), else None."""
         if self.left == self.n:  # the first frame

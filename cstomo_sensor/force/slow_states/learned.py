@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg import eigh_tridiagonal, eigvalsh_tridiagonal
 
-from ...errors import ConfigError, FrameError
+from ...errors import ConfigError, CstomoError, FrameError
 from ...frames_io import read_frames, write_frames
 from .drift_parts import FOLLOW_SPAN
 
@@ -130,6 +130,39 @@ class Directions:
     def __len__(self) -> int:
         return len(self.rows)
 
+    @classmethod
+    def checked(cls, rows: object, per_scale: object, n_meas: int, where: str, error: type[CstomoError] = ConfigError,
+                names: tuple[str, str] = (".rows", ".restart_per_scale"), hint: str = "") -> Directions:
+        """``rows`` and their slopes ``per_scale`` as read (numbers in lists or arrays; None: none found) checked:
+        1 to :data:`MAX_DIRECTIONS` rows of ``n_meas`` finite numbers, not all zero, and one finite slope >= 0 per
+        row; else ``error``, one line naming the part (``where`` + ``names``' rows' or slopes'), the value found
+        and what was expected, then ``hint`` (what to do). Both readers' check: a saved tare's directions file
+        (:func:`read_directions`) and a calibration file's block (:func:`directions_of_doc`)."""
+        rows_at, slopes_at = (where + name for name in names)
+        want = f"1 to {MAX_DIRECTIONS} rows of {n_meas} finite numbers, not all zero"
+        try:
+            r = np.array(rows, dtype=float)
+        except (TypeError, ValueError):
+            r = None
+        if r is None or r.ndim != 2 or not 1 <= len(r) <= MAX_DIRECTIONS or r.shape[1] != n_meas:
+            shape = "not a table of numbers" if r is None else f"of shape {r.shape}"
+            raise error(f"{rows_at} {shape}: expected {want}{hint}")
+        bad = ~np.isfinite(r).all(axis=1) | ~(np.abs(r).max(axis=1) > 0)
+        if bad.any():
+            raise error(f"{rows_at}: row {int(np.flatnonzero(bad)[0]) + 1} is not finite or all zero: expected {want}"
+                        f"{hint}")
+        try:
+            ks = None if per_scale is None else np.array(per_scale, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            ks = None
+        if ks is None or len(ks) != len(r) or not (np.isfinite(ks).all() and (ks >= 0).all()):
+            expected = f"{len(r)} finite number(s) >= 0, one per row"
+            if issubclass(error, ConfigError):
+                raise error.bad_value(slopes_at, per_scale, expected + hint)
+            found = " missing" if per_scale is None else f"={per_scale!r}"
+            raise error(f"{slopes_at}{found}: expected {expected}{hint}")
+        return cls(r, ks)
+
     def plus(self, row: np.ndarray, per_scale: float) -> Directions:
         return Directions(np.vstack([self.rows, row[None]]), np.append(self.per_scale, per_scale))
 
@@ -154,27 +187,21 @@ def write_directions(reference_path: str | Path, directions: Directions, comment
 
 def read_directions(reference_path: str | Path, n_meas: int = 208) -> Directions | None:
     """The learned directions saved beside the tare ``reference_path``, None without a file (an older tare,
-    a device that learned none); :class:`~cstomo_sensor.errors.FrameError` naming the file if malformed."""
+    a device that learned none); :class:`~cstomo_sensor.errors.FrameError` naming the file if malformed
+    (:meth:`Directions.checked`)."""
     path = directions_path(reference_path)
     if not path.is_file():
         return None
     rows = read_frames(path, n_meas)
-    ks = None
+    ks = None  # the slopes as written: the words of the comment '# restart per scale: k1 ... kN'
     with open(path, encoding="utf-8", errors="replace") as f:
         for line in f:
             m = _PER_SCALE.match(line.strip())
             if m:
-                try:
-                    ks = np.array([float(x) for x in m.group(1).split()], float)
-                except ValueError:
-                    ks = None
+                ks = m.group(1).split()
                 break
-    if ks is None or len(ks) != len(rows) or not (np.isfinite(ks).all() and (ks >= 0).all()):
-        raise FrameError(f"{path}: expected a comment '# {PER_SCALE_COMMENT} k1 ... k{len(rows)}', one slope >= 0 "
-                         "per row of learned directions")
-    if not np.isfinite(rows).all():
-        raise FrameError(f"{path}: a learned direction is not finite")
-    return Directions(rows, ks)
+    return Directions.checked(rows, ks, n_meas, str(path), FrameError,
+                              names=(": rows", f": {PER_SCALE_COMMENT.rstrip(':')}"))
 
 
 #: The calibration file's key of the directions learned from its recording (force/reference/calibration.py).
@@ -190,33 +217,16 @@ def directions_doc(directions: Directions, note: str = "") -> dict:
 
 
 def directions_of_doc(block: object, n_meas: int, where: str) -> Directions:
-    """The calibration file's block (:func:`directions_doc`) read back and checked: 1 to :data:`MAX_DIRECTIONS`
-    rows of ``n_meas`` finite numbers, not all zero, and one slope >= 0 each; else
+    """The calibration file's block (:func:`directions_doc`) read back and checked (:meth:`Directions.checked`):
+    1 to :data:`MAX_DIRECTIONS` rows of ``n_meas`` finite numbers, not all zero, and one slope >= 0 each; else
     :class:`~cstomo_sensor.errors.ConfigError` naming ``where``, the value and what was expected."""
     key = f"{where}: {CALIBRATION_KEY}"
     if not isinstance(block, dict) or "rows" not in block or "restart_per_scale" not in block:
         found = sorted(block) if isinstance(block, dict) else type(block).__name__
         raise ConfigError(f"{key}: {found!r}, expected a mapping with 'rows' and 'restart_per_scale' "
                           "(written by cstomo calibrate); damaged? calibrate again, or delete the block")
-    want = f"1 to {MAX_DIRECTIONS} rows of {n_meas} finite numbers, not all zero"
-    try:
-        rows = np.array(block["rows"], dtype=float)
-    except (TypeError, ValueError):
-        rows = None
-    if rows is None or rows.ndim != 2 or not 1 <= len(rows) <= MAX_DIRECTIONS or rows.shape[1] != n_meas:
-        shape = "not a table of numbers" if rows is None else f"of shape {rows.shape}"
-        raise ConfigError(f"{key}.rows {shape}: expected {want}; damaged? calibrate again, or delete the block")
-    if not np.isfinite(rows).all() or not (np.abs(rows).max(axis=1) > 0).all():
-        bad = int(np.flatnonzero(~np.isfinite(rows).all(axis=1) | ~(np.abs(rows).max(axis=1) > 0))[0])
-        raise ConfigError(f"{key}.rows: row {bad + 1} is not finite or all zero: expected {want}")
-    try:
-        ks = np.array(block["restart_per_scale"], dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        ks = None
-    if ks is None or len(ks) != len(rows) or not (np.isfinite(ks).all() and (ks >= 0).all()):
-        raise ConfigError.bad_value(f"{key}.restart_per_scale", block["restart_per_scale"],
-                                    f"{len(rows)} finite number(s) >= 0, one per row")
-    return Directions(rows, ks)
+    return Directions.checked(block["rows"], block["restart_per_scale"], n_meas, key, ConfigError,
+                              hint="; damaged? calibrate again, or delete the block")
 
 
 def empty(n_meas: int) -> Directions:
