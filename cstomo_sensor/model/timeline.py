@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from ..angles import force_angles_deg, force_from_angles
-from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
 from ..progress import steps
@@ -687,20 +687,21 @@ class Timeline:
         kt, kn = self.spec.knots()
         key = self.cache_key()
         path = Path(self.cache_dir or default_cache_dir()) / "timeline" / f"{self.truth_model.geometry.name}-{key}.npz"
-        hit = cache_load(path, key, names=("t", "n", "v"))
-        if hit is not None and np.array_equal(hit["t"], kt) and np.array_equal(hit["n"], kn):
+        with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+            hit = cache_load(path, key, names=("t", "n", "v"))
+            if hit is not None and np.array_equal(hit["t"], kt) and np.array_equal(hit["n"], kn):
+                self.seconds["knots"] = time.perf_counter() - t0
+                self.seconds["cache_hit"] = 1.0
+                return hit["t"], hit["n"], hit["v"]
+            log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
+            v = np.array([self._solve(t, n) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
+                                                              len(kt))])
+            if "mechanics" in self.seconds:
+                elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
+            cache_save(path, key, t=kt, n=kn, v=v)
             self.seconds["knots"] = time.perf_counter() - t0
-            self.seconds["cache_hit"] = 1.0
-            return hit["t"], hit["n"], hit["v"]
-        log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
-        v = np.array([self._solve(t, n) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
-                                                          len(kt))])
-        if "mechanics" in self.seconds:
-            elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
-        cache_save(path, key, t=kt, n=kn, v=v)
-        self.seconds["knots"] = time.perf_counter() - t0
-        self.seconds["cache_hit"] = 0.0
-        return kt, kn, v
+            self.seconds["cache_hit"] = 0.0
+            return kt, kn, v
 
     @cached_property
     def _segments(self) -> dict[int, slice]:
