@@ -1,4 +1,6 @@
 """Forward model: exact checks, reciprocity, conservation, symmetry, convergence, caching."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import MODEL_H, TRUTH_H
@@ -6,6 +8,7 @@ from conftest import MODEL_H, TRUTH_H
 from cstomo_sensor.cache import cache_load, cache_save
 from cstomo_sensor.errors import MeshError
 from cstomo_sensor.model.cem import CEMSystem, ForwardModel, local_stiffness
+from cstomo_sensor.model.geometry import load_sensor
 from cstomo_sensor.model.mesh import MeshSpec, TetMesh, build_mesh, face_patch
 
 
@@ -157,6 +160,25 @@ def test_cache_key_changes_with_every_mesh_input(cuboid):
     assert input_hash(_mesh_inputs(moved, MeshSpec(h=4e-3))) != base
     assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4.1e-3))) != base
     assert input_hash(_mesh_inputs(cuboid, MeshSpec(h=4e-3, refine_socket=False))) != base
+
+
+@pytest.mark.slow  # the sizing field on a 1 mm grid, four times (seconds)
+def test_a_mesh_not_refined_at_the_electrodes_is_one_for_every_place_of_them(cuboid):
+    """With h_electrode = h (the mechanics' meshes) the sizing field, the mesher's only input that reads the
+    electrodes, does not depend on their places: the key leaves them out, so a device whose electrodes
+    moved uses the body's shipped mechanics mesh; refined at them (h_electrode < h), it does and keys them."""
+    from cstomo_sensor.cache import input_hash
+    from cstomo_sensor.model.mesh import _mesh_inputs, _sizing_field
+
+    moved = cuboid.with_electrodes((cuboid.electrodes[0].__class__(
+        "e1", (0.02, -0.0099, 0.005), (1.0, 0.0, 0.0), 0.0015),) + cuboid.electrodes[1:])
+    plain, refined = MeshSpec(h=4e-3, h_electrode=4e-3), MeshSpec(h=4e-3)
+    assert np.array_equal(_sizing_field(moved, plain)[2], _sizing_field(cuboid, plain)[2])
+    assert not np.array_equal(_sizing_field(moved, refined)[2], _sizing_field(cuboid, refined)[2])
+    assert input_hash(_mesh_inputs(moved, plain)) == input_hash(_mesh_inputs(cuboid, plain))
+    assert input_hash(_mesh_inputs(moved, refined)) != input_hash(_mesh_inputs(cuboid, refined))
+    device_a = load_sensor(Path(__file__).resolve().parent.parent / "scenes/devices/cuboid_joint_device_a.yaml")
+    assert build_mesh(device_a, plain).info.get("shipped") is True
 
 
 @pytest.mark.slow

@@ -13,9 +13,9 @@ import pytest
 from cstomo_sensor.errors import ConfigError
 from cstomo_sensor.model.simulate import Load, Scene, Truth
 from cstomo_sensor.model.timeline import (
+    Profile,
     Tasks,
     Timeline,
-    Profile,
     TimelineSpec,
     drive_change,
     held_load_creep,

@@ -299,12 +299,16 @@ def _pytetwild_version() -> str:
 
 
 def _mesh_inputs_base(geometry: SensorGeometry, spec: MeshSpec) -> dict:
+    # the electrodes are an input only where the mesh is refined at them (he < h, _sizing_field): a mesh
+    # without that refinement (the mechanics') is one for every device of the body, whatever its
+    # electrodes' places (a device's moved electrodes use the nominal body's shipped mechanics mesh)
+    refined = spec.he < spec.h
     return {
         "format": MESH_FORMAT,
         "shape": geometry.shape,
         "size": list(geometry.size),
         "socket_radius": geometry.socket_radius,
-        "electrodes": [list(e.center) + [e.radius] for e in geometry.electrodes],
+        "electrodes": [list(e.center) + [e.radius] for e in geometry.electrodes] if refined else "not refined",
         "h": spec.h,
         "he": spec.he,
         "refine_socket": spec.refine_socket,
