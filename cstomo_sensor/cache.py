@@ -5,6 +5,7 @@ be read, returns None and logs why, so the caller rebuilds it (a stale entry is 
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
@@ -99,6 +100,38 @@ def _load(path: Path, key: str, names: tuple[str, ...]) -> dict[str, np.ndarray]
                         int((~np.isfinite(a)).sum()), k)
             return None
     return arrays
+
+
+@contextmanager
+def build_lock(path: Path):
+    """Hold an exclusive lock on the file ``<entry>.lock`` beside the entry ``path`` while the block runs:
+    read the entry, and build and save it on a miss, inside the block.
+
+    Why: two processes that miss the same entry at once (the test suite's two workers, two nodes
+    started together) would each build it, minutes of a core each for the same bytes; the writes are
+    atomic, so that is safe but wasted. With the lock the second process waits, then reads the first's
+    entry. The lock is ``fcntl.flock``: the kernel drops it when its holder exits, even killed, so a
+    crashed build never blocks another. An entry nested in another's build (a model's mesh) takes its
+    own lock; the nesting only goes from an entry to those it is built from, so no two processes wait
+    on each other. No lock file can be made (a read-only cache): the block runs without one.
+    """
+    lock = path.with_name(path.name + ".lock")
+    try:
+        lock.parent.mkdir(parents=True, exist_ok=True)
+        f = open(lock, "a")
+    except OSError as err:
+        log.debug("cache entry %s: no lock file (%s); building unlocked", path, err)
+        f = None
+    if f is None:
+        yield
+        return
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            log.info("cache entry %s: another process builds it; waiting for it", path)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        yield  # closing the file releases the lock
 
 
 def cache_save(path: Path, key: str, **arrays: np.ndarray) -> None:

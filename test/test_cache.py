@@ -2,12 +2,14 @@
 Every entry here is a tiny real one in tmp_path (the shared model cache is never touched)."""
 from __future__ import annotations
 
+import fcntl
 import logging
+import threading
 
 import numpy as np
 import pytest
 
-from cstomo_sensor.cache import cache_load, cache_save
+from cstomo_sensor.cache import build_lock, cache_load, cache_save
 
 KEY = "k" * 24
 
@@ -97,3 +99,38 @@ def test_the_simulated_devices_frames_are_cached_keyed_by_every_input(tmp_path):
     Truth(geometry, seed=5, cache_dir=tmp_path).frames(loads[::-1])
     Truth(geometry, seed=5, cache_dir=tmp_path).frames(loads[:1])
     assert len(entries()) == 4
+
+
+def test_a_second_builder_waits_for_the_first_and_reads_its_entry(tmp_path, caplog):
+    """Two builders of one entry at once (here two threads; two processes alike: flock locks an open
+    file, not a process): the second enters only once the first has saved, so it reads the entry
+    instead of building it again; and a block that raises releases the lock."""
+    path = tmp_path / "models" / "m.npz"
+    entered, seen = threading.Event(), []
+
+    def first():
+        with build_lock(path):
+            entered.set()
+            threading.Event().wait(0.3)  # building: the second arrives meanwhile
+            cache_save(path, KEY, x=np.arange(3.0))
+
+    def second():
+        with build_lock(path):
+            seen.append(cache_load(path, KEY))
+
+    a = threading.Thread(target=first)
+    a.start()
+    assert entered.wait(10.0)
+    with caplog.at_level(logging.INFO, logger="cstomo_sensor.cache"):
+        b = threading.Thread(target=second)
+        b.start()
+        a.join(10.0)
+        b.join(10.0)
+    assert len(seen) == 1 and seen[0] is not None, "the second builder entered before the first had saved"
+    np.testing.assert_array_equal(seen[0]["x"], np.arange(3.0))
+    assert "another process builds it" in caplog.text
+    with pytest.raises(RuntimeError):
+        with build_lock(path):
+            raise RuntimeError("a failed build")
+    with open(path.with_name(path.name + ".lock"), "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)  # free again: BlockingIOError if it were held

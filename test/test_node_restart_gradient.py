@@ -50,12 +50,30 @@ def model_built():
                                             if k != "estimator"}, estimator="model"))
 
 
+_TRUTHS: dict = {}
+
+
+def prepare(path: Path) -> None:
+    """The scene's frames into the cache the board reads, its device shared with the scenes before it
+    of the same device (the three scenes here: one sensor, seed and mesh): the held load's mechanics
+    are solved once, not once per scene (each a factorisation of the elasticity, 10-30 s); the entry is
+    the one ``cstomo board-sim --scene`` reads (the same key)."""
+    from dataclasses import replace
+
+    from cstomo_sensor.model.simulate import Scene
+    from cstomo_sensor.model.timeline import Timeline, TimelineSpec
+
+    scene = Scene.load(path)
+    truth = _TRUTHS.setdefault(replace(scene, timeline=None, snr_db=None), scene.truth())
+    tl = Timeline(TimelineSpec.from_dict(scene.timeline), snr_db=scene.snr_db, seed=scene.seed, truth=truth)
+    assert tl.cache_key() == Timeline.from_scene(path).cache_key()
+    tl.prepare()
+
+
 def board(path: Path, link: Path, duration: float) -> subprocess.Popen:
     """``cstomo board-sim`` playing the scene ``path`` (its timeline from the node's first START), once its
     pty is there; the scene's frames computed here first (into the cache the board reads)."""
-    from cstomo_sensor.model.timeline import Timeline
-
-    Timeline.from_scene(path).prepare()
+    prepare(path)
     exe = Path(sys.executable).parent / "cstomo"
     p = subprocess.Popen([str(exe), "board-sim", "--scene", str(path), "--rate", str(RATE), "--duration",
                           str(duration), "--link", str(link)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -13,6 +13,7 @@ import pytest
 from cstomo_sensor.errors import ConfigError
 from cstomo_sensor.model.simulate import Load, Scene, Truth
 from cstomo_sensor.model.timeline import (
+    Profile,
     Tasks,
     Timeline,
     TimelineSpec,
@@ -84,6 +85,25 @@ def test_creep_of_a_held_20N_load_follows_the_log_law_and_recovers(truth):
     assert dv[0] < dv[1] < dv[2] < dv[3]
     err = tl.interpolation_error(8)
     assert err["max"] < 0.2 * 10 ** (-60 / 20), err  # a fifth of the noise of a 60 dB board
+
+
+@pytest.mark.slow  # seconds of computation (the held load's mechanics: the creep test's, above, when it ran)
+def test_equal_states_among_the_knots_are_solved_once_and_read_as_solved(truth, tmp_path):
+    """A load held three times with rests between and nothing else changing: each segment's knots are one
+    state, every rest the unloaded one, so its 15 knots need 2 solves; each knot still reads the device
+    loaded or not (Truth.voltages: another path); warming the same loads makes every knot a state of its own."""
+    f = (0.0, 0.0, -20.0)
+    loads = dict(load_times=(0.0, 1.0, 2.0, 3.0, 4.0), load_forces=(f, (0.0, 0.0, 0.0)) * 2 + (f,))
+    still = Timeline(TimelineSpec(duration=5.0, **loads), truth=truth, snr_db=None, cache_dir=tmp_path)
+    kt, kn, v = still.knots
+    assert len(kt) == 15 and still.states_solved == 2
+    loaded, rest = truth.voltages(Load("socket", force=f)), truth.reference
+    for i, n in enumerate(kn):
+        w = loaded if n % 2 else rest  # segments 1, 3, 5 loaded
+        assert np.abs(v[i] - w).max() / rms(w) < 1e-9, (i, n)
+    warm = Timeline(TimelineSpec(duration=5.0, temperature=Profile(((0.0, 0.0), (5.0, 1.0))), **loads), truth=truth,
+                    snr_db=None, cache_dir=tmp_path)
+    assert len(warm.knots[0]) == 15 and warm.states_solved == 15
 
 
 @pytest.mark.slow  # seconds of computation

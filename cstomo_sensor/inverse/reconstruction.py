@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from ..cache import UNREADABLE, cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import UNREADABLE, build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError, ModelMismatchError
 from ..frames_io import check_frame
 from ..model.cem import ForwardModel
@@ -284,19 +284,20 @@ def build_model(geometry: SensorGeometry, spec: ReconSpec = ReconSpec(), cache_d
     say = progress or (lambda msg: log.info("%s", msg))
     key = input_hash(model_inputs(geometry, spec))
     path = Path(cache_dir or default_cache_dir()) / "models" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key, names=(*MODEL_ARRAYS, "scalars"))
-    if hit is not None:
-        model = ReconstructionModel.from_arrays(hit)
-        model.meta["cache_hit"] = True
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=(*MODEL_ARRAYS, "scalars"))
+        if hit is not None:
+            model = ReconstructionModel.from_arrays(hit)
+            model.meta["cache_hit"] = True
+            return model
+        t = time.perf_counter()
+        say(f"mesh of {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm): shipped with the package, cached, or meshed now")
+        mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
+        seconds = {"mesh": time.perf_counter() - t}
+        model = model_of_mesh(geometry, spec, mesh, key, say)
+        model.meta["seconds"] = seconds | model.meta["seconds"]
+        model.save(path)
         return model
-    t = time.perf_counter()
-    say(f"mesh of {geometry.name} (h = {spec.mesh_size * 1e3:.1f} mm): shipped with the package, cached, or meshed now")
-    mesh = build_mesh(geometry, MeshSpec(h=spec.mesh_size), cache_dir)
-    seconds = {"mesh": time.perf_counter() - t}
-    model = model_of_mesh(geometry, spec, mesh, key, say)
-    model.meta["seconds"] = seconds | model.meta["seconds"]
-    model.save(path)
-    return model
 
 
 def model_of_mesh(geometry: SensorGeometry, spec: ReconSpec, mesh: TetMesh, key: str = "",

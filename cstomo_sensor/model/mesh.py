@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError, MeshError
 from ..settings import MESH_SIZE_RANGE  # m: the element sizes a mesh may be asked for
 from .geometry import SensorGeometry
@@ -299,12 +299,16 @@ def _pytetwild_version() -> str:
 
 
 def _mesh_inputs_base(geometry: SensorGeometry, spec: MeshSpec) -> dict:
+    # the electrodes are an input only where the mesh is refined at them (he < h, _sizing_field): a mesh
+    # without that refinement (the mechanics') is one for every device of the body, whatever its
+    # electrodes' places (a device's moved electrodes use the nominal body's shipped mechanics mesh)
+    refined = spec.he < spec.h
     return {
         "format": MESH_FORMAT,
         "shape": geometry.shape,
         "size": list(geometry.size),
         "socket_radius": geometry.socket_radius,
-        "electrodes": [list(e.center) + [e.radius] for e in geometry.electrodes],
+        "electrodes": [list(e.center) + [e.radius] for e in geometry.electrodes] if refined else "not refined",
         "h": spec.h,
         "he": spec.he,
         "refine_socket": spec.refine_socket,
@@ -390,33 +394,34 @@ def build_mesh(geometry: SensorGeometry, spec: MeshSpec = MeshSpec(), cache_dir:
     inputs = _mesh_inputs(geometry, spec)
     key = input_hash(inputs)
     path = Path(cache_dir or default_cache_dir()) / "meshes" / f"{geometry.shape}-{key}.npz"
-    hit = cache_load(path, key, names=("points", "tets"))
-    if hit is not None:
-        mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),
-                       info={"cache_hit": True, "key": key, "seconds": {"mesh": time.perf_counter() - t0}})
-        return mesh
-    log.info("meshing %s with h=%.2f mm, electrodes %.2f mm (pytetwild; cached afterwards)",
-             geometry.name, spec.h * 1e3, spec.he * 1e3)
-    v, f = _surface(geometry, spec.h)
-    bp, bt, size = _sizing_field(geometry, spec)
-    pts, tets = _tetrahedralize(v, f, spec.h, bp, bt, size)
-    pts = np.ascontiguousarray(pts, dtype=np.float64)
-    tets = np.ascontiguousarray(tets, dtype=np.int64)
-    used = np.unique(tets)
-    if len(used) != len(pts):  # drop unreferenced points
-        remap = -np.ones(len(pts), dtype=np.int64)
-        remap[used] = np.arange(len(used))
-        pts, tets = pts[used], remap[tets]
-    mesh = TetMesh(pts, tets)
-    neg = mesh.volumes < 0
-    if neg.any():
-        tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=("points", "tets"))
+        if hit is not None:
+            mesh = TetMesh(hit["points"], hit["tets"].astype(np.int64),
+                           info={"cache_hit": True, "key": key, "seconds": {"mesh": time.perf_counter() - t0}})
+            return mesh
+        log.info("meshing %s with h=%.2f mm, electrodes %.2f mm (pytetwild; cached afterwards)",
+                 geometry.name, spec.h * 1e3, spec.he * 1e3)
+        v, f = _surface(geometry, spec.h)
+        bp, bt, size = _sizing_field(geometry, spec)
+        pts, tets = _tetrahedralize(v, f, spec.h, bp, bt, size)
+        pts = np.ascontiguousarray(pts, dtype=np.float64)
+        tets = np.ascontiguousarray(tets, dtype=np.int64)
+        used = np.unique(tets)
+        if len(used) != len(pts):  # drop unreferenced points
+            remap = -np.ones(len(pts), dtype=np.int64)
+            remap[used] = np.arange(len(used))
+            pts, tets = pts[used], remap[tets]
         mesh = TetMesh(pts, tets)
-    check_quality(mesh)
-    rel = abs(mesh.volumes.sum() - geometry.volume) / geometry.volume
-    if rel > 0.01:
-        raise MeshError(f"meshed volume {mesh.volumes.sum():.4g} m^3 differs from the body's "
-                        f"{geometry.volume:.4g} m^3 by {rel:.1%} (bound 1%)")
-    cache_save(path, key, points=pts, tets=tets)
-    return TetMesh(pts, tets, info={"cache_hit": False, "key": key,
-                                    "seconds": {"mesh": time.perf_counter() - t0}})
+        neg = mesh.volumes < 0
+        if neg.any():
+            tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+            mesh = TetMesh(pts, tets)
+        check_quality(mesh)
+        rel = abs(mesh.volumes.sum() - geometry.volume) / geometry.volume
+        if rel > 0.01:
+            raise MeshError(f"meshed volume {mesh.volumes.sum():.4g} m^3 differs from the body's "
+                            f"{geometry.volume:.4g} m^3 by {rel:.1%} (bound 1%)")
+        cache_save(path, key, points=pts, tets=tets)
+        return TetMesh(pts, tets, info={"cache_hit": False, "key": key,
+                                        "seconds": {"mesh": time.perf_counter() - t0}})

@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 
 from ..angles import force_from_angles
-from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import load_index, read_load_script, write_forces, write_frames
 from ..progress import steps
@@ -251,21 +251,22 @@ class Truth:
             "loads": [[ld.kind, list(ld.force), repr(ld.patches), list(ld.inclusion)] for ld in loads],
         })
         path = Path(self.cache_dir or default_cache_dir()) / "truth" / f"{self.geometry.name}-{key}.npz"
-        hit = cache_load(path, key, names=("reference", "frames"))
-        if hit is not None and hit["frames"].shape[0] == len(loads):
-            return hit["reference"], hit["frames"]
-        t0 = time.perf_counter()
-        frames = np.array([self.voltages(ld) for ld in steps(loads, log, "simulated device: its loads")]
-                          ).reshape(len(loads), -1)
-        if mechanical:
-            elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
-        reference = self.reference
-        try:
-            cache_save(path, key, reference=reference, frames=frames)
-        except OSError as err:  # a read-only cache costs the next start the same time, nothing else
-            log.warning("simulated frames not cached (%s): %s", path, err)
-        log.info("simulated device: %d loads in %.1f s (cached in %s)", len(loads), time.perf_counter() - t0, path)
-        return reference, frames
+        with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+            hit = cache_load(path, key, names=("reference", "frames"))
+            if hit is not None and hit["frames"].shape[0] == len(loads):
+                return hit["reference"], hit["frames"]
+            t0 = time.perf_counter()
+            frames = np.array([self.voltages(ld) for ld in steps(loads, log, "simulated device: its loads")]
+                              ).reshape(len(loads), -1)
+            if mechanical:
+                elasticity.release()  # every load is computed: free the mechanics' factor (hundreds of MB)
+            reference = self.reference
+            try:
+                cache_save(path, key, reference=reference, frames=frames)
+            except OSError as err:  # a read-only cache costs the next start the same time, nothing else
+                log.warning("simulated frames not cached (%s): %s", path, err)
+            log.info("simulated device: %d loads in %.1f s (cached in %s)", len(loads), time.perf_counter() - t0, path)
+            return reference, frames
 
 
 def _mesh_digest(mesh: TetMesh) -> str:

@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from ..angles import force_angles_deg, force_from_angles
-from ..cache import cache_load, cache_save, default_cache_dir, input_hash
+from ..cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ..errors import ConfigError
 from ..frames_io import FORCES_HEADER, atomic_write, read_load_script, write_frames
 from ..progress import steps
@@ -560,6 +560,7 @@ class Timeline:
                                           seed, cache_dir)
         self.steps = spec.steps()
         self.seconds: dict[str, float] = {}
+        self.states_solved: int | None = None  # distinct states solved for the knots (None: read from the cache)
 
     @classmethod
     def from_scene(cls, scene, cache_dir=None, snr_db: float | None = None) -> Timeline:
@@ -659,10 +660,20 @@ class Timeline:
             raise ConfigError("timeline: the resistivity factor reaches zero (resistivity_per_k x temperature)")
         return sigma / rho
 
-    def _solve(self, t: float, n: int) -> np.ndarray:
+    def _solve(self, t: float, n: int, solved: dict | None = None) -> np.ndarray:
+        """Noise-free voltages without the drive at time t with the first n steps in force. ``solved``: the
+        voltages of the states solved before, by a digest of their inputs (the cells' conductivity and the
+        contacts' impedance): an equal state is not solved again. Equal states are common among the knots:
+        a segment over which nothing changes (no warming, no creep) has equal knots at both ends, and every
+        rest without warming is the unloaded state (a third of the knots of the suite's timelines)."""
         tr = self.truth_model
-        fm = tr.forward.with_contact_impedance(tr.z * self._contact_factor([t])[0])
-        return fm.voltages(self._sigma(t, n))
+        z, sigma = tr.z * self._contact_factor([t])[0], self._sigma(t, n)
+        if solved is None:
+            return tr.forward.with_contact_impedance(z).voltages(sigma)
+        key = hashlib.sha256(np.ascontiguousarray(z, float).tobytes() + np.ascontiguousarray(sigma, float).tobytes()).digest()
+        if key not in solved:
+            solved[key] = tr.forward.with_contact_impedance(z).voltages(sigma)
+        return solved[key]
 
     @cached_property
     def reference(self) -> np.ndarray:
@@ -691,20 +702,24 @@ class Timeline:
         kt, kn = self.spec.knots()
         key = self.cache_key()
         path = Path(self.cache_dir or default_cache_dir()) / "timeline" / f"{self.truth_model.geometry.name}-{key}.npz"
-        hit = cache_load(path, key, names=("t", "n", "v"))
-        if hit is not None and np.array_equal(hit["t"], kt) and np.array_equal(hit["n"], kn):
+        with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+            hit = cache_load(path, key, names=("t", "n", "v"))
+            if hit is not None and np.array_equal(hit["t"], kt) and np.array_equal(hit["n"], kn):
+                self.seconds["knots"] = time.perf_counter() - t0
+                self.seconds["cache_hit"] = 1.0
+                return hit["t"], hit["n"], hit["v"]
+            log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
+            solved: dict[bytes, np.ndarray] = {}  # an equal state is solved once (_solve)
+            v = np.array([self._solve(t, n, solved) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
+                                                                      len(kt))])
+            if "mechanics" in self.seconds:
+                elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
+            cache_save(path, key, t=kt, n=kn, v=v)
+            self.states_solved = len(solved)
+            log.info("timeline: %d knots, %d states solved", len(kt), len(solved))
             self.seconds["knots"] = time.perf_counter() - t0
-            self.seconds["cache_hit"] = 1.0
-            return hit["t"], hit["n"], hit["v"]
-        log.info("timeline: solving the truth at %d knots (cached afterwards)", len(kt))
-        v = np.array([self._solve(t, n) for t, n in steps(zip(kt, kn), log, "timeline: the truth at its knots",
-                                                          len(kt))])
-        if "mechanics" in self.seconds:
-            elasticity.release()  # every force is solved: free the mechanics' factor (hundreds of MB)
-        cache_save(path, key, t=kt, n=kn, v=v)
-        self.seconds["knots"] = time.perf_counter() - t0
-        self.seconds["cache_hit"] = 0.0
-        return kt, kn, v
+            self.seconds["cache_hit"] = 0.0
+            return kt, kn, v
 
     @cached_property
     def _segments(self) -> dict[int, slice]:

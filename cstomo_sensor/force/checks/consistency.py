@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...cache import cache_load, cache_save, default_cache_dir, input_hash
+from ...cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ...inverse.reconstruction import ReconstructionModel
 from ...model import elasticity
 from ...model.geometry import SensorGeometry
@@ -84,16 +84,17 @@ def per_newton_fields(geometry: SensorGeometry, model: ReconstructionModel, spec
     key = input_hash({"format": SCENE_FIELD_FORMAT, "geometry": geometry.digest(), "centers": centers,
                       "mechanics_mesh_size": spec.mechanics_mesh_size, "directions": dirs})
     path = Path(cache_dir or default_cache_dir()) / "scene_fields" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key, names=("directions", "theta"))
-    if hit is not None:
-        return hit["directions"], hit["theta"]
-    t0 = time.perf_counter()
-    mech, _, theta_v = socket_mechanics(geometry, spec, cache_dir)  # shared with the calibration
-    sample = elasticity.point_sampler(mech.points, mech.tets, centers)
-    theta = np.array([sample(t) for t in theta_v])
-    cache_save(path, key, directions=dirs, theta=theta)
-    log.info("scene field: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
-    return dirs, theta
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=("directions", "theta"))
+        if hit is not None:
+            return hit["directions"], hit["theta"]
+        t0 = time.perf_counter()
+        mech, _, theta_v = socket_mechanics(geometry, spec, cache_dir)  # shared with the calibration
+        sample = elasticity.point_sampler(mech.points, mech.tets, centers)
+        theta = np.array([sample(t) for t in theta_v])
+        cache_save(path, key, directions=dirs, theta=theta)
+        log.info("scene field: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
+        return dirs, theta
 
 
 class SceneField:

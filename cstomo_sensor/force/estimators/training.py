@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...cache import cache_load, cache_save, default_cache_dir, input_hash
+from ...cache import build_lock, cache_load, cache_save, default_cache_dir, input_hash
 from ...inverse.reconstruction import ReconstructionModel
 from ...model import elasticity
 from ...model.cem import ForwardModel
@@ -89,20 +89,21 @@ def socket_mechanics(geometry: SensorGeometry, spec: CalibrationSpec, cache_dir=
     key = input_hash({"format": MECHANICS_FORMAT, "geometry": geometry.digest(), "mesh": mesh_digest,
                       "directions": dirs})
     path = Path(cache_dir or default_cache_dir()) / "socket_mechanics" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key, names=("theta",))
-    if hit is not None:
-        return mech, dirs, hit["theta"]
-    t0 = time.perf_counter()
-    theta = np.empty((len(dirs), len(mech.tets), 4))
-    for i, d in enumerate(dirs):
-        # one factorisation of the mechanics serves every direction (elasticity module docstring)
-        theta[i] = elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices
-        if i % 10 == 0:
-            say(f"socket mechanics: direction {i + 1}/{len(dirs)}")
-    elasticity.release()
-    cache_save(path, key, theta=theta)
-    log.info("socket mechanics: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
-    return mech, dirs, theta
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=("theta",))
+        if hit is not None:
+            return mech, dirs, hit["theta"]
+        t0 = time.perf_counter()
+        theta = np.empty((len(dirs), len(mech.tets), 4))
+        for i, d in enumerate(dirs):
+            # one factorisation of the mechanics serves every direction (elasticity module docstring)
+            theta[i] = elasticity.solve_socket_load(mech.points, mech.tets, geometry, d).theta_vertices
+            if i % 10 == 0:
+                say(f"socket mechanics: direction {i + 1}/{len(dirs)}")
+        elasticity.release()
+        cache_save(path, key, theta=theta)
+        log.info("socket mechanics: %d directions in %.1f s", len(dirs), time.perf_counter() - t0)
+        return mech, dirs, theta
 
 
 def _calibration_key(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec) -> dict:
@@ -137,19 +138,20 @@ def calibration_set(geometry: SensorGeometry, model: ReconstructionModel, spec: 
     """(forces (n, 3), y (n, n_meas)) noise-free, through the model's mesh (cached)."""
     key = input_hash(_calibration_key(geometry, model, spec))
     path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-{key}.npz"
-    hit = cache_load(path, key, names=("forces", "y"))
-    if hit is not None:
-        return hit["forces"], hit["y"]
-    t0 = time.perf_counter()
-    fm, _, loads = _calibration_loads(geometry, model, spec, cache_dir, progress)
-    forces, ys = [], []
-    for f, sigma in loads:
-        forces.append(f)
-        ys.append((fm.voltages(sigma) - model.model_reference) / model.v_scale)
-    forces, ys = np.array(forces), np.array(ys)
-    cache_save(path, key, forces=forces, y=ys)
-    log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)
-    return forces, ys
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=("forces", "y"))
+        if hit is not None:
+            return hit["forces"], hit["y"]
+        t0 = time.perf_counter()
+        fm, _, loads = _calibration_loads(geometry, model, spec, cache_dir, progress)
+        forces, ys = [], []
+        for f, sigma in loads:
+            forces.append(f)
+            ys.append((fm.voltages(sigma) - model.model_reference) / model.v_scale)
+        forces, ys = np.array(forces), np.array(ys)
+        cache_save(path, key, forces=forces, y=ys)
+        log.info("calibration: %d loads in %.1f s", len(forces), time.perf_counter() - t0)
+        return forces, ys
 
 
 def response_set(geometry: SensorGeometry, model: ReconstructionModel, spec: CalibrationSpec,
@@ -163,20 +165,21 @@ def response_set(geometry: SensorGeometry, model: ReconstructionModel, spec: Cal
     Three forward solves per load, the same physics as the calibration (cached; docs/benchmark.md)."""
     key = input_hash({**_calibration_key(geometry, model, spec), "response": RESPONSE_FORMAT, "step": RESPONSE_STEP})
     path = Path(cache_dir or default_cache_dir()) / "calibration" / f"{geometry.name}-response-{key}.npz"
-    hit = cache_load(path, key, names=("dy",))
-    if hit is not None:
-        return hit["dy"]
-    forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
-    t0 = time.perf_counter()
-    fm, mesh, loads = _calibration_loads(geometry, model, spec, cache_dir, progress,
-                                         "the calibration's response to the resistivity gradients")
-    factor = 1.0 + RESPONSE_STEP * gradient_coordinates(model, mesh.centers).T  # (3, n_cells): resistivity
-    v0 = np.array([fm.voltages(geometry.material.sigma0 / f) for f in factor])  # unloaded, per gradient
-    dy = np.empty((3, *y.shape))
-    for i, (_, sigma) in enumerate(loads):
-        for k, f in enumerate(factor):
-            dy[k, i] = ((fm.voltages(sigma / f) - v0[k]) / model.v_scale - y[i]) / RESPONSE_STEP
-    cache_save(path, key, dy=dy)
-    log.info("calibration's response to the resistivity gradients: %d solves in %.1f s", 3 * (len(y) + 1),
-             time.perf_counter() - t0)
-    return dy
+    with build_lock(path):  # one process builds it, another waits and reads it (cache.build_lock)
+        hit = cache_load(path, key, names=("dy",))
+        if hit is not None:
+            return hit["dy"]
+        forces, y = calibration_set(geometry, model, spec, cache_dir, progress)
+        t0 = time.perf_counter()
+        fm, mesh, loads = _calibration_loads(geometry, model, spec, cache_dir, progress,
+                                             "the calibration's response to the resistivity gradients")
+        factor = 1.0 + RESPONSE_STEP * gradient_coordinates(model, mesh.centers).T  # (3, n_cells): resistivity
+        v0 = np.array([fm.voltages(geometry.material.sigma0 / f) for f in factor])  # unloaded, per gradient
+        dy = np.empty((3, *y.shape))
+        for i, (_, sigma) in enumerate(loads):
+            for k, f in enumerate(factor):
+                dy[k, i] = ((fm.voltages(sigma / f) - v0[k]) / model.v_scale - y[i]) / RESPONSE_STEP
+        cache_save(path, key, dy=dy)
+        log.info("calibration's response to the resistivity gradients: %d solves in %.1f s", 3 * (len(y) + 1),
+                 time.perf_counter() - t0)
+        return dy
