@@ -87,6 +87,7 @@ def test_model_estimator_equals_its_previous_formulation(warm_model_estimator, m
         est = est.masked(keep)
     for y in _noisy_changes(est, np.random.default_rng(4), 40):
         y = np.where(est.keep, y, 0.0)
+        est.forget()  # from the linear estimate, as the plain formulation starts (a warm start moves it within 1e-4 N)
         np.testing.assert_allclose(est.estimate(y), model_estimate(est, y), rtol=1e-10, atol=1e-10)
 
 

@@ -6,8 +6,10 @@ data, cached: force/estimators/training.py; the calibration never sees the hones
   One 3 x 208 product per frame (about a microsecond of arithmetic).
 - ``model`` (the default, accurate): Gauss-Newton fit of the force vector to the frame through a thin-plate
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
-  and analytic Jacobian in one small product, force/estimators/tps.py), started from the linear estimate;
-  3-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``). The surrogate follows the
+  and analytic Jacobian in one small product, force/estimators/tps.py), started from the linear estimate
+  (or, while the load moves within the noise, from the previous frame's fit moved by its own step for the
+  frame's change: :data:`WARM_SIGMAS`); 2-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench
+  --heldout``). The surrogate follows the
   device's resistivity gradients (the drift tracker's states, passed per frame) to first order
   (:func:`~.training.response_set`): a warmed block's gradient changes how a load shows in the voltages.
 
@@ -16,6 +18,7 @@ Both honour the bad-channel mask (``masked``), which refits the ridge map on the
 from __future__ import annotations
 
 import logging
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -35,6 +38,19 @@ log = logging.getLogger(__name__)
 #: move by less than this (relative resistivity per half extent: a load's response changes by 1e-4 of
 #: itself, far below the noise; the 30-minute warm-up's gradient grows to 0.03).
 STATE_TOLERANCE = 1e-4
+#: :meth:`ModelEstimator.estimate` stops its Gauss-Newton iteration once a step is shorter than this (N): near
+#: its solution each step is about a tenth of the one before, so the force is within about a tenth of it of the
+#: iteration's limit whatever it started from (below the noise by more than three orders: 0.28 N at 60 dB).
+STEP_TOLERANCE_N = 1e-4
+#: ... and it starts from the previous fit's force moved by that fit's own step for the change since (its
+#: Jacobian and normal matrix, :class:`ModelFit`: one 3 x k product and a 3 x 3 solve, where a step costs ~25 us)
+#: while that move is within WARM_SIGMAS of the force's per-frame noise (at least WARM_MIN_N newtons): a held
+#: load, a rest, a slow change start within a few hundredths of a newton of their solution (2-3 steps instead of
+#: 4-5); a new load, the first frame, a frame after a fit that did not end finite start from the linear estimate,
+#: as before. The start moves where the iteration stops only within STEP_TOLERANCE_N: the forces and every
+#: by-product the slow states read (the fit's residual and Jacobian, :class:`ModelFit`) are the cold start's
+#: to that tolerance.
+WARM_SIGMAS, WARM_MIN_N = 6.0, 0.5
 
 
 class LinearEstimator:
@@ -133,6 +149,11 @@ class ModelEstimator:
         ).reshape(len(response), -1)  # (k, (n + 4) m): one product gives the change of every coefficient
         self._state = None
         self.last_fit: ModelFit | None = None
+        # the warm start's bound (WARM_SIGMAS): the force's per-frame noise (N, the linear estimate's 1-sigma of
+        # its norm), in units of scale, squared
+        Wn = self.linear.W * np.where(self.keep, self.noise, 0.0)
+        self._warm2 = (max(WARM_MIN_N, WARM_SIGMAS * float(np.sqrt(np.sum(Wn * Wn)))) / self.scale) ** 2
+        self._warm: ModelFit | None = None  # the fit the next frame starts from (None: the linear estimate)
 
     def _follow(self, state) -> None:
         """The surrogate's coefficients for the device ``state`` (None: the nominal device), unless it
@@ -161,11 +182,21 @@ class ModelEstimator:
         follows (``response``; the drift tracker's resistivity gradients, 3 floats; None: nominal)."""
         if self._dcoef is not None:
             self._follow(state)
-        x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
         yw = np.multiply(y, self.w, out=self._yw) if self._all_kept else y[self.keep] * self.w
         by = self.basis.dot(yw)
+        x = None
+        fit = self._warm
+        if fit is not None:  # a warm start (WARM_SIGMAS): the previous fit's force moved by its step for the change since
+            (_, a, b, c), (_, d, e, f), (_, g, h, i) = fit.normal.tolist()
+            v0, v1, v2 = fit.out[1:].dot(by - fit.by).tolist()  # (its work arrays: read before this fit writes them)
+            dx = cramer3(a, b, c, d, e, f, g, h, i, v0, v1, v2)
+            if dx is not None and dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2] < self._warm2:
+                px = fit.x
+                x = (px[0] + dx[0], px[1] + dx[1], px[2] + dx[2])
+        if x is None:
+            x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
         np.subtract(self._d0, by, out=self._d0_target)
-        spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (1e-4 / self.scale) ** 2
+        spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (STEP_TOLERANCE_N / self.scale) ** 2
         jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
             # the residual's negative -r (row 0 of out) and the Jacobian's transpose (rows 1..3) in
@@ -180,9 +211,14 @@ class ModelEstimator:
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
             if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
-        self.last_fit = ModelFit(yw, by, step, x, out, G)
+        self.last_fit = fit = ModelFit(yw, by, step, x, out, G)
+        self._warm = fit if math.isfinite(x[0] + x[1] + x[2]) else None  # the next frame's start
         k = self.scale
         return np.array((x[0] * k, x[1] * k, x[2] * k))
+
+    def forget(self) -> None:
+        """The next frame starts from the linear estimate (:data:`WARM_SIGMAS`), as a fresh estimator's."""
+        self._warm = None
 
     def _like(self, forces, y, noise, keep) -> ModelEstimator:
         return ModelEstimator(forces, y, noise, self.ridge, keep, self.iterations, self.response)
