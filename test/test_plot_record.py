@@ -107,6 +107,24 @@ def test_plot_of_a_forces_file_draws_its_numbers_beside_the_truth(tmp_path):
     assert np.all(np.abs(az[at] - 90.0) < 10.0), az[at]
 
 
+def test_plot_of_an_unloaded_recording_says_why_its_angle_panels_are_empty(tmp_path):
+    pytest.importorskip("matplotlib")
+    from cstomo_sensor.frames_io import write_forces
+
+    rng = np.random.default_rng(2)
+    sigma_n = np.full(100, 0.3)
+    est = rng.normal(0.0, 0.1, (100, 3))  # |F| about 0.17 N: within 2 sigma_n (0.6 N) in every frame
+    forces = tmp_path / "rest.csv"
+    write_forces(forces, est, sigma_n=sigma_n)
+    fig = plot([str(forces), "--rate", "50", "--out", str(tmp_path / "rest.png")])
+    for name, lim in (("elevation", (-90.0, 90.0)), ("azimuth", (-180.0, 180.0))):
+        ax = panel(fig, name)
+        assert np.isnan(line(ax, "estimated")[1]).all()
+        assert ax.get_ylim() == pytest.approx(lim)  # the angle's range, not matplotlib's -0.05..0.05
+        assert any("no direction" in t.get_text() for t in ax.texts)
+    assert not panel(fig, "|F|").texts  # a magnitude panel is never empty
+
+
 def test_plot_says_one_line_for_a_bad_input(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     out = str(tmp_path / "p.png")

@@ -197,6 +197,8 @@ def from_live(wrench_topic: str, seconds: float, say=print, wait: float = 10.0) 
 
 
 PANELS = (("fx", "N"), ("fy", "N"), ("fz", "N"), ("|F|", "N"), ("elevation", "deg"), ("azimuth", "deg"))
+#: The angle panels' ranges (deg) when no frame has a direction (:func:`angles_deg`).
+ANGLE_RANGES = {"elevation": (-90.0, 90.0), "azimuth": (-180.0, 180.0)}
 
 
 def _columns(f: Forces) -> list[np.ndarray]:
@@ -240,6 +242,11 @@ def figure(est: Forces, truth: Forces | None = None, title: str = "", size: tupl
                             alpha=0.25, lw=0, label="1-sigma")
         ax.set_ylabel(f"{name} [{unit}]")
         ax.grid(True, alpha=0.3)
+        if k >= 4 and not np.isfinite(columns[k]).any() and (true_cols is None or not np.isfinite(true_cols[k]).any()):
+            # no direction in any frame (an unloaded recording): the angle's whole range and why it is empty
+            ax.set_ylim(*ANGLE_RANGES[name])
+            ax.text(0.5, 0.5, f"no direction: |F| within {DIRECTION_SIGMAS:g} sigma_n in every frame",
+                    transform=ax.transAxes, ha="center", va="center", color="gray")
     axes[0].legend(loc="best", fontsize="small")
     for ax in (axes[2], axes[5]):
         ax.set_xlabel("frame" if est.unit == "frame" else "time [s]")
