@@ -5,8 +5,8 @@ a phantom force along -x of 2-7 N at rest and 7-11 N under the load, for ever, w
 
 Everything real: ``cstomo board-sim`` playing timeline scenes on a pseudo-terminal (the truth on its own
 4 mm mesh, not the node's model), ``cstomo_sensor_node`` as a process stopped with SIGINT, the tare file it
-wrote, and the wrenches it published. The judge is the same node restarted on the unchanged device (the
-issue's aims: the zero's p99 from 1 s within 1.25 x of the unchanged device's, the held load's error within
+wrote, and the wrenches it published. The judge is the same node restarted on the unchanged device, side by side with
+the warmed one (each node in a namespace of its own, on a board of its own; the issue's aims: the zero's p99 from 1 s within 1.25 x of the unchanged device's, the held load's error within
 1.5 x angle and 1.6 x magnitude), and the load the scene applies."""
 import os
 import signal
@@ -83,9 +83,9 @@ def board(path: Path, link: Path, duration: float) -> subprocess.Popen:
     return p
 
 
-def node(link: Path, tare: Path, tare_on_start: bool) -> subprocess.Popen:
+def node(link: Path, tare: Path, tare_on_start: bool, ns: str) -> subprocess.Popen:
     exe = Path(sys.executable).parent / "cstomo_sensor_node"
-    args = [str(exe), "--ros-args"]
+    args = [str(exe), "--ros-args", "-r", f"__ns:=/{ns}"]
     for k, v in dict(NODE, port=str(link), tare_file=str(tare), tare_on_start=tare_on_start).items():
         args += ["-p", f"{k}:={str(v).lower() if isinstance(v, bool) else v}"]
     return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -93,37 +93,35 @@ def node(link: Path, tare: Path, tare_on_start: bool) -> subprocess.Popen:
 
 
 class Probe:
-    """The node's wrenches (receive time, force) and diagnostics' messages, on a probe of its own."""
+    """The wrenches (receive time, force) of the nodes in the namespaces ``tags`` (one list each) and the
+    diagnostics' messages, on a probe of its own."""
 
-    def __init__(self, ctx):
+    def __init__(self, ctx, tags):
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import WrenchStamped
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.node import Node
 
         self.node = Node("restart_probe", context=ctx)
-        self.wrenches, self.levels, self.lock = [], [], threading.Lock()
-        self.node.create_subscription(WrenchStamped, "/cstomo_sensor/wrench", self._wrench, 1000)
+        self.wrenches, self.levels, self.lock = {tag: [] for tag in tags}, [], threading.Lock()
+        for tag in tags:
+            self.node.create_subscription(WrenchStamped, f"/{tag}/cstomo_sensor/wrench",
+                                          lambda msg, tag=tag: self._wrench(tag, msg), 1000)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._diag, 100)
         self.ex = SingleThreadedExecutor(context=ctx)
         self.ex.add_node(self.node)
         self.thread = threading.Thread(target=self.ex.spin, daemon=True)
         self.thread.start()
 
-    def _wrench(self, msg):
+    def _wrench(self, tag, msg):
         f = msg.wrench.force
         with self.lock:
-            self.wrenches.append((time.monotonic(), f.x, f.y, f.z))
+            self.wrenches[tag].append((time.monotonic(), f.x, f.y, f.z))
 
     def _diag(self, msg):
         with self.lock:
             self.levels += [(time.monotonic(), s.level[0] if isinstance(s.level, bytes) else s.level, s.message)
                             for s in msg.status if s.name.startswith("cstomo_sensor")]
-
-    def clear(self):
-        with self.lock:
-            self.wrenches.clear()
-            self.levels.clear()
 
     def close(self):
         self.ex.shutdown(timeout_sec=2.0)
@@ -142,25 +140,37 @@ def stop(p: subprocess.Popen, sig=signal.SIGINT) -> str:
     return p.stderr.read() if p.stderr else ""
 
 
-def restart(probe, tmp_path, tare: Path, device: dict, tag: str) -> np.ndarray:
-    """The node restarted from ``tare`` on a board playing ``device`` (a rest, then the held load): its
-    wrenches as (seconds since the board's start, fx, fy, fz)."""
-    link = tmp_path / f"board_{tag}"
+def restart(probe, tmp_path, tare: Path, devices: dict) -> dict:
+    """The node restarted from ``tare`` on boards playing ``devices`` ({tag: device}; a rest, then the held
+    load), side by side (a node and a board each, in the namespace ``tag``, from a copy of the tare each:
+    every node saves its tare when it stops): {tag: its wrenches as (seconds since its board's start,
+    fx, fy, fz)}."""
     duration = REST_S + LOAD_S
-    b = board(scene(tmp_path / f"{tag}.yaml", duration, device, True), link, duration)
-    probe.clear()
-    n = node(link, tare, tare_on_start=False)
-    try:  # the board's timeline starts at the node's first START, and ends its duration later
-        assert wait_for(lambda: len(probe.wrenches) > 0, 60.0, 0.05), "no wrench"
-        b.wait(duration + 30.0)
+    boards, nodes, errs = {}, {}, {}
+    try:
+        for tag, device in devices.items():  # a board waits for its node's first START
+            boards[tag] = board(scene(tmp_path / f"{tag}.yaml", duration, device, True), tmp_path / f"board_{tag}",
+                                duration)
+        for tag in devices:
+            own = tmp_path / f"tare_{tag}.csv"
+            own.write_bytes(tare.read_bytes())
+            nodes[tag] = node(tmp_path / f"board_{tag}", own, False, tag)
+        # each board's timeline starts at its node's first START, and ends its duration later
+        assert wait_for(lambda: all(len(probe.wrenches[t]) > 0 for t in devices), 60.0, 0.05), "no wrench"
+        for b in boards.values():
+            b.wait(duration + 30.0)
         time.sleep(0.3)
     finally:
-        err = stop(n)
-        stop(b, signal.SIGTERM)
-    assert "saved tare" in err, err[-3000:]
-    with probe.lock:
-        w = np.array(probe.wrenches, float).reshape(-1, 4)
-    return w
+        for tag, n in nodes.items():
+            errs[tag] = stop(n)
+        for b in boards.values():
+            stop(b, signal.SIGTERM)
+    out = {}
+    for tag in devices:
+        assert "saved tare" in errs[tag], errs[tag][-3000:]
+        with probe.lock:
+            out[tag] = np.array(probe.wrenches[tag], float).reshape(-1, 4)
+    return out
 
 
 def figures(w: np.ndarray) -> dict:
@@ -184,21 +194,22 @@ def figures(w: np.ndarray) -> dict:
 
 def test_a_restart_after_warming_with_a_gradient_recovers_at_rest_and_under_load(ros, tmp_path, model_built):
     tare = tmp_path / "tare.csv"
-    probe = Probe(ros)
+    probe = Probe(ros, ("tare", "warm", "still"))
     try:
         # the device as tared: the node tares on start and writes its tare file; then SIGINT
         link = tmp_path / "board_tare"
         b = board(scene(tmp_path / "tare.yaml", 30.0, UNCHANGED, False), link, 30.0)
-        n = node(link, tare, tare_on_start=True)
+        n = node(link, tare, True, "tare")
         try:
-            assert wait_for(lambda: tare.exists() and len(probe.wrenches) > 20, 60.0, 0.1), "no tare written"
+            assert wait_for(lambda: tare.exists() and len(probe.wrenches["tare"]) > 20, 60.0, 0.1), "no tare written"
         finally:
             err = stop(n)
             stop(b, signal.SIGTERM)
         assert n.returncode == 0 and "Traceback" not in err, err[-3000:]
-        # it warmed by 2.4 % with a 30 % gradient along x, contacts -3 %; the node restarts from its tare
-        warm = figures(restart(probe, tmp_path, tare, WARMED, "warm"))
-        still = figures(restart(probe, tmp_path, tare, UNCHANGED, "still"))
+        # it warmed by 2.4 % with a 30 % gradient along x, contacts -3 %; the node restarts from its tare,
+        # beside the same node restarted on the unchanged device (the judge; its own board and namespace)
+        w = restart(probe, tmp_path, tare, {"warm": WARMED, "still": UNCHANGED})
+        warm, still = figures(w["warm"]), figures(w["still"])
     finally:
         probe.close()
     print("warmed", warm, "unchanged", still)
