@@ -5,9 +5,10 @@ a phantom force along -x of 2-7 N at rest and 7-11 N under the load, for ever, w
 
 Everything real: ``cstomo board-sim`` playing timeline scenes on a pseudo-terminal (the truth on its own
 4 mm mesh, not the node's model), ``cstomo_sensor_node`` as a process stopped with SIGINT, the tare file it
-wrote, and the wrenches it published. The judge is the same node restarted on the unchanged device, side by side with
-the warmed one (each node in a namespace of its own, on a board of its own; the issue's aims: the zero's p99 from 1 s within 1.25 x of the unchanged device's, the held load's error within
-1.5 x angle and 1.6 x magnitude), and the load the scene applies."""
+wrote, and the wrenches it published. The judge is the same node restarted on the unchanged device, side
+by side with the warmed one (each node in a namespace of its own, on a board of its own; the issue's aims:
+the zero's p99 from 1 s within 1.25 x of the unchanged device's, the held load's error within 1.5 x angle
+and 1.6 x magnitude), and the load the scene applies."""
 import os
 import signal
 import subprocess
