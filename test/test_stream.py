@@ -162,11 +162,12 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
 
 def test_the_pipeline_offers_what_the_force_layers_protocols_read(warm_model):
     """The force layer reads the pipeline through Protocols (it does not import the frame path): the tare's rules
-    (force/reference/tare_rules.py ``Pipe``) and the slow states (force/slow_states/coordinator.py ``Reference``,
-    ``InUse``, ``Frame``). A name the pipeline or its frame's record lacked would fail only at the first tare or
+    (force/reference/tare_rules.py ``Pipe``), the calibration (force/reference/calibration.py ``Calibrated``) and
+    the slow states (force/slow_states/coordinator.py ``Reference``, ``InUse``, ``Frame``). A name the pipeline or its frame's record lacked would fail only at the first tare or
     frame that reads it."""
     from typing import get_type_hints
 
+    from cstomo_sensor.force.reference.calibration import Calibrated
     from cstomo_sensor.force.reference.tare_rules import Pipe
     from cstomo_sensor.force.slow_states.coordinator import Frame, InUse, Reference
     from cstomo_sensor.frame_path.pipeline import Pipeline
@@ -174,7 +175,8 @@ def test_the_pipeline_offers_what_the_force_layers_protocols_read(warm_model):
     pipe = Pipeline(warm_model.geometry, warm_model.model, warm_model.estimator)  # the module's own stays untared
     pipe.set_reference(pipe.model_reference)
     record = pipe.step(pipe.model_reference * 1.0001)
-    for protocol, value in [(Pipe, pipe), (Reference, pipe), (InUse, pipe.in_use), (Frame, record)]:
-        names = set(get_type_hints(protocol))
+    for protocol, value in [(Pipe, pipe), (Calibrated, pipe), (Reference, pipe), (InUse, pipe.in_use), (Frame, record)]:
+        methods = {n for n, v in vars(protocol).items() if callable(v) and not n.startswith("_")}
+        names = set(get_type_hints(protocol)) | methods
         assert len(names) >= 4, (protocol, names)  # the annotations are read
         assert not [n for n in names if not hasattr(value, n)], (protocol.__name__, type(value).__name__)

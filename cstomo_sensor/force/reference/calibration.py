@@ -36,6 +36,7 @@ from __future__ import annotations
 import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 import yaml
@@ -55,6 +56,21 @@ PRIOR_REL = 0.2
 SAME_LOAD_N = 0.5
 #: Cross-validation: leave one load out up to this many loads, else this many folds.
 MAX_FOLDS = 10
+
+
+class Calibrated(Protocol):
+    """What :func:`calibrate` reads of a pipeline (frame_path/pipeline.py ``Pipeline``; the force layer does not
+    import the frame path): its sensor's geometry, the reconstruction model, the estimator in use (its noise
+    and estimates) and its name, the estimator before any calibration, and the normalisation of frames by
+    the reference in use. Read, never written."""
+
+    geometry: Any
+    model: Any
+    estimator: Any
+    estimator_name: str
+    base_estimator: Any
+
+    def normalise(self, frames: np.ndarray) -> np.ndarray: ...
 
 
 def model_hash(model) -> str:
@@ -250,7 +266,7 @@ class DeviceCalibration:
                    str(path), None if creep is None else float(creep), directions, note)
 
 
-def calibrate(pipe, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | None = None,
+def calibrate(pipe: Calibrated, frames: np.ndarray, forces: np.ndarray, fitted_on: dict | None = None,
               prior_rel: float = PRIOR_REL) -> DeviceCalibration:
     """Fit a :class:`DeviceCalibration` for ``pipe`` (built, uncalibrated, its reference the device's
     tare) from frames (n, n_meas) volts under known ``forces`` (n, 3) N, with a cross-validated table
