@@ -163,8 +163,8 @@ def test_health_is_a_snapshot_and_a_period_ends_only_when_asked(warm_model):
 def test_the_pipeline_offers_what_the_force_layers_protocols_read(warm_model):
     """The force layer reads the pipeline through Protocols (it does not import the frame path): the tare's rules
     (force/reference/tare_rules.py ``Pipe``), the calibration (force/reference/calibration.py ``Calibrated``) and
-    the slow states (force/slow_states/coordinator.py ``Reference``, ``InUse``, ``Frame``). A name the pipeline or its frame's record lacked would fail only at the first tare or
-    frame that reads it."""
+    the slow states (force/slow_states/coordinator.py ``Reference``, ``InUse``, ``Frame``). A name the pipeline or its frame's
+    record lacked would fail only at the first tare, calibration or frame that reads it."""
     from typing import get_type_hints
 
     from cstomo_sensor.force.reference.calibration import Calibrated
