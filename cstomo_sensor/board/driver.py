@@ -230,7 +230,9 @@ class BoardDriver:
         self._rate_hz = rate_hz
         self._decoder = Decoder() if protocol == "binary" else TextDecoder()
         self._queue: deque[DataFrame] = deque(maxlen=queue_size)
-        self._cond = threading.Condition()
+        # the counters' and the queue's lock; per frame it is taken directly (a Condition's ``with`` is a Python call)
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
         self._port_lock = threading.Lock()
         self._port: serial.SerialBase | None = None
         self._closing = threading.Event()
@@ -265,9 +267,9 @@ class BoardDriver:
             q = self._queue
             if not q:
                 deadline = time.monotonic() + timeout
-                while not q and not self._closing.is_set():
+                while not self._closing.is_set():
                     self._step(deadline)
-                    if time.monotonic() >= deadline:
+                    if q or time.monotonic() >= deadline:
                         break
             return q.popleft() if q else None
         with self._cond:
@@ -290,7 +292,7 @@ class BoardDriver:
 
     def stats(self) -> DriverStats:
         """A consistent snapshot of the counters."""
-        with self._cond:
+        with self._lock:
             return DriverStats(
                 connected=self._port is not None,
                 frames=self._frames,
@@ -461,8 +463,7 @@ class BoardDriver:
                 log.debug("%s: %s", self.url, msg)
 
     def _push(self, frame: DataFrame) -> None:
-        now = time.monotonic()
-        with self._cond:
+        with self._lock:
             bad, self._bad = self._bad, 0  # pieces dropped since the last frame
             if frame.seq is None:
                 self._corrupt += bad  # text mode: a dropped line is a lost frame
@@ -470,7 +471,7 @@ class BoardDriver:
                 return
             # the period on the board's clock where it has one: a loaded host (or a USB adapter) reads
             # frames in bursts, a few microseconds apart on arrival
-            t_now = now if frame.board_time_us is None else frame.board_time_us * 1e-6
+            t_now = time.monotonic() if frame.board_time_us is None else frame.board_time_us * 1e-6
             if self._last_frame_at is not None:
                 t, seq = self._last_frame_at
                 steps = 1 if seq is None or frame.seq is None else max((frame.seq - seq) & 0xFFFFFFFF, 1)
@@ -490,6 +491,9 @@ class BoardDriver:
         frame); False for a frame to drop (a duplicate or a late one)."""
         last = self._last_seq
         step = (seq - last) & 0xFFFFFFFF if last is not None else 1
+        if step == 1 and not bad and not self._fresh:  # the next frame, nothing lost (every frame but a few)
+            self._last_seq = seq
+            return True
         if step == 0:
             self._duplicates += 1
             return False

@@ -179,13 +179,17 @@ class OutputMessages:
         under the wrench's stamp; ``wrench_filtered`` when the filtered force ``filtered`` (3,) is given;
         ``consistency`` when the result has the statistic; the stress fields when it carries them)."""
         out = {}
-        encode = self._encode
-        for name in OUTPUTS if names is None else names:
-            o = OUTPUTS[name]
-            v = o.value(result, filtered)
+        for name, value, encode in self.encoders(OUTPUTS if names is None else names):
+            v = value(result, filtered)
             if v is not None:
-                out[name] = encode[o.type](v, stamp_ns)
+                out[name] = encode(v, stamp_ns)
         return out
+
+    def encoders(self, names) -> tuple[tuple[str, object, object], ...]:
+        """(name, ``value(result, filtered)``, ``encode(value, stamp_ns)``) of each output of ``names``:
+        what :meth:`build` does per output, for a caller that looks them up once, not per frame (the
+        node's publishers)."""
+        return tuple((name, OUTPUTS[name].value, self._encode[OUTPUTS[name].type]) for name in names)
 
 
 class RawVoltagesCdr:

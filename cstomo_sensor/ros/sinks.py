@@ -29,6 +29,16 @@ def _publish(pub, data: bytes) -> None:
             handle.publish_raw(data)
 
 
+class _Topic:
+    """One output topic's per-frame plan (:meth:`Publishers._update`): its publisher, how its value is
+    taken from a frame's result and encoded (:meth:`~.messages.OutputMessages.encoders`)."""
+
+    __slots__ = ("name", "pub", "value", "encode")
+
+    def __init__(self, name: str, pub, value, encode) -> None:
+        self.name, self.pub, self.value, self.encode = name, pub, value, encode
+
+
 class Publishers:
     """The node's publishers of ``topics`` (outputs, and :data:`RAW_TOPIC` for the raw frames as
     measured), as a sink: a frame's messages are built and published while ``active()``, for the
@@ -56,6 +66,7 @@ class Publishers:
         self.published: dict[str, int] = {}
         self._subscribed: set[str] = set()
         self.wanted: tuple[str, ...] = ()  # the outputs with a subscriber, in publishing order
+        self._plan: tuple[_Topic, ...] = ()  # theirs, looked up once (not per frame)
         self.raw_wanted = False
         self.fields_wanted = True  # someone subscribes to a field's topic (refresh: the topics' subscribers)
         self.refresh()
@@ -72,6 +83,7 @@ class Publishers:
     def _update(self) -> None:
         subs = self._subscribed
         self.wanted = tuple(t for t in self.pubs if t in subs and t in OUTPUTS)
+        self._plan = tuple(_Topic(name, self.pubs[name], value, encode) for name, value, encode in self.out.encoders(self.wanted))
         self.raw_wanted = RAW_TOPIC in subs
         self.fields_wanted = any(OUTPUTS[t].heavy for t in self.wanted)
         if self.on_fields is not None:
@@ -85,19 +97,27 @@ class Publishers:
             flagged = self.flags.flagged(frame.saturated, frame.contact_ok)
             _publish(self.pubs[RAW_TOPIC], self.raw(frame.values, frame.stamp_ns, flagged))
             counts[RAW_TOPIC] = counts.get(RAW_TOPIC, 0) + 1
-        if output is None or not output.result.valid or not self.wanted:
+        plan = self._plan
+        if output is None or not plan or not output.result.valid:
             return  # an implausible frame is no force: counted by the stream, shown in diagnostics
-        pubs = self.pubs
-        for topic, data in self.out.build(output.result, output.stamp_ns, output.filtered, self.wanted).items():
-            _publish(pubs[topic], data)
-            counts[topic] = counts.get(topic, 0) + 1
+        # what OutputMessages.build does, with each topic's lookups done once (_update)
+        result, filtered, stamp_ns = output.result, output.filtered, output.stamp_ns
+        for t in plan:
+            v = t.value(result, filtered)
+            if v is not None:
+                pub = t.pub
+                if pub.is_activated:
+                    handle = pub.handle
+                    with handle:
+                        handle.publish_raw(t.encode(v, stamp_ns))
+                counts[t.name] = counts.get(t.name, 0) + 1
 
     def close(self) -> None:
         """Destroy the publishers."""
         for pub in self.pubs.values():
             self.node.destroy_lifecycle_publisher(pub)
         self.pubs = {}
-        self.wanted, self.raw_wanted = (), False
+        self.wanted, self.raw_wanted, self._plan = (), False, ()
 
 
 class BagWriter:
