@@ -84,19 +84,20 @@ class JointScale:
         # negative plus J step, the residual at x - step: the force's step u then carried twice the fit's last step,
         # 2e-5 N at the 1e-4 N tolerance, 0.02 N at a 0.01 N one; the scale's measurement, its load profiled out, is
         # the same either way)
-        rho = np.dot(np.asarray(step, float), Jt)
+        # (ndarray.dot, not np.dot: its dispatch costs more than these small products)
+        rho = np.array(step, float).dot(Jt)
         rho += out[0]
         np.negative(rho, out=rho)
         Bd = self.Brw + By
         ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
         dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
-        A = np.dot(Jt, Jt.T)
+        A = Jt.dot(Jt.T)
         ext = others and self.n_others > 0
         M = self._Mx if ext else self._M
         M[:, 0] = rho
         M[:, 1] = Bd
-        rhs = np.dot(Jt, M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        rhs = Jt.dot(M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
@@ -114,23 +115,23 @@ class JointScale:
         chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
         part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
-        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k), part
+        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.array((x_hat[0] * k, x_hat[1] * k, x_hat[2] * k)), part
 
     def others_part(self, yw, By, rho, rhs, sol, dd, H00, b0, chi2, k) -> tuple | None:
         """The other states' measurement by the frame, the load's force and the scale profiled out (the
         Schur complements of the joint least squares over force, scale and others): their information ``H``
         (n_o, n_o), its vector ``b`` (``H^-1 b`` their estimate), inflated by the frame's misfit beyond the
         noise; and the force's step per unit of each, the scale held (3, n_o)."""
-        Dy = np.dot(self._Dw, yw)
+        Dy = self._Dw.dot(yw)
         BD = self._BD
         G = rhs[:, 1:]  # (3, 1 + n_o): J^T [d_w, D_o]
         Q = self._Q
         Q[0, 0] = dd
         Q[0, 1:] = Q[1:, 0] = self._Dr + Dy
-        Hf = Q - np.dot(G.T, sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
-        c = np.dot(rho, BD) + Dy - np.dot(By, BD) - np.dot(G[:, 1:].T, sol[:, 0])  # the others' vector
+        Hf = Q - G.T.dot(sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
+        c = rho.dot(BD) + Dy - By.dot(BD) - G[:, 1:].T.dot(sol[:, 0])  # the others' vector
         h0 = Hf[1:, 0]
-        Ho = Hf[1:, 1:] - np.multiply.outer(h0, h0) / H00  # ... and the scale profiled
+        Ho = Hf[1:, 1:] - h0[:, None] * h0 / H00  # ... and the scale profiled
         bo = c - h0 * (b0 / H00)
         try:
             est = solve_small(Ho, bo)
