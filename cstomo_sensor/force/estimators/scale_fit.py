@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import solve_small
+from .linalg import inverse3, solve_small
 
 
 def gradient_coordinates(model, points: np.ndarray) -> np.ndarray:
@@ -92,30 +92,40 @@ class JointScale:
         ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
         dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
-        A = Jt.dot(Jt.T)
         ext = others and self.n_others > 0
         M = self._Mx if ext else self._M
         M[:, 0] = rho
         M[:, 1] = Bd
         rhs = Jt.dot(M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        # A = J^T J (+ L) and its inverse on Python floats: a 3 x 3 system, where a LAPACK call and numpy's
+        # small-array calls around it cost more than its arithmetic
+        (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = Jt.dot(Jt.T).tolist()
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
-            A[np.diag_indices(3)] += lam
+            a0, a4, a8 = a0 + lam, a4 + lam, a8 + lam
             rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
-        try:
-            sol = solve_small(A, rhs)
-        except np.linalg.LinAlgError:
+        inv = inverse3(a0, a1, a2, a3, a4, a5, a6, a7, a8)
+        if inv is None:  # singular
             return None
-        g = rhs[:, 1]
-        H = dd - float(g.dot(sol[:, 1]))
-        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
+        i0, i1, i2, i3, i4, i5, i6, i7, i8 = inv
+        if ext:  # the others' columns too: their solution as an array (others_part)
+            sol = np.array(inv).reshape(3, 3).dot(rhs)
+            (s0, t0, *_), (s1, t1, *_), (s2, t2, *_) = sol.tolist()
+            (_, g0, *_), (_, g1, *_), (_, g2, *_) = rhs.tolist()
+        else:
+            (r0, g0), (r1, g1), (r2, g2) = rhs.tolist()
+            s0, s1, s2 = i0 * r0 + i1 * r1 + i2 * r2, i3 * r0 + i4 * r1 + i5 * r2, i6 * r0 + i7 * r1 + i8 * r2
+            t0, t1, t2 = i0 * g0 + i1 * g1 + i2 * g2, i3 * g0 + i4 * g1 + i5 * g2, i6 * g0 + i7 * g1 + i8 * g2
+        H = dd - (g0 * t0 + g1 * t1 + g2 * t2)
+        b = float(Bd.dot(rho)) + dy_perp - (g0 * s0 + g1 * s1 + g2 * s2)
         if not H > 0:
             return None
         chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
         part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
-        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.array((x_hat[0] * k, x_hat[1] * k, x_hat[2] * k)), part
+        return (b / H, inflate / H, np.array((k * s0, k * s1, k * s2)), np.array((k * t0, k * t1, k * t2)),
+                np.array((x_hat[0] * k, x_hat[1] * k, x_hat[2] * k)), part)
 
     def others_part(self, yw, By, rho, rhs, sol, dd, H00, b0, chi2, k) -> tuple | None:
         """The other states' measurement by the frame, the load's force and the scale profiled out (the

@@ -409,7 +409,7 @@ class DriftTracker:
         self.rate *= a
         self.force_step = None
         tot = self._tot  # the states' change since the frame was formed: the step, then the updates
-        tot[:] = 0.0
+        tot.fill(0.0)
         tot[0] = step
         da = 0.0
         if rest:
