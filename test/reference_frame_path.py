@@ -267,3 +267,41 @@ def follow_add(fit: np.ndarray, slope: np.ndarray, dt: float, s: float, g: np.nd
         slope[:] = (F[1, 1:] - F[1, 0] * F[0, 1:] / n) / ss
         return True
     return False
+
+
+def joint_measure(joint, expected=None, others: bool = False):
+    """``JointScale.measure`` as it was: the force profiled out through ``np.linalg.solve`` of the 3 x 3 normal
+    matrix (every right-hand side at once), the others' part by ``others_part`` on that solution."""
+    est = joint.est
+    if est.last_fit is None:
+        return None
+    yw, By, step, x_hat, out, _ = est.last_fit
+    k = est.scale
+    Jt = out[1:]
+    rho = -(out[0] + np.asarray(step, float) @ Jt)
+    Bd = joint.Brw + By
+    ry, yy = float(joint.rw @ yw), float(yw @ yw)
+    dd = joint.rr + 2.0 * ry + yy
+    dy_perp = ry + yy - float(Bd @ By)
+    A = Jt @ Jt.T
+    ext = others and joint.n_others > 0
+    M = np.column_stack([rho, Bd] + ([joint._BD] if ext else []))
+    rhs = Jt @ M
+    if expected is not None:
+        f, sig = expected
+        lam = (k / sig) ** 2
+        A = A + lam * np.eye(3)
+        rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
+    try:
+        sol = np.linalg.solve(A, rhs)
+    except np.linalg.LinAlgError:
+        return None
+    g = rhs[:, 1]
+    H = dd - float(g @ sol[:, 1])
+    b = float(Bd @ rho) + dy_perp - float(g @ sol[:, 0])
+    if not H > 0:
+        return None
+    chi2 = float(rho @ rho) + yy - float(By @ By) - b * b / H
+    inflate = max(1.0, chi2 / joint.dof)
+    part = joint.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
+    return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.asarray(x_hat) * k, part

@@ -210,6 +210,50 @@ def test_model_sigma_equals_its_plain_formulation(model_pipe, masked):
     assert max(misfits) > 1.0  # frames whose misfit widened their sigma were checked too
 
 
+def test_joint_fit_equals_its_numpy_formulation(model_pipe):
+    """The joint fit of force and scale (``JointScale.measure``: its 3 x 3 normal matrix inverted on Python
+    floats) gives what ``np.linalg.solve`` of the same normal equations gave, frame for frame, to rounding: a
+    stream with drift tracking and creep through a 2 % warming with rests and loads after a restart (the other
+    states measured under load too), each frame's measurement also taken with a controller's expected load."""
+    from reference_frame_path import joint_measure
+
+    from cstomo_sensor.force.estimators.scale_fit import JointScale
+
+    pipe = model_pipe
+    stream, ref, noise, rng = tared_stream(pipe, 5, creep=0.04, age_s=3600.0)
+    measure = JointScale.measure
+    kinds = []
+
+    def checked(joint, expected=None, others=False):
+        out = measure(joint, expected, others)
+        plain = joint_measure(joint, expected, others)
+        assert (out is None) == (plain is None)
+        if out is not None:
+            for a, b in zip(out[:5], plain[:5]):
+                np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * max(np.max(np.abs(b)), 1e-300))
+            assert (out[5] is None) == (plain[5] is None)
+            if out[5] is not None:
+                for a, b in zip(out[5], plain[5]):
+                    np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9 * np.max(np.abs(b)))
+            kinds.append(out[5] is not None)
+        if expected is None and out is not None:  # the same frame with a load a controller expects
+            e = (out[4] + 0.5, 0.5)
+            a, b = measure(joint, e), joint_measure(joint, e)
+            for x, y in zip(a[:5], b[:5]):
+                np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12 * max(np.max(np.abs(y)), 1e-300))
+        return out
+
+    JointScale.measure = checked
+    try:
+        Y = np.asarray(pipe.estimator.y)
+        for k in range(300):
+            v = (1 + 0.02 * k / 300) * (ref + (Y[1 + k % (len(Y) - 1)] * pipe.model.v_scale if (k // 50) % 2 else 0.0))
+            stream.push(v + noise * rng.normal(size=len(ref)), stamp_ns=int(1e9 * (1 + k / 100)))
+    finally:
+        JointScale.measure = measure
+    assert len(kinds) > 250 and any(kinds) and not all(kinds)  # with and without the others' part
+
+
 @pytest.mark.parametrize("rate", [100.0, 30.0])
 def test_creep_compensator_equals_its_previous_formulation(rate):
     """The creep's low-passes stepped by one product (``[diag(1 - a) | a]`` times the state and the change

@@ -172,7 +172,7 @@ class ModelEstimator:
         if state is None:
             coef[:] = self._coef0
         else:
-            np.dot(state, self._dcoef, out=coef.reshape(-1))
+            np.dot(state, self._dcoef, out=coef.reshape(-1))  # (state: 3 floats, a list)
             coef += self._coef0
         self._d0[:] = coef[len(self.forces)]
         self._state = None if state is None else tuple(state)

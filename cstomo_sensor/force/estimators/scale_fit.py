@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .linalg import solve_small
+from .linalg import inverse3, solve_small
 
 
 def gradient_coordinates(model, points: np.ndarray) -> np.ndarray:
@@ -84,53 +84,64 @@ class JointScale:
         # negative plus J step, the residual at x - step: the force's step u then carried twice the fit's last step,
         # 2e-5 N at the 1e-4 N tolerance, 0.02 N at a 0.01 N one; the scale's measurement, its load profiled out, is
         # the same either way)
-        rho = np.dot(np.asarray(step, float), Jt)
+        # (ndarray.dot, not np.dot: its dispatch costs more than these small products)
+        rho = np.array(step, float).dot(Jt)
         rho += out[0]
         np.negative(rho, out=rho)
         Bd = self.Brw + By
         ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
         dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
         dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
-        A = np.dot(Jt, Jt.T)
         ext = others and self.n_others > 0
         M = self._Mx if ext else self._M
         M[:, 0] = rho
         M[:, 1] = Bd
-        rhs = np.dot(Jt, M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        rhs = Jt.dot(M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        # A = J^T J (+ L) and its inverse on Python floats: a 3 x 3 system, where a LAPACK call and numpy's
+        # small-array calls around it cost more than its arithmetic
+        (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = Jt.dot(Jt.T).tolist()
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
-            A[np.diag_indices(3)] += lam
+            a0, a4, a8 = a0 + lam, a4 + lam, a8 + lam
             rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
-        try:
-            sol = solve_small(A, rhs)
-        except np.linalg.LinAlgError:
+        inv = inverse3(a0, a1, a2, a3, a4, a5, a6, a7, a8)
+        if inv is None:  # singular
             return None
-        g = rhs[:, 1]
-        H = dd - float(g.dot(sol[:, 1]))
-        b = float(Bd.dot(rho)) + dy_perp - float(g.dot(sol[:, 0]))
+        i0, i1, i2, i3, i4, i5, i6, i7, i8 = inv
+        if ext:  # the others' columns too: their solution as an array (others_part)
+            sol = np.array(inv).reshape(3, 3).dot(rhs)
+            (s0, t0, *_), (s1, t1, *_), (s2, t2, *_) = sol.tolist()
+            (_, g0, *_), (_, g1, *_), (_, g2, *_) = rhs.tolist()
+        else:
+            (r0, g0), (r1, g1), (r2, g2) = rhs.tolist()
+            s0, s1, s2 = i0 * r0 + i1 * r1 + i2 * r2, i3 * r0 + i4 * r1 + i5 * r2, i6 * r0 + i7 * r1 + i8 * r2
+            t0, t1, t2 = i0 * g0 + i1 * g1 + i2 * g2, i3 * g0 + i4 * g1 + i5 * g2, i6 * g0 + i7 * g1 + i8 * g2
+        H = dd - (g0 * t0 + g1 * t1 + g2 * t2)
+        b = float(Bd.dot(rho)) + dy_perp - (g0 * s0 + g1 * s1 + g2 * s2)
         if not H > 0:
             return None
         chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
         part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
-        return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.multiply(x_hat, k), part
+        return (b / H, inflate / H, np.array((k * s0, k * s1, k * s2)), np.array((k * t0, k * t1, k * t2)),
+                np.array((x_hat[0] * k, x_hat[1] * k, x_hat[2] * k)), part)
 
     def others_part(self, yw, By, rho, rhs, sol, dd, H00, b0, chi2, k) -> tuple | None:
         """The other states' measurement by the frame, the load's force and the scale profiled out (the
         Schur complements of the joint least squares over force, scale and others): their information ``H``
         (n_o, n_o), its vector ``b`` (``H^-1 b`` their estimate), inflated by the frame's misfit beyond the
         noise; and the force's step per unit of each, the scale held (3, n_o)."""
-        Dy = np.dot(self._Dw, yw)
+        Dy = self._Dw.dot(yw)
         BD = self._BD
         G = rhs[:, 1:]  # (3, 1 + n_o): J^T [d_w, D_o]
         Q = self._Q
         Q[0, 0] = dd
         Q[0, 1:] = Q[1:, 0] = self._Dr + Dy
-        Hf = Q - np.dot(G.T, sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
-        c = np.dot(rho, BD) + Dy - np.dot(By, BD) - np.dot(G[:, 1:].T, sol[:, 0])  # the others' vector
+        Hf = Q - G.T.dot(sol[:, 1:])  # (1 + n_o)^2: the states' information, the force profiled
+        c = rho.dot(BD) + Dy - By.dot(BD) - G[:, 1:].T.dot(sol[:, 0])  # the others' vector
         h0 = Hf[1:, 0]
-        Ho = Hf[1:, 1:] - np.multiply.outer(h0, h0) / H00  # ... and the scale profiled
+        Ho = Hf[1:, 1:] - h0[:, None] * h0 / H00  # ... and the scale profiled
         bo = c - h0 * (b0 / H00)
         try:
             est = solve_small(Ho, bo)

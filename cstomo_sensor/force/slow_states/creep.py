@@ -255,7 +255,7 @@ class CreepCompensator:
             step = te - self._t_last
             state, new = self._state, self._next
             if step > 0:  # the last change held from its time to this one's
-                np.dot(self._step(step), state, out=new[:k])
+                self._step(step).dot(state, out=new[:k])  # (ndarray.dot: without np.dot's dispatch)
                 if self._f_last is not None:
                     new[:k, self._f_last] = state[:k, self._f_last]
             else:

@@ -170,12 +170,14 @@ class DriftTracker:
         self._N = np.zeros((n, n))
         self._N[:m, :m] = Dw @ Dw.T
         self._Dw1 = np.vstack([Dw, np.zeros((n - m, len(w)))])
+        self._Dwm = np.ascontiguousarray(Dw)  # observe's product: the measured states' rows only (the rest of b stays 0)
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._W = None
         if force_map is not None:  # the force of a change, of a uniform change, and its noise
             W = np.asarray(force_map, float) * keep
             sigma = math.sqrt(float(np.sum((W * np.where(keep, noise, 0.0)) ** 2)))
             self._W, self._Wr = W, W @ D[0]
+            self._Wrl = self._Wr.tolist()  # observe's rest force on Python floats
             self._Wo = W @ D[1:].T  # (3, m - 1): the force of each other state (unmeasured_n)
             self._other_n = np.maximum(np.linalg.norm(self._Wo, axis=0), 1e-12)  # its norm: N per unit
             self._floor2 = (LOADED_OTHER_N / self._other_n) ** 2  # the loaded frames' floor (LOADED_OTHER_N)
@@ -188,13 +190,19 @@ class DriftTracker:
         self._tot = np.zeros(n)
         self._Dg = np.ascontiguousarray(D[1:])  # the gradient's directions: its offset
         self._yw = np.empty_like(w)
-        self._b = np.empty(n)
+        self._b = np.zeros(n)
+        self._bm, self._tot_o = self._b[:m], self._tot[1:m]  # views of observe's work arrays
         self._eye = np.eye(n)
         self._q = np.array([RATE * RATE] * m + [ACCEL * ACCEL] + [0.0] * (n - m - 1))
         self._dt, self._a, self._qdt = -1.0, 1.0, self._q  # observe()'s factors of the last period
         self._F = np.eye(n)  # the prediction: the scale by its rate; unrested, the other states by their slope
+        self._FT = self._F.T
+        self._FP = np.empty((n, n))  # observe's work arrays: F Pa, then the prediction F Pa F^T (P within a frame)
+        self._Ppred = np.empty((n, n))
+        self._Ppred_diag = self._Ppred.reshape(-1)[::n + 1]
         self._unfitted2[self.contacts_block] = RESTART_CONTACT ** 2
-        self._Fs = (np.arange(1, m), np.arange(m + 1, n))  # ... its entries of the slopes (their step each frame)
+        # ... its entries of the slopes (their step each frame): F[i, m + i], i = 1..m-1, as one strided view
+        self._Fs = self._F.reshape(-1)[m + n + 1::n + 1][:m - 1]
         self._Fda = 0.0  # ... their value now
         self.scale = 1.0
         self.rate = 0.0  # the scale's relative change per second
@@ -356,7 +364,7 @@ class DriftTracker:
     def _set_gradient(self, g: np.ndarray) -> None:
         self.gradient = np.asarray(g, float)
         if self.m > 1:
-            np.dot(self.gradient, self._Dg, out=self.offset)
+            self.gradient.dot(self._Dg, out=self.offset)
 
     def observe(self, y: np.ndarray, t: float | None = None, joint: tuple | None = None) -> bool:
         """Update the state with the normalised change ``y`` (n_meas,) of a frame at time ``t`` (s; None:
@@ -373,15 +381,19 @@ class DriftTracker:
             self._dt, self._a, self._qdt = dt, math.exp(-dt / RATE_MEMORY), self._q * dt
             self._F[0, m], self._F[m, m] = dt, self._a
         a = self._a
+        # (the per-frame path below uses ndarray.dot, work arrays, broadcasting for outer products and Python
+        # floats for 3-vectors: numpy's dispatch of np.dot and np.multiply.outer costs more than their arithmetic)
         yw = np.multiply(y, self._w, out=self._yw)
-        b = np.dot(self._Dw1, yw, out=self._b)
+        b = self._b  # its rows of the measured states; the slopes' stay 0
+        self._Dwm.dot(yw, out=self._bm)
         # at rest when the scale alone explains the frame (the gradient's current part is already
         # taken out): a lateral load looks like a gradient and must never be taken for one
         b0 = float(b[0])
         best = b0 / self._N00  # the uniform change that explains the most of the frame
         rest = float(yw.dot(yw)) - b0 * best < self._rest
         if self._W is not None:
-            f = (np.dot(self._W, y) - self._Wr * best).tolist()  # 3 Python floats: the quiet test's too
+            (f0, f1, f2), (r0, r1, r2) = self._W.dot(y).tolist(), self._Wrl
+            f = [f0 - r0 * best, f1 - r1 * best, f2 - r2 * best]  # 3 Python floats: the quiet test's too
             rest = rest and math.hypot(*f) < self.rest_force
             # ... and, with the joint fit, after quiet frames (force/slow_states/drift_parts.py); the linear estimator
             # measures the scale at rest only: not quieted
@@ -397,7 +409,7 @@ class DriftTracker:
         self.rate *= a
         self.force_step = None
         tot = self._tot  # the states' change since the frame was formed: the step, then the updates
-        tot[:] = 0.0
+        tot.fill(0.0)
         tot[0] = step
         da = 0.0
         if rest:
@@ -405,15 +417,15 @@ class DriftTracker:
         elif m > 1:  # unmeasured, the other states follow the scale by their slope (FOLLOW_SIGMA)
             da = abs(step)
             self._unmeasured += da
-            tot[1:m] = da * self._slope
+            np.multiply(self._slope, da, out=self._tot_o)
         if da != self._Fda:  # the slopes' entries of the prediction (unchanged over a run of rest frames)
-            self._F[self._Fs] = self._Fda = da
+            self._Fs[:] = self._Fda = da
         # predicted: the scale moves on at its rate, which fades; unrested, the other states by their slope:
         # F P F^T + Q dt with F = I + dt e_0 e_m^T + da E_os, F_mm = a (two small products: half the cost of row
-        # and column updates)
-        n = self.n
-        P = np.dot(np.dot(self._F, self._Pa), self._F.T)
-        P.reshape(-1)[:: n + 1] += self._qdt  # the diagonal
+        # and column updates), into a work array: P lives within this frame (its end makes _Pa anew)
+        P = self._Ppred
+        self._F.dot(self._Pa, out=self._FP).dot(self._FT, out=P)
+        self._Ppred_diag += self._qdt  # the diagonal
         use_joint = joint is not None
         if use_joint:
             # every frame, at rest or loaded: the scale measured with the frame's load marginalised
@@ -426,23 +438,24 @@ class DriftTracker:
                 Pc = P[:, 0].copy()
                 gain = Pc / (float(Pc[0]) + var / REST_WEIGHT)
                 delta = gain * (z - step)
-                if math.isfinite(float(delta.sum())):
+                if math.isfinite(sum(delta.tolist())):
                     tot += delta
-                    P -= np.multiply.outer(gain, Pc)
+                    P -= gain[:, None] * Pc  # the outer product
             else:
                 # LOADED_WEIGHT per DEFAULT_PERIOD: a load's frames share its mismatch, so more of them in a second
                 # do not measure more (the same held load reads the same at 10 and 100 frames/s)
                 w = LOADED_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD
                 ob = self._obias
                 if ob is not None:  # the others' bias: its covariance with the states predicted as they are, every frame
-                    ob[2] = np.dot(self._F, ob[2])
+                    ob[2] = self._F.dot(ob[2])
                 delta = self._bias.update(P, self._F, force, z - step, var / w)
                 if self._bias.new and ob is not None and moved(self._bias.force, ob[3]):
                     self._obias = ob = None  # another load: its own mismatch (_loaded_others)
                 if delta is not None:
                     tot += delta
                     if ob is not None:  # ... and updated with them (the scale's measurement)
-                        ob[2] -= np.multiply.outer(self._bias.kx, ob[2][0])
+                        ob2 = ob[2]
+                        ob2 -= self._bias.kx[:, None] * ob2[0]  # the outer product
                 if len(joint) > 5 and joint[5] is not None:
                     self._loaded_others(P, tot, joint[5], OTHERS_WEIGHT * max(dt, 1e-4) / DEFAULT_PERIOD)
         if rest:
@@ -453,14 +466,14 @@ class DriftTracker:
             # in Fortran's, as LAPACK takes it; P is symmetric)
             self.rest_frames += 1
             N = self._N if not use_joint else self._N_others
-            A = np.dot(N, P)
+            A = N.dot(P)
             A += self._eye
             gain = solve_small(A.T, P.T).T
-            innov = b - np.dot(self._N, tot)  # what the step and the joint update leave
+            innov = b - self._N.dot(tot)  # what the step and the joint update leave
             if use_joint:
                 innov[0] = 0.0
-            delta = np.dot(gain, innov)
-            if math.isfinite(float(delta.sum())):
+            delta = gain.dot(innov)
+            if math.isfinite(sum(delta.tolist())):
                 tot += delta
                 P = gain
         d = tot.tolist()
@@ -469,17 +482,22 @@ class DriftTracker:
         self.scale *= (1.0 + step) * (1.0 + d[0] - step)
         self.rate += d[m]
         if m > 1:
-            g = self.gradient + tot[1:m]
+            g = self.gradient + self._tot_o
             if rest:
                 self._follow.add(dt, self.scale - 1.0, g)
             else:  # unmeasured: the other states follow the scale's change (FOLLOW_MEMORY)
                 g += self.follow * (self.scale - scale0)
             self._set_gradient(g)
         if joint is not None:  # the force given the scale (and the others, when measured) now known
-            self.force_step = joint[2] - joint[3] * d[0]
+            (u0, u1, u2), (v0, v1, v2), d0 = joint[2].tolist(), joint[3].tolist(), d[0]
             if len(joint) > 5 and joint[5] is not None:
-                self.force_step = self.force_step - np.dot(joint[5][2], tot[1:m])
-        self._Pa = 0.5 * (P + P.T)
+                s0, s1, s2 = joint[5][2].dot(self._tot_o).tolist()
+                self.force_step = np.array(((u0 - v0 * d0) - s0, (u1 - v1 * d0) - s1, (u2 - v2 * d0) - s2))
+            else:
+                self.force_step = np.array((u0 - v0 * d0, u1 - v1 * d0, u2 - v2 * d0))
+        Pa = P + P.T
+        Pa *= 0.5
+        self._Pa = Pa
         if rest:
             self._reset_slopes()
         elif self.n > m + 1:
@@ -497,7 +515,7 @@ class DriftTracker:
             Hinv = solve_small(Ho, self._eye[1:m, 1:m].copy())
         except np.linalg.LinAlgError:
             return
-        z = np.dot(Hinv, bo)
+        z = Hinv.dot(bo)
         ob = self._obias  # the held load's own error of the measurement (beta, its variance, covariance c, its force)
         if ob is None:  # (observe drops it for another load)
             k = LOADED_BIAS_N + LOADED_OTHER_REL * math.hypot(*self._bias.force)
@@ -528,15 +546,15 @@ class DriftTracker:
             return
         Kx, Kb = sol[:, :self.n].T, sol[:, self.n:].T
         nu = z - tot[1:m] - beta
-        delta = np.dot(Kx, nu)
-        if math.isfinite(float(delta.sum())):
+        delta = Kx.dot(nu)
+        if math.isfinite(sum(delta.tolist())):
             tot += delta
-            P -= np.dot(Kx, Cxy.T)
+            P -= Kx.dot(Cxy.T)
             bc = self._bias.c  # the scale's bias: its covariance with the states updated with them
-            bc -= np.dot(Kx, bc[1:m])
-            ob[0] = beta + np.dot(Kb, nu)
-            ob[2] = c - np.dot(Kx, Cby.T)
-            ob[1] = pb - np.dot(Kb, Cby.T)
+            bc -= Kx.dot(bc[1:m])
+            ob[0] = beta + Kb.dot(nu)
+            ob[2] = c - Kx.dot(Cby.T)
+            ob[1] = pb - Kb.dot(Cby.T)
 
     def others_wanted(self) -> bool:
         """Whether the next frame, if unrested, should measure the other states (:data:`LOADED_OTHER_N`): one

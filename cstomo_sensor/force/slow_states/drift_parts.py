@@ -158,16 +158,16 @@ class LoadBias:
             self.force, self.p, self.b = f, LOAD_BIAS_SIGMA ** 2, 0.0
             self.c[:] = 0.0
         else:
-            self.c = np.dot(F, self.c)
+            self.c = F.dot(self.c)
         h = P[:, 0] + self.c
         hb = float(self.c[0]) + self.p
         S = float(h[0]) + hb + var
         nu = nu - self.b
         kx, kb = h / S, hb / S
         delta = kx * nu
-        if not (math.isfinite(float(delta.sum())) and math.isfinite(kb * nu)):
+        if not (math.isfinite(sum(delta.tolist())) and math.isfinite(kb * nu)):
             return None
-        P -= np.multiply.outer(kx, h)
+        P -= kx[:, None] * h  # the outer product (np.multiply.outer's dispatch costs more than it)
         self.c -= kx * hb
         self.p -= kb * hb
         self.kx = kx  # the states' gain (the tracker's other biases' covariance with them follows it)

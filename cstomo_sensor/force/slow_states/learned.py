@@ -268,10 +268,12 @@ class Unloaded:
         a, b, sd = self._k
         if self.fast is None:  # the means on 3 Python floats each (2 us, where numpy's small-array calls took 10)
             self.fast, self.slow = f, list(f)
-        else:
-            self.fast = [x + a * (v - x) for x, v in zip(self.fast, f)]
-            self.slow = [x + b * (v - x) for x, v in zip(self.slow, f)]
-        d0, d1, d2 = (x - v for x, v in zip(self.fast, self.slow))
+        else:  # (unrolled: a comprehension's generator costs more than the arithmetic)
+            (p0, p1, p2), (q0, q1, q2), (v0, v1, v2) = self.fast, self.slow, f
+            self.fast = [p0 + a * (v0 - p0), p1 + a * (v1 - p1), p2 + a * (v2 - p2)]
+            self.slow = [q0 + b * (v0 - q0), q1 + b * (v1 - q1), q2 + b * (v2 - q2)]
+        (p0, p1, p2), (q0, q1, q2) = self.fast, self.slow
+        d0, d1, d2 = p0 - q0, p1 - q1, p2 - q2
         bound = max(STEP_N, STEP_SIGMAS * sd * sigma)
         moved = d0 * d0 + d1 * d1 + d2 * d2 > bound * bound
         self.broke = moved or known
@@ -430,7 +432,7 @@ class DirectionLearner:
         yw = self._ysum * (self._w / AVG)
         s_mean = self._ssum / AVG
         self._ysum[:], self._ssum, self._j = 0.0, 0.0, 0
-        res = yw - np.dot(np.dot(self._A, yw), self._Dw)
+        res = yw - self._A.dot(yw).dot(self._Dw)
         if not np.isfinite(res).all():
             return
         # held HOLD_S before it counts: a load's first frames feed it before its step is seen (discard)
@@ -440,7 +442,8 @@ class DirectionLearner:
         """The chain of clear frames ended (:class:`Unloaded`): the samples not yet counted, and the one being
         averaged, may hold a load's first frames: dropped."""
         self._pending.clear()
-        self._ysum[:], self._ssum, self._j = 0.0, 0.0, 0
+        self._ysum.fill(0.0)
+        self._ssum, self._j = 0.0, 0
 
     def _commit(self, res: np.ndarray, s_mean: float) -> None:
         self._batch[self._k] = res

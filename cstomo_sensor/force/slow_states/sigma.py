@@ -199,12 +199,12 @@ class ForceSigma:
         c = k * k * self._noise_w2
         noise_var = [c * inv[0], c * inv[4], c * inv[8]]
         self._kAinv9[:] = [k * x for x in inv]
-        np.dot(self._kAinv, fit.out[1:], out=self._map)
+        self._kAinv.dot(fit.out[1:], out=self._map)  # (ndarray.dot: without np.dot's dispatch)
         WD, change2 = None, 0.0
         BwXt = self._BwXt
         if BwXt is not None:
             np.add(fit.by, self._Bwr, out=BwXt[0])  # B w (r + y): a scale error scales the load's change too
-            np.dot(self._map, BwXt.T, out=self._T)
+            self._map.dot(BwXt.T, out=self._T)
             WD = self._WDl
             t0, t1, t2 = self._Tr.tolist()
             change2 = UNDESCRIBED ** 2 * (t0 * t0 + t1 * t1 + t2 * t2) / 3.0

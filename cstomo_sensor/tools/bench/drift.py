@@ -142,8 +142,8 @@ def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 
     estimators, tracking off and on, side by side: the drift bench's unchanged device (7 s at rest,
     then its held-out loads held 1 s with 1 s rests: 3100 frames, 61 % at rest; 60 dB, 100 frames/s),
     ``rounds`` rounds of every setting in turn on one pinned core, so the host's load weighs on all
-    alike; median and 90th percentile over every frame of the rounds, with the host's load average at
-    the start and the end.
+    alike; median, mean (the CPU a robot pays per frame: the slow frames, e.g. a learner's batch, count) and
+    90th percentile over every frame of the rounds, with the host's load average at the start and the end.
     Writes frame_cost.csv in ``out``."""
     ref, unloaded, forces, loaded = _truth_frames(say, changes=())
     pipes = {name: Pipeline.build(PipelineConfig(estimator=name, cache_dir=str(cache_dir or ""))) for name in ESTIMATORS}
@@ -157,7 +157,8 @@ def frame_cost(out: str | os.PathLike, cache_dir=None, say=print, rounds: int = 
                      ramp_s=5.0, creep=StreamConfig.creep_per_decade)
     load1 = os.getloadavg()[0]
     rows = [{"estimator": name, "tracking": tracking, "frames": len(c), "us_median": 1e6 * float(np.median(c)),
-             "us_p90": 1e6 * float(np.percentile(c, 90)), "load_start": load0, "load_end": load1}
+             "us_mean": 1e6 * float(np.mean(c)), "us_p90": 1e6 * float(np.percentile(c, 90)), "load_start": load0,
+             "load_end": load1}
             for (name, tracking), c in costs.items()]
     Path(out).mkdir(parents=True, exist_ok=True)
     return write_rows(Path(out) / "frame_cost.csv", rows, say)
