@@ -230,22 +230,38 @@ def test_a_timeline_load_with_a_time_that_is_no_number_is_refused_naming_it(tmp_
         Timeline.from_scene(f)
 
 
-@pytest.mark.slow  # starts a process
-@pytest.mark.parametrize("load,why", [("{socket: {force: [0, -10]}}", "socket force \\[0, -10\\] has 2 components, not 3"),
-                                      ("{socket: {magnitude: 20}}", "missing 'elevation_deg'"),
-                                      ("{inclusion: {center: [0, 0, 0.01]}}", "missing 'radius'")])
-def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, why):
-    """Before: an IndexError traceback out of write_forces (a 2-component force, after frames.csv and
-    reference.csv were written) or a KeyError traceback (a missing key)."""
-    import re
+def run_cstomo(argv: list[str], capsys=None) -> tuple[int, str, str]:
+    """``cstomo ARGV``: (exit status, stdout, stderr); as its own process without ``capsys``, else its
+    main() in this process (no ~2-3 s start of a process: the refusals before any computation)."""
+    if capsys is None:
+        r = subprocess.run([str(Path(sys.executable).parent / "cstomo"), *argv], capture_output=True, text=True,
+                           timeout=120, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+        return r.returncode, r.stdout, r.stderr
+    capsys.readouterr()
+    try:
+        code = cstomo(argv)
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
 
+
+@pytest.mark.parametrize("load,why,process", [
+    pytest.param("{socket: {force: [0, -10]}}", "socket force \\[0, -10\\] has 2 components, not 3", True,
+                 marks=pytest.mark.slow, id="process"),  # starts a process
+    pytest.param("{socket: {magnitude: 20}}", "missing 'elevation_deg'", False, id="in-process-1"),
+    pytest.param("{inclusion: {center: [0, 0, 0.01]}}", "missing 'radius'", False, id="in-process-2")])
+def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, capsys, load, why, process):
+    """Before: an IndexError traceback out of write_forces (a 2-component force, after frames.csv and
+    reference.csv were written) or a KeyError traceback (a missing key). The first case is the
+    ``cstomo`` process itself (its exit status, its one line, no traceback; slow: it starts a process),
+    the others its main() in this process (a traceback there fails the test as well)."""
     f = tmp_path / "scene.yaml"
     f.write_text(f"loads:\n  - {{socket: {{force: [0, 0, -10]}}}}\n  - {load}\n")
     out = tmp_path / "out"
-    r = subprocess.run([str(Path(sys.executable).parent / "cstomo"), "simulate", "--scene", str(f), "--out", str(out)],
-                       capture_output=True, text=True, timeout=120, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
-    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    (line,) = r.stderr.strip().splitlines()
+    code, _, err = run_cstomo(["simulate", "--scene", str(f), "--out", str(out)], None if process else capsys)
+    assert code == 2 and "Traceback" not in err, err
+    (line,) = err.strip().splitlines()
     assert re.match(f"^cstomo simulate: error: {re.escape(str(f))}: loads\\[1\\]: load .*: {why}; expected socket: ", line), line
     assert "(docs/formats.md#scene-file)" in line and not out.exists()
 
@@ -253,7 +269,6 @@ def test_cstomo_simulate_refuses_a_malformed_load_in_one_line(tmp_path, load, wh
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 
 
-@pytest.mark.slow  # starts a process
 @pytest.mark.parametrize("text,why", [
     ("loads:\n  - {socket: {force: [0, 0, -20]}}\n  - {socket: {force: [0, 1200, -1600]}}\n",
      "loads[1] (socket) is 2000 N"),
@@ -262,18 +277,18 @@ SCENES = Path(__file__).resolve().parent.parent / "scenes"
      "    - {time: 2, magnitude: 75, elevation_deg: 90}\n", "timeline.loads[1] (time 2 s) is 75 N"),
     ("timeline: {duration: 50, tasks: {magnitude: [5, 80]}}\n", "tasks.magnitude=[5.0, 80.0]"),
 ])
-def test_simulate_and_board_sim_refuse_a_scene_socket_load_beyond_the_range_before_computing(tmp_path, text, why):
+def test_simulate_and_board_sim_refuse_a_scene_socket_load_beyond_the_range_before_computing(tmp_path, capsys, text, why):
     """A scene's socket load beyond 60 N (1.5 x the rated 40 N, the limit of a load script) is refused in
-    one line naming the file, the load, its magnitude and the range: no 'computing' line, nothing written."""
+    one line naming the file, the load, its magnitude and the range: no 'computing' line, nothing written.
+    The commands' main() in this process (the refusal comes before any computation; the ``cstomo`` process
+    itself: test_cstomo_simulate_refuses_a_malformed_load_in_one_line)."""
     f = tmp_path / "scene.yaml"
     f.write_text(text)
-    exe = str(Path(sys.executable).parent / "cstomo")
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     for cmd, args, prefix in (("simulate", ["--out", str(tmp_path / "out")], "cstomo simulate: error: "),
                               ("board-sim", ["--link", str(tmp_path / "b")], "cstomo board-sim: error: ")):
-        r = subprocess.run([exe, cmd, "--scene", str(f), *args], capture_output=True, text=True, timeout=120, env=env)
-        assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
-        (line,) = r.stderr.strip().splitlines()
+        code, out, err = run_cstomo([cmd, "--scene", str(f), *args], capsys)
+        assert code == 2 and out == "", out + err
+        (line,) = err.strip().splitlines()
         assert line.startswith(f"{prefix}{f}: {why}") and "0..60 N" in line, line
     assert not (tmp_path / "out").exists() and not (tmp_path / "b").exists()
 
