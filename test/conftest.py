@@ -70,6 +70,22 @@ def _install_guards() -> None:
 _install_guards()
 
 
+# --- the mechanics' factors, kept by each worker -----------------------------------------------------
+# A batch of socket loads (an honest simulation's frames, a timeline, the estimators' training) assembles
+# the body's stiffness and factorises it once (model/elastic_fem.problem: 10-40 s a mesh), then frees it
+# (elasticity.release: a long-running process keeps no hundreds of MB). On a fresh clone file after file
+# computes such a batch: each worker keeps its problems instead (elastic_fem's cache, at most 2), and the
+# next batch on the same mesh and material reuses the factor (the same matrix: the same numbers). Only
+# the code's call after a batch is skipped; elastic_fem.release itself still frees them (test_mechanics).
+def _keep_mechanics() -> None:
+    from cstomo_sensor.model import elasticity
+
+    elasticity.release = lambda: None
+
+
+_keep_mechanics()
+
+
 # --- the order of the files: the longest first ------------------------------------------------------
 # `make test` runs two workers (pytest-xdist, --dist loadfile --no-loadscope-reorder): each takes the next
 # file of the collection when it is almost done with its own. The files that take longest (a minute or
