@@ -92,12 +92,13 @@ _keep_mechanics()
 # more on a fresh clone: honest simulations over time, benches, nodes in real time) go first, so neither
 # worker starts one of them while the other has nothing left. Only the order changes; a file not named
 # keeps its place, and every file's tests keep theirs.
-LONGEST_FIRST = (  # measured: the per-file sums of `pytest --junitxml` on two workers, a fresh cache
-    "test_robot_bench.py", "test_creep.py", "test_tools.py", "test_forward.py", "test_learned.py",
-    "test_scene_field.py", "test_calibration.py", "test_force.py", "test_first_tare.py", "test_drift.py",
-    "test_sigma.py", "test_timeline.py", "test_node_restart_gradient.py", "test_bench_node.py",
-    "test_robot_bench_change.py", "test_board_pty.py", "test_colcon_install.py", "test_reproducible.py",
-    "test_docs.py",
+LONGEST_FIRST = (  # estimated per-file sums on two workers, a fresh cache (the fresh-clone CI's per-test times
+    # and per-file runs on this host, after the cheaper merges of issue 36; the longest first, ~180 s .. ~40 s)
+    "test_robot_bench.py", "test_tools.py", "test_creep.py", "test_calibration.py", "test_force.py", "test_bench.py",
+    "test_first_tare.py", "test_robot_bench_change.py", "test_learned.py", "test_drift.py", "test_scene_field.py",
+    "test_sigma.py", "test_node_restart_gradient.py", "test_timeline.py", "test_launch_sensors.py",
+    "test_colcon_install.py", "test_creep_defaults.py", "test_reproducible.py", "test_bench_node.py",
+    "test_board_pty.py", "test_forward.py", "test_docs.py",
 )
 
 
