@@ -62,8 +62,12 @@ def test_installed_board_sim_and_node_deliver_a_wrench(install, tmp_path):
 
     prefix, env = install
     lib = prefix / "lib" / "cstomo_sensor"
+    from cstomo_sensor.tools.launching import SIM_LOAD
+
     script = tmp_path / "load.csv"
-    script.write_text("time,fx,fy,fz\n0,0,0,0\n2,0,0,-20\n")
+    # a launch's own script (unloaded for 3 s: the node tares), as a launch's board plays it: its frames are
+    # those of the launch tests and test_board_pty's (one computation in the suite's cache, 15-40 s cold)
+    script.write_text(SIM_LOAD)
     link = tmp_path / "board"
     node = subprocess.Popen([str(lib / "cstomo_sensor_node"), "--ros-args", "-r", "__ns:=/installed",
                              "-p", f"port:={link}", "-p", f"tare_file:={tmp_path / 'tare.csv'}"],
