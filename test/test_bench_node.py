@@ -1,5 +1,6 @@
-"""``cstomo bench-node`` in a smoke configuration: the real node and the simulated board on a pty,
-one short run; the CSV has the expected columns and finite values (no timing thresholds)."""
+"""``cstomo bench-node`` in smoke configurations: the real nodes (or the lean loop) and the simulated
+boards on ptys, one short run each; the CSVs have the expected columns and finite values (no timing
+thresholds)."""
 from __future__ import annotations
 
 import csv
@@ -56,42 +57,12 @@ def test_proc_readers_on_self():
     assert 0 < rss <= hwm
 
 
-def test_bench_node_smoke(tmp_path):
-    from conftest import CALLER_DOMAIN
-
-    # a domain of its own, not the suite's, unless the caller chose one
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
-               ROS_DOMAIN_ID=CALLER_DOMAIN or str(30 + (os.getpid() + 35) % 70))
-    r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--rates", "100", "--stress", "1",
-                        "--seconds", "2", "--warmup", "0.5", "--cold", "--out", str(tmp_path)],
-                       env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "| fps |" in r.stdout and "minimum transport delay" in r.stdout
-    with open(tmp_path / "node_bench.csv", newline="") as f:
-        reader = csv.DictReader(f)
-        assert reader.fieldnames == COLUMNS
-        rows = list(reader)
-    assert len(rows) == 1
-    text = rows[0]
-    row = numbers(text)
-    assert all(math.isfinite(v) for v in row.values()), row
-    assert row["rate_hz"] == 100 and row["stress_field_every"] == 1 and row["cold_rate_hz"] == 10
-    check_threads(row)
-    check_threads(row, "cold_")
-    # the threads by name, the node's two among them; the outputs built with the field every frame
-    assert "cstomo_frames=" in text["node0_threads"] and "cstomo_frames=" in text["cold_node0_threads"], text
-    assert "cstomo_reader" not in text["node0_threads"] + text["cold_node0_threads"], text
-    # bench-node subscribes to ~/wrench only: no other message is built (the field every frame included)
-    outputs = dict(x.split("=") for x in text["outputs"].split())
-    assert set(outputs) == {"wrench"}, text["outputs"]
-    assert "| frame thr |" in r.stdout
-    assert row["wrenches"] > 0 and row["node_vmrss_mb"] > 0 and row["node_vmhwm_mb"] >= row["node_vmrss_mb"]
-    assert markdown([row]).count("\n") == 2
-
-
 def test_bench_node_two_sensors_writes_its_tables(tmp_path):
-    """``--sensors 2``: two boards and two nodes (namespaces /s0 and /s1) measured together; a row for
-    the configuration, a row per sensor from its own diagnostics counters, and the markdown."""
+    """``cstomo bench-node`` on the real nodes and simulated boards, one short run of ``--sensors 2`` (two
+    boards and two nodes, namespaces /s0 and /s1, measured together) with the stress field every frame:
+    the CSV has the expected columns and finite values, a row for the configuration, a row per sensor
+    from its own diagnostics counters, and the markdown (no timing thresholds). The ``cold_*`` columns
+    (``--cold``) are the lean loop's test's (test_bench_node_lean_loop): the same run at the cold rate."""
     from conftest import CALLER_DOMAIN
 
     from cstomo_sensor.tools.bench.node import SENSOR_COLUMNS
@@ -99,17 +70,29 @@ def test_bench_node_two_sensors_writes_its_tables(tmp_path):
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", OPENBLAS_NUM_THREADS="1",
                ROS_DOMAIN_ID=CALLER_DOMAIN or str(30 + (os.getpid() + 36) % 70))
     r = subprocess.run([sys.executable, "-m", "cstomo_sensor.tools.cli", "bench-node", "--sensors", "2", "--rates", "50",
-                        "--stress", "0", "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
-                       env=env, capture_output=True, text=True, timeout=240)
+                        "--stress", "1", "--seconds", "2", "--warmup", "0.5", "--out", str(tmp_path)],
+                       env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
+    assert "| fps |" in r.stdout and "minimum transport delay" in r.stdout and "| frame thr |" in r.stdout, r.stdout
     with open(tmp_path / "node_bench.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == COLUMNS
+        rows = list(reader)
     assert len(rows) == 1 and rows[0]["sensors"] == "2" and rows[0]["hosted"] == "0"
-    row = numbers(rows[0], cold=False)  # no --cold: those columns are empty (nan)
+    text = rows[0]
+    row = numbers(text, cold=False)  # no --cold: those columns are empty (nan)
     assert all(math.isfinite(v) for v in row.values()), row
+    assert all(math.isnan(float(v)) for k, v in text.items() if k.startswith("cold_") and k not in TEXT), text
+    assert row["rate_hz"] == 50 and row["stress_field_every"] == 1
     check_threads(row)
-    assert "stress_field" not in rows[0]["outputs"] and "wrench=" in rows[0]["outputs"], rows[0]["outputs"]
+    # the threads by name, the node's frame thread among them and no reader thread
+    assert "cstomo_frames=" in text["node0_threads"] and "cstomo_reader" not in text["node0_threads"], text
+    # bench-node subscribes to ~/wrench only: no other message is built (the field every frame included)
+    outputs = dict(x.split("=") for x in text["outputs"].split())
+    assert set(outputs) == {"wrench"}, text["outputs"]
     assert row["wrenches"] > 0 and row["node_cpu_pct"] > 0 and row["board_cpu_pct"] > 0
+    assert row["node_vmrss_mb"] > 0 and row["node_vmhwm_mb"] >= row["node_vmrss_mb"]
+    assert markdown([row]).count("\n") == 2
     with open(tmp_path / "node_bench_sensors.csv", newline="") as f:
         reader = csv.DictReader(f)
         assert reader.fieldnames == SENSOR_COLUMNS

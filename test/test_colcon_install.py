@@ -62,8 +62,12 @@ def test_installed_board_sim_and_node_deliver_a_wrench(install, tmp_path):
 
     prefix, env = install
     lib = prefix / "lib" / "cstomo_sensor"
+    from cstomo_sensor.tools.launching import SIM_LOAD
+
     script = tmp_path / "load.csv"
-    script.write_text("time,fx,fy,fz\n0,0,0,0\n2,0,0,-20\n")
+    # a launch's own script (unloaded for 3 s: the node tares), as a launch's board plays it: its frames are
+    # those of the launch tests and test_board_pty's (one computation in the suite's cache, 15-40 s cold)
+    script.write_text(SIM_LOAD)
     link = tmp_path / "board"
     node = subprocess.Popen([str(lib / "cstomo_sensor_node"), "--ros-args", "-r", "__ns:=/installed",
                              "-p", f"port:={link}", "-p", f"tare_file:={tmp_path / 'tare.csv'}"],
@@ -113,14 +117,18 @@ def test_launch_plan_of_the_install_starts_the_installed_board(install):
 
 
 def test_demo_runs_from_the_install(install, tmp_path):
+    """``cstomo demo`` on a short script, run to its end, from the install: the suite's one such run
+    (test_tools.py's demo is interrupted by Ctrl-C): judged by test_tools.check_demo_run, and its
+    temporary files removed."""
+    from test_tools import DEMO_SCRIPT, check_demo_run
+
     prefix, env = install
     script = tmp_path / "load.csv"
-    script.write_text("time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n")
+    script.write_text(DEMO_SCRIPT)
     r = subprocess.run([str(prefix / "lib" / "cstomo_sensor" / "cstomo"), "demo", "--load-script", str(script),
                         "--hold", "2.5", "--rate", "100"], env=dict(env, TMPDIR=str(tmp_path)),
                        capture_output=True, text=True, timeout=300, cwd=tmp_path)
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "median angle error" in r.stdout and "Traceback" not in r.stdout + r.stderr, r.stdout + r.stderr
+    check_demo_run(r.returncode, r.stdout, r.stderr)
     assert not list(tmp_path.glob("cstomo_demo_*"))
 
 

@@ -134,20 +134,38 @@ def test_fuzz_readers_raise_only_package_errors(tmp_path_factory, raw):
 
 # --- the command line on bad input ------------------------------------------------------------------
 
-def _cstomo(*args: str) -> subprocess.CompletedProcess:
-    exe = Path(sys.executable).parent / "cstomo"
-    return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=120,
-                          env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+def _cstomo(capfd, *args: str, process: bool = False) -> subprocess.CompletedProcess:
+    """``cstomo ARGS``: its main() in this process (every refusal here comes before any computation, no
+    ~2-3 s start of a process each), or with ``process`` the ``cstomo`` process itself (its exit status,
+    its one line, no traceback: one case below). A command's signal handlers are put back after it."""
+    if process:
+        return subprocess.run([str(Path(sys.executable).parent / "cstomo"), *args], capture_output=True, text=True,
+                              timeout=120, env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
+    import signal
+
+    from cstomo_sensor.tools.cli import main
+
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    capfd.readouterr()
+    try:
+        code = main(list(args))
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    out, err = capfd.readouterr()
+    return subprocess.CompletedProcess(list(args), code, out, err)
 
 
-@pytest.mark.slow  # runs cstomo as a process
-@pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
-def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
+@pytest.mark.parametrize("cmd,process", [pytest.param("estimate", True, marks=pytest.mark.slow),  # starts cstomo
+                                         ("reconstruct", False)])
+def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, capfd, cmd, process):
     good = _write(tmp_path, f"{ROW}\n", "ref.csv")
     bad = _write(tmp_path, f"{ROW}\n{ROW},1\n", "frames.csv")  # ragged line 2
     out = tmp_path / ("out.csv" if cmd == "estimate" else "out.npz")
-    r = _cstomo(cmd, "--reference", str(good), "--frames", str(bad), "--out", str(out), "--cache-dir",
-                str(tmp_path / "cache"))
+    r = _cstomo(capfd, cmd, "--reference", str(good), "--frames", str(bad), "--out", str(out), "--cache-dir",
+                str(tmp_path / "cache"), process=process)
     assert r.returncode == 2, r.stdout + r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert f"{bad}:2:" in r.stderr
@@ -155,14 +173,13 @@ def test_cli_bad_frames_file_one_line_exit_2_no_output(tmp_path, cmd):
     assert not (tmp_path / "cache").exists()  # the input was read before any model was built
 
 
-@pytest.mark.slow  # runs cstomo as a process
 @pytest.mark.parametrize("cmd", ["estimate", "reconstruct"])
-def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, cmd):
+def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, capfd, cmd):
     """Before: the model was built and the command then failed with '[Errno 2] No such file or
     directory: '.../missing/.out.csv.tmp1234'', naming a temporary file the user never gave."""
     good = _write(tmp_path, f"{ROW}\n", "ref.csv")
     out = tmp_path / "missing" / "out.csv"
-    r = _cstomo(cmd, "--reference", str(good), "--frames", str(good), "--out", str(out), "--cache-dir",
+    r = _cstomo(capfd, cmd, "--reference", str(good), "--frames", str(good), "--out", str(out), "--cache-dir",
                 str(tmp_path / "cache"))
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stdout + r.stderr
     assert r.stderr.strip().splitlines() == [f"cstomo {cmd}: error: --out {out}: no directory {out.parent}; "
@@ -175,33 +192,31 @@ def test_cli_out_in_a_missing_directory_is_refused_first_in_one_line(tmp_path, c
             f.write(b"x")
 
 
-@pytest.mark.slow  # runs cstomo as a process
-def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path):
+def test_cli_board_sim_and_demo_refuse_a_load_script_without_header(tmp_path, capfd):
     script = _write(tmp_path, "0,0,0,0\n1.5,0,0,-20\n", "load.csv")
     for args in (["board-sim", "--sensor", "cuboid_joint", "--load-script", str(script), "--rate", "10"],
                  ["demo", "--load-script", str(script)]):
-        r = _cstomo(*args)
+        r = _cstomo(capfd, *args)
         assert r.returncode == 2, r.stdout + r.stderr
         assert "Traceback" not in r.stderr and f"{script}:1:" in r.stderr and "header" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr  # refused before board-sim's 'computing' line
     good = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n", "good.csv")
-    r = _cstomo("board-sim", "--load-script", str(good), "--rate", "-5")  # before: refused after computing
+    r = _cstomo(capfd, "board-sim", "--load-script", str(good), "--rate", "-5")  # before: refused after computing
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "cstomo board-sim: error: argument --rate: -5: expected frames per second > 0"], r.stderr
     for flag, value, what in (("--hold", "0", "seconds > 0"), ("--hold", "-3", "seconds > 0"),
                               ("--rate", "0", "frames per second > 0"), ("--rate", "-5", "frames per second > 0")):
-        r = _cstomo("demo", flag, value)  # before: --hold 0 exited 0 showing no load, the others failed late
+        r = _cstomo(capfd, "demo", flag, value)  # before: --hold 0 exited 0 showing no load, the others failed late
         assert r.returncode == 2 and r.stderr.strip().splitlines() == [  # on a temporary file the user never wrote
             f"cstomo demo: error: argument {flag}: {value}: expected {what}"], r.stderr
 
 
-@pytest.mark.slow  # runs cstomo as a process
-def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(tmp_path):
+def test_cli_board_sim_and_demo_refuse_a_load_beyond_the_range_before_computing(tmp_path, capfd):
     """2000 N is 50 x the rated 40 N (docs/physics.md): one line naming the load, its time and the
     accepted range, before board-sim's 'computing' line (nothing simulated)."""
     script = _write(tmp_path, "time,fx,fy,fz\n0,0,0,0\n3,0,0,-20\n6,0,1200,-1600\n", "load.csv")
     for cmd in ("board-sim", "demo"):
-        r = _cstomo(cmd, "--load-script", str(script), *(["--link", str(tmp_path / "b")] if cmd == "board-sim" else []))
+        r = _cstomo(capfd, cmd, "--load-script", str(script), *(["--link", str(tmp_path / "b")] if cmd == "board-sim" else []))
         assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
         assert r.stderr.strip().splitlines() == [
             f"cstomo {cmd}: error: {script}:4: load 3 (time 6 s) is 2000 N; expected a magnitude of 0..60 N"], r.stderr
