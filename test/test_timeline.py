@@ -201,3 +201,40 @@ def test_a_forward_model_with_other_contact_impedances_is_a_new_model_with_them(
     assert np.array_equal(fm.cem.z, truth.z)  # the original is untouched
     with pytest.raises(ConfigError, match="contact_impedance"):
         fm.with_contact_impedance(-z)
+
+
+
+def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(cuboid, monkeypatch):
+    """A batch of loads releases the mechanics when done (Truth.frames, Timeline.knots, the calibration);
+    inside ``elasticity.kept()`` the release waits for the block's end, so the next batch on the same mesh
+    reuses the factor (the same solution to rounding), and after the block the factor is gone. (A small
+    block of tetrahedra: the cache's behaviour, not a mesh, is judged.)"""
+    from skfem import MeshTet
+
+    from cstomo_sensor.model import elastic_fem, elasticity
+    from cstomo_sensor.model.cem import symmetric_lu
+
+    calls = []
+    monkeypatch.setattr(elastic_fem, "symmetric_lu", lambda A: calls.append(A.shape) or symmetric_lu(A))
+    elasticity.release()
+    box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, 4),) * 3)
+    points, tets = box.p.T.copy(), box.t.T.astype(np.int64)
+
+    def batch(seed):
+        prob = elastic_fem.problem(points, tets, cuboid.material)
+        f = np.random.default_rng(seed).normal(size=prob.basis.N)
+        fixed = prob.basis.get_dofs(lambda x: x[2] < 1e-9).flatten()
+        u = prob.solve(f, fixed, {}, np.zeros(3)).dofs
+        elasticity.release()  # as every batch ends
+        return u
+
+    with elasticity.kept():
+        with elasticity.kept():  # nested: the outer block decides
+            batch(1)
+        kept = batch(2)
+        assert len(calls) == 1
+    fresh = batch(2)
+    assert len(calls) == 2  # released at the block's end: factorised anew
+    batch(3)
+    assert len(calls) == 3  # and outside a block every batch releases, as before
+    np.testing.assert_allclose(kept, fresh, rtol=1e-9, atol=1e-12 * np.abs(fresh).max())

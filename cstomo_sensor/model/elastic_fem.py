@@ -14,7 +14,7 @@ Solver: the condensed stiffness (symmetric positive definite) is factorised once
 of fixed dofs (SuperLU in symmetric mode, :func:`~cstomo_sensor.model.cem.symmetric_lu`: about 2 s
 and 250 MB on the 6 mm calibration mesh) and kept with the assembled problem in a small cache
 (:func:`problem`), so every further load on that mesh is two triangular solves (tens of ms) and
-exact to rounding. :func:`release` frees the factors.
+exact to rounding. :func:`release` frees the factors (at the end of a :func:`kept` block, when in one).
 
 scikit-fem is imported only by this module, inside its functions; nothing else in the package
 imports it at import time.
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -35,7 +36,8 @@ from ..errors import ConfigError
 from .cem import symmetric_lu
 from .material import Material
 
-__all__ = ["ElasticProblem", "MechanicsSolution", "PointSampler", "check_mesh", "point_sampler", "problem", "release"]
+__all__ = ["ElasticProblem", "MechanicsSolution", "PointSampler", "check_mesh", "kept", "point_sampler", "problem",
+           "release"]
 
 _VOLUME_INTORDER = 2  # exact for the P2 stiffness (products of linear gradients)
 
@@ -290,7 +292,27 @@ def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProbl
     return prob
 
 
+_KEPT = [0]  # depth of the kept() blocks around this moment
+
+
 def release() -> None:
     """Drop the assembled problems and their factors (call after a batch of loads, e.g. the
-    calibration, so that a long-running process does not keep hundreds of MB)."""
-    _CACHE.clear()
+    calibration, so that a long-running process does not keep hundreds of MB); inside a
+    :func:`kept` block, at that block's end instead."""
+    if not _KEPT[0]:
+        _CACHE.clear()
+
+
+@contextmanager
+def kept():
+    """Keep the assembled problems and their factors until the block ends: a :func:`release` inside
+    it waits for the end. For work that solves several batches of loads on one device (its
+    calibration, then the loads of one timeline, then another's: each batch releases when done),
+    which would otherwise assemble and factorise the same mesh once per batch (10-30 s and several
+    hundred MB each on the 4 mm mechanics mesh); the block holds at most the cache's two problems."""
+    _KEPT[0] += 1
+    try:
+        yield
+    finally:
+        _KEPT[0] -= 1
+        release()
