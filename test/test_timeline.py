@@ -238,3 +238,21 @@ def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(
     batch(3)
     assert len(calls) == 3  # and outside a block every batch releases, as before
     np.testing.assert_allclose(kept, fresh, rtol=1e-9, atol=1e-12 * np.abs(fresh).max())
+
+
+
+@pytest.mark.slow  # seconds (a factorisation of the mechanics when run alone: the creep test's load)
+def test_a_loads_mechanics_is_solved_once_for_every_truth_of_the_sensor(truth, monkeypatch):
+    """Truth.theta keeps each load's mechanics on disk, keyed by the sensor, the mechanics mesh and the load:
+    another device of the sensor (another seed: its own electrodes and contacts) reads it without a solve,
+    the same numbers (the held load of the creep test above, solved there when it ran)."""
+    from cstomo_sensor.model import elasticity
+
+    down = Load("socket", force=(0.0, 0.0, -20.0))
+    first = truth.theta(down)
+    solve, solved = elasticity.solve_socket_load, []
+    monkeypatch.setattr(elasticity, "solve_socket_load", lambda *a: solved.append(tuple(a[3])) or solve(*a))
+    other = Truth(truth.geometry, truth_h=TRUTH_H, seed=4)
+    assert [e.center for e in other.device.electrodes] != [e.center for e in truth.device.electrodes]
+    np.testing.assert_array_equal(other.theta(down), first)  # read, not solved: the same bytes
+    assert solved == []
