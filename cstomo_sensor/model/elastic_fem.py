@@ -261,10 +261,18 @@ class ElasticProblem:
         X = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
         return Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
 
+    @cached_property
+    def _vertex_divergence(self) -> tuple[np.ndarray, np.ndarray]:
+        """(div of each local basis function at each cell's vertices (n_local, m, 4), the cells' dofs
+        (n_local, m)): -div u at the vertices is then one contraction per load (built once per mesh)."""
+        vb = self._vertex_basis
+        return np.array([b[0].grad[0, 0] + b[0].grad[1, 1] + b[0].grad[2, 2] for b in vb.basis]), vb.element_dofs
+
     def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
-        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
-        g = self._vertex_basis.interpolate(u).grad  # (3, 3, m, 4)
-        th = -(g[0, 0] + g[1, 1] + g[2, 2])  # (m, 4) in the order of self.tets
+        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order (the
+        basis's interpolation of u, summed as a contraction: a tenth of its cost per load)."""
+        div, dofs = self._vertex_divergence
+        th = -np.einsum("icq,ic->cq", div, u[dofs])  # (m, 4) in the order of self.tets
         flipped = (self.tets != self.tets_in).any(axis=1)
         th[flipped] = th[flipped][:, [0, 1, 3, 2]]
         return th
