@@ -196,6 +196,7 @@ class ElasticProblem:
         self.basis = Basis(self.mesh, self.elem, intorder=_VOLUME_INTORDER)
         self.K = asm(linear_elasticity(*lame_parameters(mat.E, mat.nu)), self.basis)
         self._lu: dict[str, tuple[Any, np.ndarray]] = {}
+        self._facet_bases: dict[tuple[str, int], Any] = {}
 
     def boundary_facets(self) -> tuple[np.ndarray, np.ndarray]:
         """(facet indices (nb,), their vertices' coordinates (3, 3 vertices, nb)) of the boundary."""
@@ -203,10 +204,15 @@ class ElasticProblem:
         return bf, self.mesh.p[:, self.mesh.facets[:, bf]]
 
     def facet_basis(self, facets: np.ndarray, intorder: int):
-        """The basis on ``facets`` with a quadrature of order ``intorder`` (normals, ``dx``, points)."""
+        """The basis on ``facets`` with a quadrature of order ``intorder`` (normals, ``dx``, points); built
+        once per set of facets and order (every socket load on a mesh takes the same: a third of a load's
+        solve when built anew)."""
         from skfem import FacetBasis  # heavy: only where the elasticity is assembled
 
-        return FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
+        key = (hashlib.sha1(np.ascontiguousarray(facets, dtype=np.int64).tobytes()).hexdigest(), int(intorder))
+        if key not in self._facet_bases:
+            self._facet_bases[key] = FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
+        return self._facet_bases[key]
 
     def load_vector(self, fb, traction: np.ndarray) -> np.ndarray:
         """Assemble int t . v dA for a traction given at the facet quadrature points (3, nf, nq)."""
