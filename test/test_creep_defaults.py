@@ -66,8 +66,9 @@ def test_the_demo_judges_a_line_against_the_load_at_its_frames_time():
 def test_the_node_with_every_default_reads_a_held_load_of_the_default_simulated_board(ros, tmp_path):
     """``cstomo_sensor_node`` with every default (but its port, a tare file in tmp and a tare at start)
     on ``cstomo board-sim`` with every default (its rubber creeps at the typical 4 % per decade): 20 N
-    straight down from 3 s, held; over 22-23 s (19-20 s of hold, 2.3 decades of creep: +9 % of strain
-    uncompensated) the median force reads within 2 % of 20 N, and already within 2 % at 5-6 s."""
+    straight down from 3 s, held; over 12-13 s (9-10 s of hold, 2 decades of creep: +8 % of strain
+    uncompensated) the median force reads within 2 % of 20 N, and already within 2 % at 5-6 s. (It was read at 19-20
+    s of hold, +9 % uncompensated: the bound is a quarter of the creep either way, for 10 s less of real time.)"""
     from geometry_msgs.msg import WrenchStamped
     from rclpy.executors import SingleThreadedExecutor
 
@@ -98,7 +99,7 @@ def test_the_node_with_every_default_reads_a_held_load_of_the_default_simulated_
             t0 = node.wait_streaming()
             assert t0 is not None
             deadline = time.monotonic() + 60
-            while not any(s - t0 > 23.0 for s, _ in got):
+            while not any(s - t0 > 13.0 for s, _ in got):
                 assert time.monotonic() < deadline and node.node.poll() is None, \
                     (tmp_path / "node.log").read_text() + (tmp_path / "board.log").read_text()
                 time.sleep(0.2)
@@ -108,7 +109,7 @@ def test_the_node_with_every_default_reads_a_held_load_of_the_default_simulated_
             ros_node.destroy_node()
     t = np.array([s for s, _ in got]) - t0
     m = np.array([f for _, f in got])
-    early, late = np.median(m[(t > 5.0) & (t < 6.0)]), np.median(m[(t > 22.0) & (t < 23.0)])
+    early, late = np.median(m[(t > 5.0) & (t < 6.0)]), np.median(m[(t > 12.0) & (t < 13.0)])
     assert abs(late / 20.0 - 1) < 0.02 and abs(early / 20.0 - 1) < 0.02, (early, late)
     print(f"held 20 N, node and board-sim with their defaults: {early:.3f} N at 2-3 s of hold, "
-          f"{late:.3f} N at 19-20 s ({100 * (late / 20 - 1):+.2f} %)")
+          f"{late:.3f} N at 9-10 s ({100 * (late / 20 - 1):+.2f} %)")

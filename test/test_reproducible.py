@@ -1,4 +1,4 @@
-"""Reproducible models: the default sensor's shipped meshes, and two cold builds equal to rounding.
+"""Reproducible models: the default sensor's shipped meshes, and two builds from nothing equal to rounding.
 
 pytetwild gives a slightly different mesh on every run, so the default model's meshes ship with the
 package (model/mesh.py). Expected values here are the shipped files' own bytes and a second,
@@ -79,13 +79,17 @@ def test_the_default_meshes_need_no_pytetwild(tmp_path):
 
 
 @pytest.mark.slow
-def test_two_cold_builds_of_the_default_model_are_bit_identical(cuboid, tmp_path):
-    """Model (R, S, reference, k) and calibration set, from two empty caches, one of them in another
-    process with another BLAS thread count: equal to rounding (tolerances scaled to each array; BLAS
-    kernels and thread counts may round otherwise, and a calibration keys the model to 6 digits)."""
-    a_dir, b_dir = tmp_path / "a", tmp_path / "b"
-    model = build_model(cuboid, ReconSpec(), a_dir)
-    forces, y = calibration_set(cuboid, model, CalibrationSpec(), a_dir)
+def test_two_cold_builds_of_the_default_model_are_bit_identical(cuboid, cuboid_model, tmp_path):
+    """Model (R, S, reference, k) and calibration set, built from nothing twice: the suite's own (its cache
+    holds them, built in this run on a fresh clone by the first test that needed the default model:
+    ``cuboid_model``, and the calibration every default pipeline uses) and one from an empty cache in another
+    process with another BLAS thread count: equal to rounding (tolerances scaled to each array; BLAS kernels
+    and thread counts may round otherwise, and a calibration keys the model to 6 digits). The suite's build
+    serves here rather than a third one: two independent builds are what the comparison needs."""
+    b_dir = tmp_path / "b"
+    model = cuboid_model
+    assert model.key == build_model(cuboid, ReconSpec()).key  # the default model (conftest's MODEL_H is its mesh)
+    forces, y = calibration_set(cuboid, model, CalibrationSpec())
     env = dict(os.environ, OPENBLAS_NUM_THREADS="2", OMP_NUM_THREADS="2")
     subprocess.run([sys.executable, "-c", BUILD, str(b_dir), str(tmp_path / "b.npz")], check=True, env=env)
     with np.load(tmp_path / "b.npz") as b:

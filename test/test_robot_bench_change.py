@@ -14,6 +14,9 @@ from cstomo_sensor.tools.bench import robot_change as rc
 
 NOMINAL = load_sensor("cuboid_joint")
 
+# one factorisation of each device's mechanics for its calibration and every timeline's loads (conftest.py)
+pytestmark = pytest.mark.usefixtures("mechanics_kept")
+
 
 def rho_at_rest(m):
     return m.rho_h * ((1 - m.phi_c) / (m.phi0 - m.phi_c)) ** m.tau  # docs/physics.md, the percolation law

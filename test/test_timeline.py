@@ -201,3 +201,58 @@ def test_a_forward_model_with_other_contact_impedances_is_a_new_model_with_them(
     assert np.array_equal(fm.cem.z, truth.z)  # the original is untouched
     with pytest.raises(ConfigError, match="contact_impedance"):
         fm.with_contact_impedance(-z)
+
+
+
+def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(cuboid, monkeypatch):
+    """A batch of loads releases the mechanics when done (Truth.frames, Timeline.knots, the calibration);
+    inside ``elasticity.kept()`` the release waits for the block's end, so the next batch on the same mesh
+    reuses the factor (the same solution to rounding), and after the block the factor is gone. (A small
+    block of tetrahedra: the cache's behaviour, not a mesh, is judged.)"""
+    from skfem import MeshTet
+
+    from cstomo_sensor.model import elastic_fem, elasticity
+    from cstomo_sensor.model.cem import symmetric_lu
+
+    calls = []
+    monkeypatch.setattr(elastic_fem, "symmetric_lu", lambda A: calls.append(A.shape) or symmetric_lu(A))
+    elasticity.release()
+    box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, 4),) * 3)
+    points, tets = box.p.T.copy(), box.t.T.astype(np.int64)
+
+    def batch(seed):
+        prob = elastic_fem.problem(points, tets, cuboid.material)
+        f = np.random.default_rng(seed).normal(size=prob.basis.N)
+        fixed = prob.basis.get_dofs(lambda x: x[2] < 1e-9).flatten()
+        u = prob.solve(f, fixed, {}, np.zeros(3)).dofs
+        elasticity.release()  # as every batch ends
+        return u
+
+    with elasticity.kept():
+        with elasticity.kept():  # nested: the outer block decides
+            batch(1)
+        kept = batch(2)
+        assert len(calls) == 1
+    fresh = batch(2)
+    assert len(calls) == 2  # released at the block's end: factorised anew
+    batch(3)
+    assert len(calls) == 3  # and outside a block every batch releases, as before
+    np.testing.assert_allclose(kept, fresh, rtol=1e-9, atol=1e-12 * np.abs(fresh).max())
+
+
+
+@pytest.mark.slow  # seconds (a factorisation of the mechanics when run alone: the creep test's load)
+def test_a_loads_mechanics_is_solved_once_for_every_truth_of_the_sensor(truth, monkeypatch):
+    """Truth.theta keeps each load's mechanics on disk, keyed by the sensor, the mechanics mesh and the load:
+    another device of the sensor (another seed: its own electrodes and contacts) reads it without a solve,
+    the same numbers (the held load of the creep test above, solved there when it ran)."""
+    from cstomo_sensor.model import elasticity
+
+    down = Load("socket", force=(0.0, 0.0, -20.0))
+    first = truth.theta(down)
+    solve, solved = elasticity.solve_socket_load, []
+    monkeypatch.setattr(elasticity, "solve_socket_load", lambda *a: solved.append(tuple(a[3])) or solve(*a))
+    other = Truth(truth.geometry, truth_h=TRUTH_H, seed=4)
+    assert [e.center for e in other.device.electrodes] != [e.center for e in truth.device.electrodes]
+    np.testing.assert_array_equal(other.theta(down), first)  # read, not solved: the same bytes
+    assert solved == []

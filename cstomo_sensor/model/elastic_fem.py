@@ -14,7 +14,7 @@ Solver: the condensed stiffness (symmetric positive definite) is factorised once
 of fixed dofs (SuperLU in symmetric mode, :func:`~cstomo_sensor.model.cem.symmetric_lu`: about 2 s
 and 250 MB on the 6 mm calibration mesh) and kept with the assembled problem in a small cache
 (:func:`problem`), so every further load on that mesh is two triangular solves (tens of ms) and
-exact to rounding. :func:`release` frees the factors.
+exact to rounding. :func:`release` frees the factors (at the end of a :func:`kept` block, when in one).
 
 scikit-fem is imported only by this module, inside its functions; nothing else in the package
 imports it at import time.
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -35,7 +36,8 @@ from ..errors import ConfigError
 from .cem import symmetric_lu
 from .material import Material
 
-__all__ = ["ElasticProblem", "MechanicsSolution", "PointSampler", "check_mesh", "point_sampler", "problem", "release"]
+__all__ = ["ElasticProblem", "MechanicsSolution", "PointSampler", "check_mesh", "kept", "point_sampler", "problem",
+           "release"]
 
 _VOLUME_INTORDER = 2  # exact for the P2 stiffness (products of linear gradients)
 
@@ -194,6 +196,7 @@ class ElasticProblem:
         self.basis = Basis(self.mesh, self.elem, intorder=_VOLUME_INTORDER)
         self.K = asm(linear_elasticity(*lame_parameters(mat.E, mat.nu)), self.basis)
         self._lu: dict[str, tuple[Any, np.ndarray]] = {}
+        self._facet_bases: dict[tuple[str, int], Any] = {}
 
     def boundary_facets(self) -> tuple[np.ndarray, np.ndarray]:
         """(facet indices (nb,), their vertices' coordinates (3, 3 vertices, nb)) of the boundary."""
@@ -201,10 +204,15 @@ class ElasticProblem:
         return bf, self.mesh.p[:, self.mesh.facets[:, bf]]
 
     def facet_basis(self, facets: np.ndarray, intorder: int):
-        """The basis on ``facets`` with a quadrature of order ``intorder`` (normals, ``dx``, points)."""
+        """The basis on ``facets`` with a quadrature of order ``intorder`` (normals, ``dx``, points); built
+        once per set of facets and order (every socket load on a mesh takes the same: a third of a load's
+        solve when built anew)."""
         from skfem import FacetBasis  # heavy: only where the elasticity is assembled
 
-        return FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
+        key = (hashlib.sha1(np.ascontiguousarray(facets, dtype=np.int64).tobytes()).hexdigest(), int(intorder))
+        if key not in self._facet_bases:
+            self._facet_bases[key] = FacetBasis(self.mesh, self.elem, facets=facets, intorder=intorder)
+        return self._facet_bases[key]
 
     def load_vector(self, fb, traction: np.ndarray) -> np.ndarray:
         """Assemble int t . v dA for a traction given at the facet quadrature points (3, nf, nq)."""
@@ -259,10 +267,18 @@ class ElasticProblem:
         X = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
         return Basis(self.mesh, self.elem, quadrature=(X, np.full(4, 1.0 / 24)))
 
+    @cached_property
+    def _vertex_divergence(self) -> tuple[np.ndarray, np.ndarray]:
+        """(div of each local basis function at each cell's vertices (n_local, m, 4), the cells' dofs
+        (n_local, m)): -div u at the vertices is then one contraction per load (built once per mesh)."""
+        vb = self._vertex_basis
+        return np.array([b[0].grad[0, 0] + b[0].grad[1, 1] + b[0].grad[2, 2] for b in vb.basis]), vb.element_dofs
+
     def _theta_vertices(self, u: np.ndarray) -> np.ndarray:
-        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order."""
-        g = self._vertex_basis.interpolate(u).grad  # (3, 3, m, 4)
-        th = -(g[0, 0] + g[1, 1] + g[2, 2])  # (m, 4) in the order of self.tets
+        """-div u at the reference vertices of each (re-oriented) cell, mapped to the input order (the
+        basis's interpolation of u, summed as a contraction: a tenth of its cost per load)."""
+        div, dofs = self._vertex_divergence
+        th = -np.einsum("icq,ic->cq", div, u[dofs])  # (m, 4) in the order of self.tets
         flipped = (self.tets != self.tets_in).any(axis=1)
         th[flipped] = th[flipped][:, [0, 1, 3, 2]]
         return th
@@ -290,7 +306,27 @@ def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProbl
     return prob
 
 
+_KEPT = [0]  # depth of the kept() blocks around this moment
+
+
 def release() -> None:
     """Drop the assembled problems and their factors (call after a batch of loads, e.g. the
-    calibration, so that a long-running process does not keep hundreds of MB)."""
-    _CACHE.clear()
+    calibration, so that a long-running process does not keep hundreds of MB); inside a
+    :func:`kept` block, at that block's end instead."""
+    if not _KEPT[0]:
+        _CACHE.clear()
+
+
+@contextmanager
+def kept():
+    """Keep the assembled problems and their factors until the block ends: a :func:`release` inside
+    it waits for the end. For work that solves several batches of loads on one device (its
+    calibration, then the loads of one timeline, then another's: each batch releases when done),
+    which would otherwise assemble and factorise the same mesh once per batch (10-30 s and several
+    hundred MB each on the 4 mm mechanics mesh); the block holds at most the cache's two problems."""
+    _KEPT[0] += 1
+    try:
+        yield
+    finally:
+        _KEPT[0] -= 1
+        release()

@@ -1,7 +1,7 @@
 """Linear elasticity of the rubber body under the sensor's loads: its faces, the ball's contact in the
 socket and pressure patches, each solved on the P2 problem of :mod:`~cstomo_sensor.model.elastic_fem`
-(assembly, factorisation, solve; :class:`MechanicsSolution`, :func:`point_sampler` and :func:`release`
-are that module's, named here too). The bottom face is fixed.
+(assembly, factorisation, solve; :class:`MechanicsSolution`, :func:`point_sampler`, :func:`release` and
+:func:`kept` are that module's, named here too). The bottom face is fixed.
 
 Input meshes are plain arrays (``points (n, 3)`` in metres, ``tets (m, 4)`` vertex indices), e.g.
 the fields of ``cstomo_sensor.model.mesh.TetMesh``; cells of either orientation are accepted.
@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import nnls
 
 from ..errors import ConfigError
-from .elastic_fem import ElasticProblem, MechanicsSolution, PointSampler, check_mesh, point_sampler, problem, release
+from .elastic_fem import ElasticProblem, MechanicsSolution, PointSampler, check_mesh, kept, point_sampler, problem, release
 from .geometry import SensorGeometry
 
 log = logging.getLogger(__name__)
@@ -48,6 +48,7 @@ __all__ = [
     "CARRIED_ELEVATION_DEG",
     "MechanicsSolution",
     "PointSampler",
+    "kept",
     "point_sampler",
     "release",
     "solve",

@@ -70,6 +70,9 @@ MISMATCH_KEYS = ("contact_impedance", "electrode_jitter")
 #: Version of the simulated frames' cache entries (:meth:`Truth.frames`): bump it when the physics of
 #: the simulation changes in a way its inputs do not show (mechanics, material law, forward model).
 TRUTH_FORMAT = 1
+#: Version of a load's mechanics entries (:meth:`Truth.theta`): bump it when the elasticity or the loads'
+#: solution change in a way their inputs do not show.
+MECHANICS_FORMAT = 1
 
 
 def add_noise(v: np.ndarray, reference: np.ndarray, snr_db: float | None, rng: np.random.Generator) -> np.ndarray:
@@ -200,7 +203,27 @@ class Truth:
         """Volumetric compression at the truth mesh's cell centres."""
         key = (load.kind, load.force, load.patches)
         if key not in self._theta_cache:
-            m = self.mechanics_mesh
+            self._theta_cache[key] = self._sampler(self._theta_vertices(load))
+        return self._theta_cache[key]
+
+    def _theta_vertices(self, load: Load) -> np.ndarray:
+        """The load's volumetric compression at the vertices of each mechanics cell
+        (``MechanicsSolution.theta_vertices``), from the disk cache or solved (then saved there).
+
+        The entry is keyed by every input of the solve: :data:`MECHANICS_FORMAT`, the geometry (its
+        material and body; the simulated device's electrodes and contacts do not enter the mechanics),
+        the content of the mechanics mesh, and the load; so every truth of one sensor shares a load's
+        mechanics (other seeds, truth meshes, timelines, processes), and a load already solved costs no
+        factorisation of the elasticity (10-30 s on the 4 mm mesh) in a process that needs nothing else.
+        """
+        m = self.mechanics_mesh
+        key = input_hash({"format": MECHANICS_FORMAT, "geometry": self.geometry.digest(), "mesh": _mesh_digest(m),
+                          "load": [load.kind, list(load.force), repr(load.patches)]})
+        path = Path(self.cache_dir or default_cache_dir()) / "mechanics" / f"{self.geometry.name}-{key}.npz"
+        with build_lock(path):  # one process solves it, another waits and reads it (cache.build_lock)
+            hit = cache_load(path, key, names=("theta",))
+            if hit is not None and hit["theta"].shape == (len(m.tets), 4):
+                return hit["theta"]
             if load.kind == "socket":
                 sol = elasticity.solve_socket_load(m.points, m.tets, self.geometry, load.force_vector)
             else:
@@ -208,8 +231,11 @@ class Truth:
                            for s, v, c, f in load.patches]
                 sol = elasticity.solve_patch_load(m.points, m.tets, self.geometry, patches,
                                                   float(np.linalg.norm(load.force)))
-            self._theta_cache[key] = self._sampler(sol.theta_vertices)
-        return self._theta_cache[key]
+            try:
+                cache_save(path, key, theta=sol.theta_vertices)
+            except OSError as err:  # a read-only cache: solved again next time, nothing else
+                log.warning("a load's mechanics not cached (%s): %s", path, err)
+            return sol.theta_vertices
 
     def conductivity(self, load: Load | tuple[Load, ...]) -> np.ndarray:
         """Per-cell conductivity of the truth mesh under ``load``, or under several mechanical loads

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...model import elasticity
 from ...model.material import CONTACT_PER_K, RESISTIVITY_PER_K
 from ...model.timeline import Timeline, full_change
 from ...settings import ESTIMATORS
@@ -80,14 +81,15 @@ def _bench(out, robot_scenes, name: str, cache_dir, say, learn_s: float = 0.0) -
     t_start = time.perf_counter()
     rows = []
     for scene in dict.fromkeys((*robot_scenes, *FULL_SCENES)):
-        device = robot.prepare_device(scene, cache_dir, say)
-        if scene in robot_scenes:
-            rows += robot.device_rows(scene, cache_dir, say, device)
-        if scene in FULL_SCENES:
-            t0 = time.perf_counter()
-            rows += full_change_rows(device, cache_dir, say, learn_s=learn_s)
-            say(f"robot bench: the full change on {device[1].geometry.name}, {time.perf_counter() - t0:.0f} s")
-        del device
+        with elasticity.kept():  # the device's mechanics factorised once for its calibration and every timeline
+            device = robot.prepare_device(scene, cache_dir, say)
+            if scene in robot_scenes:
+                rows += robot.device_rows(scene, cache_dir, say, device)
+            if scene in FULL_SCENES:
+                t0 = time.perf_counter()
+                rows += full_change_rows(device, cache_dir, say, learn_s=learn_s)
+                say(f"robot bench: the full change on {device[1].geometry.name}, {time.perf_counter() - t0:.0f} s")
+            del device
     Path(out).mkdir(parents=True, exist_ok=True)
     write_csv(Path(out) / f"{name}.csv", rows, list(rows[0]))
     md = (robot.markdown(rows) + "\n" if robot_scenes else "") + markdown(rows)
