@@ -133,18 +133,6 @@ MODEL_H = 4.0e-3
 TRUTH_H = 3.0e-3
 
 
-@pytest.fixture(scope="module")
-def mechanics_kept():
-    """The elastic problems and their factors kept through the module (model/elastic_fem.py ``kept``): a
-    module that solves a device's loads in several batches (its calibration, then each timeline's loads)
-    factorises each mechanics mesh once, not once per batch (10-30 s each on the 4 mm mesh). Use it with
-    ``pytestmark = pytest.mark.usefixtures("mechanics_kept")``."""
-    from cstomo_sensor.model import elasticity
-
-    with elasticity.kept():
-        yield
-
-
 @pytest.fixture(scope="session")
 def cuboid():
     from cstomo_sensor.model.geometry import load_sensor

@@ -10,9 +10,6 @@ import pytest
 
 from cstomo_sensor.force.slow_states.creep import CREEP_T0, creep_kernel
 
-# one factorisation of each device's mechanics for its calibration and every timeline's loads (conftest.py)
-pytestmark = pytest.mark.usefixtures("mechanics_kept")
-
 
 def test_a_stamp_that_goes_back_or_jumps_does_not_corrupt_the_history():
     """A held change (1 per channel) at 100 frames/s; the clock stepped back by 5 s or ahead by 30 s at

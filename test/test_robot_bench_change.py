@@ -14,8 +14,6 @@ from cstomo_sensor.tools.bench import robot_change as rc
 
 NOMINAL = load_sensor("cuboid_joint")
 
-# one factorisation of each device's mechanics for its calibration and every timeline's loads (conftest.py)
-pytestmark = pytest.mark.usefixtures("mechanics_kept")
 
 
 def rho_at_rest(m):

@@ -31,9 +31,6 @@ SCENES = Path(__file__).resolve().parent.parent / "scenes"
 SIDE = {"patches": [{"shape": "circle", "radius": 0.004, "center": [0.005, 0.010], "face": "+y"}], "total_force": 10}
 TOP = {"patches": [{"shape": "circle", "radius": 0.004, "center": [0.018 / np.sqrt(2), 0.018 / np.sqrt(2)]}],
        "total_force": 10}
-# the nominal rubber's 4 mm mechanics factorised once for the planar scene, the device of seed 31, the side press
-# and the node's frames, not once per test (conftest.py)
-pytestmark = pytest.mark.usefixtures("mechanics_kept")
 
 
 @pytest.fixture(scope="module")

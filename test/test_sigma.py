@@ -10,9 +10,6 @@ from cstomo_sensor.frame_path.config import StreamConfig
 from cstomo_sensor.frame_path.health import WARN
 from cstomo_sensor.frame_path.stream import FrameStream
 
-# one factorisation of each device's mechanics for its calibration and every timeline's loads (conftest.py)
-pytestmark = pytest.mark.usefixtures("mechanics_kept")
-
 
 def test_sigma_is_the_covariance_diagonal_and_its_trace():
     """The per-axis sigma and sigma_n equal the full covariance the module docstring writes, computed
