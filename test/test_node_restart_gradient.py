@@ -188,9 +188,13 @@ def figures(w: np.ndarray) -> dict:
             "angle": float(np.median(np.degrees(np.arccos(np.clip(cos, -1, 1))))),
             "magnitude": float(np.median(np.abs(np.linalg.norm(f, axis=1) / np.linalg.norm(LOAD) - 1) * 100)),
             "first_wrench_s": float(w[0, 0] - step),
-            "per_s": [round(float(np.median(np.linalg.norm(w[(w[:, 0] >= step + k) & (w[:, 0] < step + k + 1), 1:],
-                                                           axis=1))), 2)
-                      for k in range(int(REST_S + LOAD_S))]}
+            "per_s": [per_second(w, step + k) for k in range(int(REST_S + LOAD_S))]}
+
+
+def per_second(w: np.ndarray, t0: float) -> float | None:
+    """The median |F| (N) of the wrenches in the second from ``t0`` (None before the first wrench came)."""
+    sec = w[(w[:, 0] >= t0) & (w[:, 0] < t0 + 1.0), 1:]
+    return round(float(np.median(np.linalg.norm(sec, axis=1))), 2) if len(sec) else None
 
 
 def test_a_restart_after_warming_with_a_gradient_recovers_at_rest_and_under_load(ros, tmp_path, model_built):
