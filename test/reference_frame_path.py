@@ -60,7 +60,7 @@ def drift_observe(tracker, y: np.ndarray, t: float | None = None) -> bool:
     P[:, m] *= a
     P[np.diag_indices_from(P)] += self._q[:k] * dt
     yw = y * self._w
-    b = self._Dw1[:k] @ yw
+    b = np.append(self._Dwm @ yw, 0.0)  # the measured states' rows, the rate's 0
     best = b[0] / self._N[0, 0]
     rest = float(yw @ yw) - b[0] * best < self._rest
     if rest and self._W is not None:

@@ -105,11 +105,7 @@ class Publishers:
         for t in plan:
             v = t.value(result, filtered)
             if v is not None:
-                pub = t.pub
-                if pub.is_activated:
-                    handle = pub.handle
-                    with handle:
-                        handle.publish_raw(t.encode(v, stamp_ns))
+                _publish(t.pub, t.encode(v, stamp_ns))
                 counts[t.name] = counts.get(t.name, 0) + 1
 
     def close(self) -> None:

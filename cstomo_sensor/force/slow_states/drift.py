@@ -169,7 +169,6 @@ class DriftTracker:
         self._D, self._w, self._Dw = D, w, Dw
         self._N = np.zeros((n, n))
         self._N[:m, :m] = Dw @ Dw.T
-        self._Dw1 = np.vstack([Dw, np.zeros((n - m, len(w)))])
         self._Dwm = np.ascontiguousarray(Dw)  # observe's product: the measured states' rows only (the rest of b stays 0)
         self._rest = REST_BOUND * float(np.count_nonzero(keep))
         self._W = None
