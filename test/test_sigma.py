@@ -96,13 +96,17 @@ def test_the_stream_gives_every_force_a_sigma_and_says_when_it_exceeds_the_bound
 
 @pytest.mark.slow
 def test_sigma_is_honest_and_informative_on_the_no_drift_baseline():
-    """The robot bench's device a (off the model, calibrated on 20 loads), back-to-back loads for 30 s
-    without warming, drift tracking off (the no-drift baseline): at most 1 % of the published frames
-    err beyond 3 sigma_n, and the median sigma_n is within 2x the median error."""
+    """The robot bench's device_b as test_robot_bench has it (off the model, its own 4 mm mesh; calibrated on
+    20 loads), back-to-back loads for 30 s without warming, drift tracking off (the no-drift baseline): at
+    most 1 % of the published frames err beyond 3 sigma_n, and the median sigma_n is within 2x the median
+    error. (The same device, loads and calibration loads as test_robot_bench's warm-ups: their mechanics are
+    solved once in the suite, not again here: device a's were a factorisation of its elasticity, 20-40 s.)"""
+    from cstomo_sensor.model.simulate import Truth
     from cstomo_sensor.model.timeline import Timeline, TimelineSpec
     from cstomo_sensor.tools.bench import robot
 
-    sc, truth = robot.device_truth()
+    sc, fine = robot.device_truth(scene=robot.DEVICE_SCENES[1])
+    truth = Truth(fine.geometry, truth_h=4.0e-3, z_rel=sc.z_rel, jitter=sc.jitter, seed=sc.seed)
     pipe = robot.calibrated_pipes(truth, sc.snr_db, say=lambda m: None, estimators=("linear",))["linear"]
     tare = Timeline(TimelineSpec(duration=1.0), snr_db=sc.snr_db, seed=robot.SEED, truth=truth).tare(
         20, np.random.default_rng([robot.SEED, 22]))
