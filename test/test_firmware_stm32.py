@@ -21,10 +21,18 @@ FLASH, RAM = 64 * 1024, 16 * 1024
 pytestmark = pytest.mark.alone  # QEMU's board in real time: no neighbour (setup.cfg)
 
 
+@pytest.fixture(scope="module")
+def image(tmp_path_factory):
+    """The emulated board's image (the table front-end and its own frames table), cross-built once for the
+    tests below that check or boot it as it is."""
+    return build_stm32(tmp_path_factory.mktemp("stm32"))
+
+
 @pytest.mark.slow  # runs the cross-compiler
 @pytest.mark.parametrize("table", [True, False], ids=["emulated", "hardware"])
-def test_the_image_fits_a_64k_flash_16k_ram_part(tmp_path, table):
-    text, data, bss = elf_size(build_stm32(tmp_path, table=table))  # the linker script is 64k/16k as well
+def test_the_image_fits_a_64k_flash_16k_ram_part(tmp_path, table, image):
+    elf = image if table else build_stm32(tmp_path, table=False)
+    text, data, bss = elf_size(elf)  # the linker script is 64k/16k as well
     assert text + data <= FLASH and data + bss <= RAM, (text, data, bss)
     assert bss >= 2048  # the stack is reserved in RAM
 
@@ -81,12 +89,12 @@ def _lower_envelope_rate(host: np.ndarray, board: np.ndarray, window: float = 2.
 
 
 @pytest.mark.slow
-def test_the_emulated_boards_clock_keeps_host_time(tmp_path):
+def test_the_emulated_boards_clock_keeps_host_time(tmp_path, image):
     """The frames' board time advances with the host's clock within 1 % over 10 s. (The SysTick count
     the image used before lost the ticks QEMU could not deliver while its vCPU thread ran the busy
     firmware: 0.82 x host time on a loaded host, and the node's clock mapping then stamped the
     frames ever older, too stale to publish.)"""
-    elf = build_stm32(tmp_path)
+    elf = image
     with Process(qemu_argv(elf, tmp_path / "usart2.txt"), device_pattern=r"redirected to (/dev/pts/\d+)") as qemu:
         driver = BoardDriver(qemu.device, rate_hz=100.0, queue_size=1 << 14)
         try:
@@ -110,14 +118,14 @@ def test_the_emulated_boards_clock_keeps_host_time(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_node_publishes_the_emulated_boards_frames(ros, tmp_path, warm_model):
+def test_the_node_publishes_the_emulated_boards_frames(ros, tmp_path, warm_model, image):
     """The real node, its port on QEMU's pty, tares on the image's first frames and publishes a wrench
     for (nearly) every frame the driver delivers over 10 s: none stamped too old to publish (the
     stream drops frames older than stale_timeout by the board's clock mapped to the host's)."""
     from conftest import PIPE, Harness, wait_for
     from geometry_msgs.msg import WrenchStamped
 
-    elf = build_stm32(tmp_path)
+    elf = image
     with Process(qemu_argv(elf, tmp_path / "usart2.txt"), device_pattern=r"redirected to (/dev/pts/\d+)") as qemu:
         p = dict(PIPE, port=qemu.device, tare_file=str(tmp_path / "tare.csv"), tare_on_start=True, tare_frames=4,
                  rate_hz=100.0)
