@@ -78,10 +78,8 @@ def test_two_sensors_of_a_list_publish_in_their_namespaces_frames_and_tare_files
             logs.append(log)
             boards.append(subprocess.Popen(sensor.board, stdout=subprocess.PIPE, stderr=log, text=True, env=env,
                                            start_new_session=True))
-        for b in boards:  # each computes its loads (cached after the first run), then shows its device
-            line = b.stdout.readline()
-            assert line.startswith("device:"), line + Path(logs[boards.index(b)].name).read_text()
-        for i, sensor in enumerate(plan.sensors):
+        for i, sensor in enumerate(plan.sensors):  # beside the boards, as a launch starts them: a node opens its
+            # board's pty once the board shows it
             params = tmp_path / f"params{i}.yaml"  # as launch_ros hands parameters=[config, overrides] to a node
             params.write_text(yaml.safe_dump({sensor.node: {"ros__parameters": sensor.overrides}}))
             log = open(tmp_path / f"node{i}.log", "w+")
@@ -90,6 +88,9 @@ def test_two_sensors_of_a_list_publish_in_their_namespaces_frames_and_tare_files
                 [executable("cstomo_sensor_node"), "--ros-args", "-r", f"__ns:=/{sensor.namespace}",
                  "-r", "__node:=cstomo_sensor", "--params-file", sensor.config, "--params-file", str(params),
                  "--log-level", "warn"], stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True))
+        for b in boards:  # each reads its loads' frames from the cache (prepare_board), then shows its device
+            line = b.stdout.readline()
+            assert line.startswith("device:"), line + Path(logs[boards.index(b)].name).read_text()
         got: dict[str, list] = {s.node: [] for s in plan.sensors}
         qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
         for sensor in plan.sensors:
