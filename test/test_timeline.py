@@ -242,17 +242,16 @@ def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(
 
 
 
-def test_the_mechanics_cache_drops_the_problem_cheapest_to_set_up_again(cuboid, monkeypatch):
+def test_the_mechanics_cache_drops_a_problem_cheap_to_set_up_again_first(cuboid, monkeypatch):
     """The cache of assembled problems (two) keeps a costly factor past small meshes used since (a worker that
     solved a 4 mm mesh's loads, then a patch scene's small mesh, solves the 4 mm mesh's next load without a new
-    factorisation), drops the oldest among equal costs, and lets a costly problem age out once the cheap ones
-    dropped since have cost as much. (Small blocks of tetrahedra; their setup seconds set here: the policy is judged.)"""
+    factorisation); among problems of like cost the least recently used goes. (Small blocks of tetrahedra;
+    their setup seconds set here: the policy is judged.)"""
     from skfem import MeshTet
 
     from cstomo_sensor.model import elastic_fem
 
     monkeypatch.setattr(elastic_fem, "_CACHE", {})
-    monkeypatch.setattr(elastic_fem, "_AGE", [0.0])
     meshes = {}
     for n in range(2, 6):
         box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, n),) * 3)
@@ -274,11 +273,11 @@ def test_the_mechanics_cache_drops_the_problem_cheapest_to_set_up_again(cuboid, 
     use(3, 1.0)
     use(5, 1.0)
     assert kept() == {2, 5}
-    for n in (3, 4, 5) * 3:  # cheap problems, each dropped in turn: the costly one's priority is reached
-        use(n, 1.0)
-    assert 2 not in kept()
-    # equal costs: the oldest goes (LRU)
-    monkeypatch.setattr(elastic_fem, "_CACHE", {})
+    use(3, 4.0)  # a costly one comes: the small one goes
+    assert kept() == {2, 3}
+    use(4, 5.0)  # and another: of the two costly ones the least recently used goes
+    assert kept() == {3, 4}
+    monkeypatch.setattr(elastic_fem, "_CACHE", {})  # equal costs: the least recently used goes (LRU)
     for n in (2, 3, 2, 4):
         use(n, 1.0)
     assert kept() == {2, 4}

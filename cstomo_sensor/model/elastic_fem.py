@@ -203,7 +203,6 @@ class ElasticProblem:
         self._facet_bases: dict[tuple[str, int], Any] = {}
         #: s spent assembling and factorising this problem: what dropping it from the cache would cost (:func:`problem`)
         self.setup_seconds = time.perf_counter() - t0
-        self.used_at = 0.0  # the cache's age when it was last asked for (:func:`problem`)
 
     def boundary_facets(self) -> tuple[np.ndarray, np.ndarray]:
         """(facet indices (nb,), their vertices' coordinates (3, 3 vertices, nb)) of the boundary."""
@@ -295,12 +294,7 @@ class ElasticProblem:
 
 _CACHE: dict[str, ElasticProblem] = {}
 _CACHE_SIZE = 2
-_AGE = [0.0]  # the priority of the last problem dropped (GreedyDual's inflation: an old costly problem ages out too)
-
-
-def _priority(prob: ElasticProblem) -> float:
-    """GreedyDual's priority of a cached problem: the age when it was last asked for plus its setup seconds."""
-    return prob.used_at + prob.setup_seconds
+_CHEAP = 0.5  # a problem set up in under this fraction of the costliest other's seconds is dropped first
 
 
 def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProblem:
@@ -309,21 +303,21 @@ def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProbl
 
     Solving many loads on one mesh (scenes, calibration, tests) then assembles and factorises the
     stiffness once; the key is a hash of the arrays' bytes and of (E, nu). Beyond the cache's size the
-    problem dropped is, of all but the one asked for now, the one of least priority (GreedyDual: the age
-    at its last use plus its setup seconds): the cheapest to set up again among those not used for long,
-    so a large mesh's factor outlives a few small meshes used since (with equal costs: the oldest, LRU).
-    Which problems are kept changes no result, only what is set up again.
+    problem dropped is, of all but the one asked for now, the least recently used of those cheap to set up
+    again (under :data:`_CHEAP` of the costliest's setup seconds), else the least recently used: a large
+    mesh's factor outlives small meshes used since. Which problems are kept changes no result, only what is
+    set up again.
     """
     h = hashlib.sha1(points.tobytes())
     h.update(tets.tobytes())
     h.update(np.array([mat.E, mat.nu]).tobytes())
     key = h.hexdigest()
     prob = _CACHE.pop(key, None) or ElasticProblem(points, tets, mat)
-    _CACHE[key] = prob  # the one asked for now: last, never dropped here
+    _CACHE[key] = prob  # the one asked for now: last (the most recently used), never dropped here
     while len(_CACHE) > _CACHE_SIZE:
-        drop = min(list(_CACHE)[:-1], key=lambda k: _priority(_CACHE[k]))
-        _AGE[0] = max(_AGE[0], _priority(_CACHE.pop(drop)))
-    prob.used_at = _AGE[0]
+        others = list(_CACHE)[:-1]  # the least recently used first
+        costliest = max(_CACHE[k].setup_seconds for k in others)
+        del _CACHE[next((k for k in others if _CACHE[k].setup_seconds < _CHEAP * costliest), others[0])]
     return prob
 
 
