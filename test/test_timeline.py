@@ -246,7 +246,7 @@ def test_the_mechanics_cache_drops_a_problem_cheap_to_set_up_again_first(cuboid,
     """The cache of assembled problems (two) keeps a costly factor past small meshes used since (a worker that
     solved a 4 mm mesh's loads, then a patch scene's small mesh, solves the 4 mm mesh's next load without a new
     factorisation); among problems of like cost the least recently used goes. (Small blocks of tetrahedra;
-    their setup seconds set here: the policy is judged.)"""
+    their setup costs set here: the policy is judged.)"""
     from skfem import MeshTet
 
     from cstomo_sensor.model import elastic_fem
@@ -257,9 +257,9 @@ def test_the_mechanics_cache_drops_a_problem_cheap_to_set_up_again_first(cuboid,
         box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, n),) * 3)
         meshes[n] = box.p.T.copy(), box.t.T.astype(np.int64)
 
-    def use(n, seconds):
+    def use(n, cost):
         prob = elastic_fem.problem(*meshes[n], cuboid.material)
-        prob.setup_seconds = seconds
+        prob.setup_cost = cost
         return prob
 
     def kept():

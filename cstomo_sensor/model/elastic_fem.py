@@ -24,7 +24,6 @@ imports it at import time.
 from __future__ import annotations
 
 import hashlib
-import time
 from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -187,7 +186,6 @@ class ElasticProblem:
         from skfem import Basis, ElementTetP2, ElementVector, MeshTet, asm  # heavy: only where the elasticity is assembled
         from skfem.models.elasticity import lame_parameters, linear_elasticity  # heavy: only where the elasticity is assembled
 
-        t0 = time.perf_counter()
         t = tets.copy()
         v = points[t]
         det = np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0])
@@ -201,8 +199,10 @@ class ElasticProblem:
         self.K = asm(linear_elasticity(*lame_parameters(mat.E, mat.nu)), self.basis)
         self._lu: dict[str, tuple[Any, np.ndarray]] = {}
         self._facet_bases: dict[tuple[str, int], Any] = {}
-        #: s spent assembling and factorising this problem: what dropping it from the cache would cost (:func:`problem`)
-        self.setup_seconds = time.perf_counter() - t0
+        #: what setting this problem up again would cost, relative (:func:`problem`): its dofs cubed (a sparse 3D
+        #: factorisation grows faster than their square: the 6 mm mesh's 28k dofs take a tenth of the 4 mm mesh's 39k);
+        #: a count, not a timing, so a loaded host ranks the problems as a quiet one does
+        self.setup_cost = float(self.basis.N) ** 3
 
     def boundary_facets(self) -> tuple[np.ndarray, np.ndarray]:
         """(facet indices (nb,), their vertices' coordinates (3, 3 vertices, nb)) of the boundary."""
@@ -247,10 +247,8 @@ class ElasticProblem:
         if np.any(f):
             key = hashlib.sha1(np.ascontiguousarray(fixed, dtype=np.int64).tobytes()).hexdigest()
             if key not in self._lu:  # set up once per set of fixed dofs, reuse for every load
-                t0 = time.perf_counter()
                 A, _, _, I = condense(self.K, f, D=fixed)
                 self._lu = {key: (symmetric_lu(A).solve, I)}
-                self.setup_seconds += time.perf_counter() - t0
             solve, I = self._lu[key]
             u[I] = solve(f[I])
         disp = u[self.basis.nodal_dofs].T.copy()  # (n, 3)
@@ -294,7 +292,7 @@ class ElasticProblem:
 
 _CACHE: dict[str, ElasticProblem] = {}
 _CACHE_SIZE = 2
-_CHEAP = 0.5  # a problem set up in under this fraction of the costliest other's seconds is dropped first
+_CHEAP = 0.5  # a problem whose setup costs under this fraction of the costliest other's is dropped first
 
 
 def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProblem:
@@ -304,7 +302,7 @@ def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProbl
     Solving many loads on one mesh (scenes, calibration, tests) then assembles and factorises the
     stiffness once; the key is a hash of the arrays' bytes and of (E, nu). Beyond the cache's size the
     problem dropped is, of all but the one asked for now, the least recently used of those cheap to set up
-    again (under :data:`_CHEAP` of the costliest's setup seconds), else the least recently used: a large
+    again (under :data:`_CHEAP` of the costliest's ``setup_cost``), else the least recently used: a large
     mesh's factor outlives small meshes used since. Which problems are kept changes no result, only what is
     set up again.
     """
@@ -316,8 +314,8 @@ def problem(points: np.ndarray, tets: np.ndarray, mat: Material) -> ElasticProbl
     _CACHE[key] = prob  # the one asked for now: last (the most recently used), never dropped here
     while len(_CACHE) > _CACHE_SIZE:
         others = list(_CACHE)[:-1]  # the least recently used first
-        costliest = max(_CACHE[k].setup_seconds for k in others)
-        del _CACHE[next((k for k in others if _CACHE[k].setup_seconds < _CHEAP * costliest), others[0])]
+        costliest = max(_CACHE[k].setup_cost for k in others)
+        del _CACHE[next((k for k in others if _CACHE[k].setup_cost < _CHEAP * costliest), others[0])]
     return prob
 
 
