@@ -286,7 +286,9 @@ def test_many_socket_loads_share_one_factorisation_and_solve_exactly(medium, mon
         return cem.symmetric_lu(A)
 
     monkeypatch.setattr(elastic_fem, "symmetric_lu", counting_lu)
-    elastic_fem.release()  # (elasticity.release, the code's call after a batch, frees nothing in the suite: conftest.py)
+    # a cache of this test's own, empty (elasticity.release, the code's call after a batch, frees nothing in the
+    # suite: conftest.py): the factors this worker keeps for the next tests stay
+    monkeypatch.setattr(elastic_fem, "_CACHE", {})
     p, t = medium
     mesh = MeshTet(p.T, t.T)
     basis = Basis(mesh, ElementVector(ElementTetP2()))

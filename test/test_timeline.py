@@ -216,7 +216,8 @@ def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(
 
     calls = []
     monkeypatch.setattr(elastic_fem, "symmetric_lu", lambda A: calls.append(A.shape) or symmetric_lu(A))
-    elastic_fem.release()
+    # a cache of this test's own: its releases free nothing this worker keeps for the next tests (conftest.py)
+    monkeypatch.setattr(elastic_fem, "_CACHE", {})
     box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, 4),) * 3)
     points, tets = box.p.T.copy(), box.t.T.astype(np.int64)
 
@@ -239,6 +240,47 @@ def test_kept_mechanics_are_factorised_once_across_batches_and_freed_at_the_end(
     assert len(calls) == 3  # and outside a block every batch releases, as before
     np.testing.assert_allclose(kept, fresh, rtol=1e-9, atol=1e-12 * np.abs(fresh).max())
 
+
+
+def test_the_mechanics_cache_drops_a_problem_cheap_to_set_up_again_first(cuboid, monkeypatch):
+    """The cache of assembled problems (two) keeps a costly factor past small meshes used since (a worker that
+    solved a 4 mm mesh's loads, then a patch scene's small mesh, solves the 4 mm mesh's next load without a new
+    factorisation); among problems of like cost the least recently used goes. (Small blocks of tetrahedra;
+    their setup costs set here: the policy is judged.)"""
+    from skfem import MeshTet
+
+    from cstomo_sensor.model import elastic_fem
+
+    monkeypatch.setattr(elastic_fem, "_CACHE", {})
+    meshes = {}
+    for n in range(2, 6):
+        box = MeshTet.init_tensor(*(np.linspace(0.0, 0.01, n),) * 3)
+        meshes[n] = box.p.T.copy(), box.t.T.astype(np.int64)
+
+    def use(n, cost):
+        prob = elastic_fem.problem(*meshes[n], cuboid.material)
+        prob.setup_cost = cost
+        return prob
+
+    def kept():
+        return {n for n, m in meshes.items() for p in elastic_fem._CACHE.values() if p.points is m[0]}
+
+    costly = use(2, 5.0)
+    use(3, 1.0)
+    use(4, 1.0)
+    assert kept() == {2, 4}  # the small mesh 3 went, not the older costly one
+    assert use(2, 5.0) is costly  # its factor reused
+    use(3, 1.0)
+    use(5, 1.0)
+    assert kept() == {2, 5}
+    use(3, 4.0)  # a costly one comes: the small one goes
+    assert kept() == {2, 3}
+    use(4, 5.0)  # and another: of the two costly ones the least recently used goes
+    assert kept() == {3, 4}
+    monkeypatch.setattr(elastic_fem, "_CACHE", {})  # equal costs: the least recently used goes (LRU)
+    for n in (2, 3, 2, 4):
+        use(n, 1.0)
+    assert kept() == {2, 4}
 
 
 @pytest.mark.slow  # seconds (a factorisation of the mechanics when run alone: the creep test's load)

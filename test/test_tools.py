@@ -47,11 +47,27 @@ def check_demo_run(returncode: int, stdout: str, stderr: str) -> None:
         assert "nothing read it" in board, board
 
 
+@pytest.fixture(scope="module")
+def demo_load_solved():
+    """The mechanics of :data:`DEMO_SCRIPT`'s 20 N on the simulated board's device (the default sensor's
+    honest simulation), solved in this process: ``board-sim`` then reads it from the cache instead of
+    factorising the elasticity in a process of its own (15-40 s on a fresh clone), and this worker keeps
+    the factor for the next test's bench, whose held-out device is the same sensor's (conftest keeps the
+    mechanics). board-sim's own computing on a cold cache is test_board_sim_says_it_computes_only_when_it_does'."""
+    from cstomo_sensor.model.geometry import load_sensor
+    from cstomo_sensor.model.simulate import Load, Truth
+
+    Truth(load_sensor("cuboid_joint")).theta(Load("socket", force=(0.0, 0.0, -20.0)))
+
+
 @pytest.mark.slow
-def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
+def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path, demo_load_solved):
     """Ctrl-C in the middle of a held load: exit 0, the summary, no traceback, and the node's wait
     for the board's link (which appears only after the board has computed its loads) logged once,
-    not once per retry."""
+    not once per retry. With the linear estimator: what Ctrl-C does is the demo's, not an estimator's,
+    and on a fresh clone its build is half the default's (no response set: the default estimator's is
+    built once by the suite's in-process tests, not here in a process of its own); the default
+    estimator's demo is judged to its end by test_colcon_install (check_demo_run)."""
     import signal
     import time
 
@@ -62,7 +78,7 @@ def test_demo_interrupted_by_sigint_ends_quietly_with_its_summary(tmp_path):
     out, err = tmp_path / "out.txt", tmp_path / "err.txt"
     with open(out, "w") as fo, open(err, "w") as fe:
         p = subprocess.Popen([str(exe), "demo", "--load-script", str(script), "--hold", "120", "--rate", "100",
-                              "--plot", str(tmp_path / "demo.png")],
+                              "--estimator", "linear", "--plot", str(tmp_path / "demo.png")],
                              stdout=fo, stderr=fe, text=True,
                              env=dict(os.environ, OPENBLAS_NUM_THREADS="1", TMPDIR=str(tmp_path)))
         try:

@@ -126,18 +126,19 @@ def device_truth(cache_dir=None, scene=DEVICE_SCENES[0]):
 
 def calibrated_pipes(truth, snr_db: float, cache_dir=None, say=print, estimators=ESTIMATORS, **config) -> dict:
     """The estimators' pipelines, calibrated on the device (unchanged) as ``cstomo calibrate`` does
-    (``config``: other PipelineConfig settings, e.g. the tests' coarser model)."""
+    (``config``: other PipelineConfig settings, e.g. the tests' coarser model). The pipelines are built
+    (or read from the cache) before the device is simulated: on a fresh cache another process that needs
+    the same estimators then finds them built instead of waiting for them while this one simulates."""
+    pipes = {name: Pipeline.build(PipelineConfig(**{"cache_dir": str(cache_dir or ""), **config, "estimator": name}))
+             for name in estimators}
     forces = random_forces(CAL_LOADS, CAL_SEED)
     ref, clean = truth.frames([Load("socket", force=tuple(f)) for f in forces])
     rng = np.random.default_rng(CAL_SEED)
     tare = add_noise(np.repeat(ref[None], 50, 0), ref, snr_db, rng)
     frames = add_noise(np.repeat(clean, CAL_FRAMES, 0), ref, snr_db, rng)
-    pipes = {}
-    for name in estimators:
-        pipe = Pipeline.build(PipelineConfig(**{"cache_dir": str(cache_dir or ""), **config, "estimator": name}))
+    for name, pipe in pipes.items():
         pipe.set_reference(tare.mean(axis=0), tare.std(axis=0, ddof=1), n_frames=len(tare))
         pipe.set_calibration(calibrate(pipe, frames, np.repeat(forces, CAL_FRAMES, 0)))
-        pipes[name] = pipe
         say(f"robot bench: {name} calibrated on {CAL_LOADS} loads of {truth.geometry.name}")
     return pipes
 
