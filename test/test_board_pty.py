@@ -373,14 +373,14 @@ def test_a_board_restarted_at_a_slower_rate_is_followed(tmp_path):
         fast.close()
         slow = SimulatedBoard(CountingSource(), rate_hz=1.0, link=link, seed=2).start()
         try:
-            time.sleep(6.0)
+            time.sleep(4.5)  # 4 periods of the slow board: a driver still on the old period reopens every 0.3 s
             st = driver.stats()
         finally:
             slow.close()
         seqs = [f.seq for f in drain(driver, quiet=0.0)]
     slow_seqs = seqs[seqs.index(0, 1):]  # after the fast board's frames 0..n
     assert 1 <= st.reconnects <= 2 and st.period == pytest.approx(1.0, rel=0.05), st
-    assert slow_seqs == list(range(len(slow_seqs))) and len(slow_seqs) >= 6, seqs
+    assert slow_seqs == list(range(len(slow_seqs))) and len(slow_seqs) >= 4, seqs
 
 
 def test_the_boards_counts_are_said_in_words():

@@ -83,19 +83,25 @@ def test_a_forward_step_of_the_host_clock_does_not_blank_the_output(ros, tmp_pat
     assert not any("late" in diag(m)[1] for t, m in dg if t > t_step), [diag(m)[1] for _, m in dg]
 
 
+#: s: the board's outage. The old backoff (0.05 s doubling to 2 s) retried 1.55 s and 3.15 s after the loss: back
+#: after 1.8 s, it read again 1.35 s later (> the 1 s judged), and a loss noticed up to 0.25 s late still shows it
+OUTAGE_S = 1.8
+
+
 @pytest.mark.parametrize("how", ["replug", "restart"])
 @pytest.mark.slow
 def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_path, source, warm_model, how):
-    """replug: the board's link disappears for 3.3 s and comes back (its clock and counter go on);
+    """replug: the board's link disappears for 1.8 s and comes back (its clock and counter go on);
     restart: the board is killed and a new one (clock and counter from zero) appears on the same link
-    3.3 s later. The time from the board being back (its link open) to the first new wrench's frame is
-    under 1 s (before issue 14 the doubling reconnect backoff retried at 3.15 s, then 5.15 s: 1.85 s). The diagnostics' last
-    error clears and the status returns to OK."""
+    1.8 s later. The time from the board being back (its link open) to the first new wrench's frame is
+    under 1 s (before issue 14 the doubling reconnect backoff retried at 1.55 s, then 3.15 s: 1.35 s; an
+    outage of 3.3 s showed the same, 1.85 s, in 1.5 s more per run). The diagnostics' last error clears and
+    the status returns to OK."""
     from geometry_msgs.msg import WrenchStamped
 
     from cstomo_sensor.board.sim import FaultConfig, SimulatedBoard
 
-    faults = FaultConfig(disconnect_at=1.5, reappear_after=3.3) if how == "replug" else None
+    faults = FaultConfig(disconnect_at=1.5, reappear_after=OUTAGE_S) if how == "replug" else None
     h, board = start(ros, tmp_path, source, faults=faults, rate=100.0, tare_on_start=True, tare_frames=5)
     boards = [board]
     try:
@@ -108,7 +114,7 @@ def test_the_node_publishes_within_a_second_of_the_board_coming_back(ros, tmp_pa
             back = board.stats().generation_opened[1]
         else:
             board.close()
-            time.sleep(3.3)
+            time.sleep(OUTAGE_S)
             boards.append(SimulatedBoard(source, rate_hz=100.0, link=board.device, seed=5))
             back = boards[-1].stats().generation_opened[0]
             boards[-1].start()
@@ -188,12 +194,12 @@ def test_a_one_frame_per_second_board_streams_without_reconnecting(ros, tmp_path
         wr = h.record("/cstomo_sensor/wrench", WrenchStamped)
         dg = diag_records(h)
         board.start()
-        time.sleep(6.5)
+        time.sleep(4.5)  # 4 periods: the old rule had reopened the port every 0.3 s, 15 times by then
         st = h.node.driver.stats()
     finally:
         board.close()
         h.close()
     assert st.reconnects == 0 and st.period == pytest.approx(1.0, rel=0.05), st
-    assert 5 <= len(wr) <= 6, len(wr)  # frames 1..6 (frame 0 is the tare)
+    assert 3 <= len(wr) <= 4, len(wr)  # frames 1..4 (frame 0 is the tare)
     _, _, v = diag(dg[-1][1])
     assert v["frame_period_ms"].startswith(("99", "100")) and v["reconnects"] == "0", v
