@@ -36,7 +36,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import nnls
 
 from ..errors import ConfigError
 from .elastic_fem import ElasticProblem, MechanicsSolution, PointSampler, check_mesh, kept, point_sampler, problem, release
@@ -225,6 +224,8 @@ def solve_socket_load(
     fb = prob.facet_basis(facets, _SOCKET_INTORDER)
     n = fb.normals.reshape(3, -1)
     w = fb.dx.reshape(-1)
+
+    from scipy.optimize import nnls  # here, not at the top: scipy.optimize costs 0.6 s of every node's start
 
     _, miss = nnls(-n, F)  # is F in the cone of the facets' inward pushes -n?
     if miss > 1e-9 * fnorm:
