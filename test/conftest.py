@@ -97,10 +97,11 @@ LONGEST_FIRST = (  # every file of 10 s or more, by its sum in the fresh-clone C
     # test_robot_bench and test_robot_bench_change solve the loads that test_sigma's baseline and
     # test_calibration_directions' recording then read from the cache: they come first. Simulated on those times
     # (xdist's loadfile scheduling), the two workers end 1-4 s apart, the last files being small.
+    # test_device reads test_scene_field's loads from the cache: it is left out (the unlisted files run last).
     "test_robot_bench.py", "test_tools.py", "test_creep.py", "test_drift.py", "test_node_restart_gradient.py",
     "test_calibration.py", "test_node_time.py", "test_node.py", "test_colcon_install.py", "test_launch_sensors.py",
     "test_robot_bench_change.py", "test_board_pty.py", "test_creep_defaults.py", "test_bench.py",
-    "test_reproducible.py", "test_scene_field.py", "test_docs.py", "test_first_tare.py", "test_device.py",
+    "test_reproducible.py", "test_scene_field.py", "test_docs.py", "test_first_tare.py",
     "test_plot_record.py", "test_sigma.py", "test_learned.py", "test_force.py", "test_node_startup.py",
     "test_mechanics.py", "test_calibration_directions.py", "test_tare_load.py", "test_bench_node.py",
     "test_node_faults.py", "test_firmware_fuzz.py", "test_replay.py", "test_frame_path.py", "test_forward.py",
