@@ -3,13 +3,13 @@ frame's measurements summed, against the same tracker updated on every frame (UP
 
 For states that do not move between the frames of an interval, K sequential Kalman updates of a linear-Gaussian
 measurement (a held load's bias shared by its frames) are one update with the summed information: the two trackers
-then hold the same states to rounding. So the test freezes the device's motion in the model (the random walks and
-the rate's variance 0: nothing moves between frames but what the frames measure) and feeds both the same device,
-frame by frame, each frame formed with each tracker's own state, as the pipeline forms them: a restart 1 % off its
-tare with the other states off too, rest, a held load (the scale's joint measurement with the load's own bias, the
-other states' loaded measurement while they are wanted), rest again. A tracker that counted one frame's measurement
-for the interval's frames (the earlier attempt, branch decimate) is off by that frame's noise: about 1/sqrt(K) of
-a frame's 1-sigma, 1e-5 of the scale here, against the test's bound of 1e-9."""
+then hold the same states. So the test freezes the device's motion in the model (the random walks and the rate's
+variance 0: nothing moves between frames but what the frames measure) and feeds both the same device, frame by
+frame, each frame formed with each tracker's own state, as the pipeline forms them: a restart 1 % off its tare with
+the other states off too, a held load from the first frame (the scale's joint measurement with the load's own bias,
+the other states' loaded measurement while they are wanted), rest, a held load, rest. A tracker that counted one
+frame's measurement for the interval's frames (the earlier attempt, branch decimate) is off by that frame's noise
+(the bounds and what that reads: the test's docstring)."""
 from __future__ import annotations
 
 import numpy as np
