@@ -147,7 +147,8 @@ REST_FORCE_MIN = 0.5
 #: the frames would have made one by one (a linear-Gaussian measurement: the information adds). The frames summed
 #: are of one kind (all at rest, or all loaded with one held load): another kind updates with them first. Every
 #: frame as before: without a joint fit (the linear estimator), in a restart's first seconds (:meth:`DriftTracker.widen`),
-#: with a controller's expected load (``now``). docs/node.md, *The zero over time*.
+#: with a controller's expected load (``now``), a loaded frame that measures the other states (its own measurement
+#: corrects its own force). docs/node.md, *The zero over time*.
 UPDATE_S = 0.04
 
 
