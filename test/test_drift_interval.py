@@ -6,8 +6,9 @@ measurement (a held load's bias shared by its frames) are one update with the su
 then hold the same states. So the test freezes the device's motion in the model (the random walks and the rate's
 variance 0: nothing moves between frames but what the frames measure) and feeds both the same device, frame by
 frame, each frame formed with each tracker's own state, as the pipeline forms them: a restart 1 % off its tare with
-the other states off too, a held load from the first frame (the scale's joint measurement with the load's own bias,
-the other states' loaded measurement while they are wanted), rest, a held load, rest. A tracker that counted one
+the other states off too, a held load from the first frame (its frames measure the other states, wanted: each
+updates at once, drift.py UPDATE_S), rest, a held load (the scale's joint measurements with the load's own bias,
+summed; every 8th frame checks the other states), rest. A tracker that counted one
 frame's measurement for the interval's frames (the earlier attempt, branch decimate) is off by that frame's noise
 (the bounds and what that reads: the test's docstring)."""
 from __future__ import annotations
@@ -61,8 +62,8 @@ def _device_run(update_s: float, monkeypatch, seconds: float = 20.0):
 
 
 def test_the_interval_update_equals_the_frame_by_frame_update_for_static_states(monkeypatch):
-    """Bounds in each state's own 1-sigma (its posterior). Loaded (the scale's measurements with the held load's
-    bias, the other states' loaded measurements): the same to rounding, 1e-6 of it (1e-11 here). At rest the
+    """Bounds in each state's own 1-sigma (its posterior). Loaded from the restart: the same to rounding, 1e-6 of
+    it; the held load's bias after the rests to 1e-6 of its prior's (1e-7 here). At rest the
     other states' measurement takes the scale as known at its estimate (the information of the other states
     only, drift.py ``_N_others``): frame by frame each frame's estimate, per interval the interval's; the states
     then differ by 5e-3 of their 1-sigma at most (4e-4 here, the same for offsets 10 x smaller: not the
@@ -75,7 +76,7 @@ def test_the_interval_update_equals_the_frame_by_frame_update_for_static_states(
     interval = _device_run(0.04, monkeypatch)
     for phase, ((s0, g0, P0, n0, b0), (s1, g1, P1, n1, b1)) in enumerate(zip(every, interval)):
         sd = np.sqrt(np.diag(P0))
-        bound = 1e-6 if phase == 0 else 5e-3  # loaded since the restart; then rests
+        bound = 1e-6 if phase == 0 else 5e-3  # loaded since the restart (no rest yet); then after rests
         assert n1 == n0  # the same frames taken as at rest
         assert abs(s1 - s0) < bound * sd[0], (phase, s0, s1, sd[0])
         assert np.all(np.abs(g1 - g0) < bound * sd[1:3]), (phase, g0, g1, sd[1:3])
