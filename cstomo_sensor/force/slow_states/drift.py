@@ -31,6 +31,7 @@ from .creep import DEFAULT_PERIOD
 from .drift_parts import (  # noqa: F401 (the constants: drift's words)
     FOLLOW_MEMORY,
     FOLLOW_SPAN,
+    LOAD_BIAS_SIGMA,
     QUIET_POST,
     FollowSlope,
     Interval,
@@ -497,8 +498,8 @@ class DriftTracker:
             d = self._update()
             if joint is not None:  # the force given the scale (and the others, when measured) now known
                 self._force_step(joint, part, o + d[0], d[1:m] if shift is None else shift + d[1:m])
-        elif joint is not None:  # between updates: the frame's own step (and an update at its start) only
-            self._force_step(joint, part, o, shift)
+        elif joint is not None:  # between updates: the frame's own step and the scale its interval's frames measured
+            self._force_step(joint, part, o + self._peek(), shift)
         else:
             self.force_step = None
         return rest
@@ -507,6 +508,23 @@ class DriftTracker:
         """The frames summed since the latest update (:data:`UPDATE_S`), if any, update the states now."""
         if self._acc.n:
             self._update()
+
+    def _peek(self) -> float:
+        """The scale's change that the joint fit's measurements of the interval's frames so far (this one's included)
+        make, as its update would (the scale alone, on Python floats): a frame between updates is corrected with
+        its own measurement and its interval's, as frame by frame (the update makes them the states)."""
+        acc = self._acc
+        if not acc.info > 0.0:
+            return 0.0
+        m, Pa, tr = self.m, self._Pa, acc.tr
+        P00 = float(Pa[0, 0]) + 2.0 * tr * float(Pa[0, m]) + tr * tr * float(Pa[m, m]) + float(self._q[0]) * acc.dt
+        nu = acc.vec / acc.info
+        if acc.rest:
+            return P00 / (P00 + 1.0 / acc.info) * nu
+        bias = self._bias  # the held load's bias: the one in effect, or a new one's (observe's acc.force)
+        c0, p, b = (float(bias.c[0]), bias.p, bias.b) if acc.force is bias.force else (0.0, LOAD_BIAS_SIGMA ** 2, 0.0)
+        h0 = P00 + c0
+        return h0 / (h0 + c0 + p + 1.0 / acc.info) * (nu - b)
 
     def _force_step(self, joint: tuple, part, d0: float, do) -> None:
         """:attr:`force_step`: the frame's force for the scale's change ``d0`` since the frame was formed and the
