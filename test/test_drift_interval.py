@@ -25,6 +25,7 @@ def _device_run(update_s: float, monkeypatch, seconds: float = 20.0):
     from cstomo_sensor.force.slow_states import drift as dr
 
     monkeypatch.setattr(dr, "UPDATE_S", update_s)
+    monkeypatch.setattr(dr, "LOADED_EVERY_FRAME", False)  # the loaded frames summed too (the mechanism under test)
     rng = np.random.default_rng(12)
     r, G, W, load = rng.normal(size=N), rng.normal(size=(2, N)), 100 * rng.normal(size=(3, N)), rng.normal(size=N)
     tr = dr.DriftTracker(r, G, np.full(N, 1e-3), np.ones(N, bool), W)

@@ -151,6 +151,11 @@ REST_FORCE_MIN = 0.5
 #: with a controller's expected load (``now``), a loaded frame that measures the other states (its own measurement
 #: corrects its own force). docs/node.md, *The zero over time*.
 UPDATE_S = 0.04
+#: ... and the loaded frames every frame as before (True): summed per interval (False: the scale's measurements with
+#: the held load's bias summed, the mechanism of :class:`~.drift_parts.Interval`), the robot bench's loaded warm-up on
+#: device_b read worse over 12 noise seeds, paired (1.29 deg / 1.68 % against 1.23 / 1.47; its unwarmed one and
+#: device_a's within their paired standard error): docs/benchmark.md, *The slow states once per interval*.
+LOADED_EVERY_FRAME = True
 
 
 class DriftTracker:
@@ -439,7 +444,7 @@ class DriftTracker:
         # measurement corrects its own force (V, the force's step per unit of each), as a joint fit of the force and
         # the states (summed for an interval, the frames between updates went without it: the robot bench's loaded
         # warm-up on the unwarmed device_a and device_b read 0.09 / 0.06 deg worse over 6 noise seeds)
-        now = now or joint is None or UPDATE_S <= 0.0 or (part is not None and not rest)
+        now = now or joint is None or UPDATE_S <= 0.0 or (not rest and (part is not None or LOADED_EVERY_FRAME))
         s_form = self.scale  # the scale the frame was formed with
         # the frames summed are of one kind (Interval): a frame of another kind (rest or loaded, another held
         # load, no joint fit) has them update the states first, as they would have one by one before it; this
