@@ -142,14 +142,15 @@ REST_FORCE_MIN = 0.5
 #: (issue 36: the slow states move over seconds). Every frame: the rest and quiet tests, the scale's step at its rate
 #: (the next frame is formed with it), the joint fit's measurement of the scale (its information and its
 #: information-weighted innovation summed), a rest frame's information vector, a loaded frame's measurement of the
-#: other states (their information and vector summed) and its force corrected with the states as they are. An
-#: update: the prediction over the interval, then one update with the sums: for states that do not move within it
-#: (the scale by ``RATE sqrt(UPDATE_S)``, 4e-6 in 40 ms) and a held load's bias shared by its frames, the updates
-#: the frames would have made one by one (a linear-Gaussian measurement: the information adds). The frames summed
-#: are of one kind (all at rest, or all loaded with one held load): another kind updates with them first. Every
-#: frame as before: without a joint fit (the linear estimator), in a restart's first seconds (:meth:`DriftTracker.widen`),
-#: with a controller's expected load (``now``), a loaded frame that measures the other states (its own measurement
-#: corrects its own force). docs/node.md, *The zero over time*.
+#: other states (their information and vector summed), and its force corrected with the states as they are and the
+#: scale its interval's measurements so far make (:meth:`DriftTracker._peek`). An update: the prediction over the
+#: interval, then one update with the sums: for states that do not move within it (the scale by ``RATE
+#: sqrt(UPDATE_S)``, 4e-6 in 40 ms) and a held load's bias shared by its frames, the updates the frames would have
+#: made one by one (a linear-Gaussian measurement: the information adds). The frames summed are of one kind (all at
+#: rest, or all loaded with one held load): another kind updates with them first. Every frame as before: without a
+#: joint fit (the linear estimator), in a restart's first seconds (:meth:`DriftTracker.widen`), with a controller's
+#: expected load (``now``), a loaded frame that measures the other states (its own measurement corrects its own
+#: force) and, by default, every loaded frame (:data:`LOADED_EVERY_FRAME`). docs/node.md, *The zero over time*.
 UPDATE_S = 0.04
 #: ... and the loaded frames every frame as before (True): summed per interval (False: the scale's measurements with
 #: the held load's bias summed, the mechanism of :class:`~.drift_parts.Interval`), the robot bench's loaded warm-up on
