@@ -131,9 +131,9 @@ def test_drift_tracker_equals_its_previous_formulation(warm_model, masked):
     observe = ours.observe
     rests = []
 
-    def both(y, t=None, joint=None):
-        assert joint is None  # linear: no joint fit (issue 26), the formulation the twin has
-        rest = observe(y, t, joint)
+    def both(y, t=None, joint=None, now=False):
+        assert joint is None  # linear: no joint fit (issue 26), the formulation the twin has (every frame updates)
+        rest = observe(y, t, joint, now)
         assert drift_observe(twin, y.copy(), t) == rest
         np.testing.assert_allclose(ours.scale, twin.scale, rtol=1e-12)
         np.testing.assert_allclose(ours.rate, twin.rate, rtol=1e-6, atol=1e-15)

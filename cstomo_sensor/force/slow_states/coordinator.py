@@ -129,6 +129,7 @@ class SlowStates:
         self.learner: DirectionLearner | None = None
         self.learned_new = False
         self._known_rest = False  # the next frame is known to be unloaded (known_unloaded)
+        self._expected_now = False  # the frame's joint measurement has a controller's expected load (_joint_scale)
 
     def creep_per_decade(self, calibration) -> float:
         """The creep compensated: the calibration's coefficient if it has one, else the setting's; a
@@ -201,7 +202,8 @@ class SlowStates:
             if drift is not None:
                 # every frame measures the scale jointly with its force (force/estimators/scale_fit.py JointScale; a
                 # controller's expected load sharpens it); the force follows the scale's update
-                rest = drift.observe(y, t, self._joint_scale(frame, t))
+                joint = self._joint_scale(frame, t)
+                rest = drift.observe(y, t, joint, self._expected_now)  # (an expected load: the states updated now)
                 self.scale = drift.scale
                 if drift.force_step is not None and valid:
                     force = corrected = force + drift.force_step
@@ -229,6 +231,7 @@ class SlowStates:
         None for an estimator without a joint fit (``linear``); with the controller's expected load when one is in
         effect for this frame and agrees with it (:meth:`cstomo_sensor.force.checks.expected.ExpectedLoad.for_frame`), bounded by
         the frame's own (:func:`cstomo_sensor.force.checks.expected.bounded`)."""
+        self._expected_now = False
         if frame.fit is None:
             return None
         est, result = frame.in_use.estimator, frame.result
@@ -239,6 +242,7 @@ class SlowStates:
             e = self.expected.for_frame(t, result.force, self._frame_sigma)
         others = self.drift.others_wanted()  # counts the frame towards the other states' check
         own = self._joint.measure(None, others)
+        self._expected_now = e is not None
         return own if e is None or own is None else bounded(self._joint.measure(e) or own, own)  # others: own's
 
     def expect_load(self, force, sigma: float, stamp_ns: int | None = None, frame_id: str | None = None,

@@ -114,15 +114,20 @@ class FollowSlope:
         new.slope[:], new._fit[:], new.fitted = self.slope, self._fit, self.fitted
         return new
 
-    def add(self, dt: float, s: float, g: np.ndarray) -> None:
-        """A rest frame's other states ``g`` at the scale's change ``s``, ``dt`` s after the previous frame."""
+    def add(self, dt: float, s: float, g: np.ndarray, count: int = 1) -> None:
+        """A rest frame's other states ``g`` at the scale's change ``s``, ``dt`` s after the previous frame;
+        ``count``: as many rest frames over ``dt`` (the drift tracker's update of an interval's, UPDATE_S)."""
         F = self._fit
         F *= math.exp(-dt / FOLLOW_MEMORY)
         n, s1, s2 = F[:, 0].tolist()  # the scale's sums on Python floats
-        n, s1, s2 = n + 1.0, s1 + s, s2 + s * s
+        n, s1, s2 = n + count, s1 + count * s, s2 + count * s * s
         F[:, 0] = n, s1, s2
-        F[0, 1:] += g
-        F[1, 1:] += s * g
+        if count == 1:
+            F[0, 1:] += g
+            F[1, 1:] += s * g
+        else:
+            F[0, 1:] += count * g
+            F[1, 1:] += (count * s) * g
         ss = s2 - s1 * s1 / n  # the scale's weighted spread, times n
         if ss > n * FOLLOW_SPAN ** 2:
             self.slope[:] = (F[1, 1:] - s1 * F[0, 1:] / n) / ss
@@ -173,3 +178,42 @@ class LoadBias:
         self.kx = kx  # the states' gain (the tracker's other biases' covariance with them follows it)
         self.b += kb * nu
         return delta
+
+
+class Interval:
+    """The frames since the drift tracker's latest update (:data:`~.drift.UPDATE_S`), summed: one kind of frame
+    each (all at rest or all loaded with one held load, :meth:`~.drift.DriftTracker.observe`), so that one update
+    with their sums is the updates they would have made one by one of states that do not move between them (a
+    linear-Gaussian measurement of static states, a held load's bias shared: the information adds).
+
+    ``n`` frames over ``dt`` seconds; the prediction's factors over them: ``tr`` the scale's step per unit of the
+    rate (each frame's period times the rate's fading before it), ``fade`` the rate's fading, ``da`` the scale's
+    change at its rate over the loaded frames (the other states follow it, :data:`~.drift.FOLLOW_SIGMA`). The
+    joint fit's scale measurements: ``info`` (sum of weight / variance) and ``vec`` (sum of weight x innovation /
+    variance). At rest: ``b`` the frames' information vectors summed, ``o`` their formation offsets of the scale
+    summed (each frame's prediction over the scale it was formed with). Loaded: ``force`` the held load's (its
+    bias's reference), the other states' parts (:meth:`~cstomo_sensor.force.estimators.scale_fit.JointScale.others_part`)
+    summed unweighted (``H``, ``hb``; ``Hda`` the information times each frame's ``da`` so far: the follow within
+    the interval), their count ``k``, their weights ``w`` and the check's time ``kdt`` summed."""
+
+    def __init__(self, n_states: int, m: int) -> None:
+        self.b = np.zeros(n_states)
+        self.H = np.zeros((m - 1, m - 1))
+        self.hb = np.zeros(m - 1)
+        self.Hda = np.zeros((m - 1, m - 1))
+        self.n_b = self.k_h = True  # the arrays hold sums (clear zeroes them only then)
+        self.clear()
+
+    def clear(self) -> None:
+        self.n, self.dt, self.tr, self.fade, self.da = 0, 0.0, 0.0, 1.0, 0.0
+        self.rest, self.joint, self.force = False, True, None
+        self.info = self.vec = self.o = 0.0
+        self.k, self.w, self.kdt = 0, 0.0, 0.0
+        if self.n_b:
+            self.b.fill(0.0)
+            self.n_b = False
+        if self.k_h:
+            self.H.fill(0.0)
+            self.hb.fill(0.0)
+            self.Hda.fill(0.0)
+            self.k_h = False
