@@ -14,7 +14,6 @@ frame's measurement for the interval's frames (the earlier attempt, branch decim
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 N = 208
 RATE = 100.0  # frames per second: 4 frames an interval
