@@ -89,6 +89,8 @@ class HeldLoad:
 
 
 @pytest.mark.slow
+@pytest.mark.alone  # the filter runs on the frames' arrival stamps: beside a busy neighbour they come in bursts and
+# the smoothing judged below reads less (a fresh-clone CI: filtered x sd 0.13 N against 0.077 alone, bound 0.10)
 def test_node_filtered_wrench_resets_on_tare_and_reconnect_and_smooths_a_held_load(ros, tmp_path, source,
                                                                                      warm_model):
     """Board at 100 frames/s: unloaded (tare at start), a step to a held 20 N, an unplug of 0.3 s,
