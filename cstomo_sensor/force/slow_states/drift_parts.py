@@ -122,12 +122,8 @@ class FollowSlope:
         n, s1, s2 = F[:, 0].tolist()  # the scale's sums on Python floats
         n, s1, s2 = n + count, s1 + count * s, s2 + count * s * s
         F[:, 0] = n, s1, s2
-        if count == 1:
-            F[0, 1:] += g
-            F[1, 1:] += s * g
-        else:
-            F[0, 1:] += count * g
-            F[1, 1:] += (count * s) * g
+        F[0, 1:] += count * g  # (count 1: exactly the one frame's g)
+        F[1, 1:] += (count * s) * g
         ss = s2 - s1 * s1 / n  # the scale's weighted spread, times n
         if ss > n * FOLLOW_SPAN ** 2:
             self.slope[:] = (F[1, 1:] - s1 * F[0, 1:] / n) / ss
