@@ -25,6 +25,7 @@ def interrupted(argv: list[str], after_s: float, tmp_path: Path) -> subprocess.C
     return subprocess.CompletedProcess(argv, proc.returncode, out, err)
 
 
+@pytest.mark.slow  # starts processes
 @pytest.mark.parametrize("argv, after_s", [
     # while it still loads rclpy, numpy and scipy (1.5 s or more here)
     (["cstomo_sensor_node", "--ros-args", "-p", "autostart:=false"], 0.4),
