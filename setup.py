@@ -39,9 +39,9 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "cstomo = cstomo_sensor.tools.cli:main",
-            "cstomo_sensor_node = cstomo_sensor.ros.node:main",
-            "cstomo_sensor_host = cstomo_sensor.ros.host:main",
+            "cstomo = cstomo_sensor.scripts:cstomo",
+            "cstomo_sensor_node = cstomo_sensor.scripts:node",
+            "cstomo_sensor_host = cstomo_sensor.scripts:host",
         ],
     },
 )

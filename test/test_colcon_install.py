@@ -185,8 +185,8 @@ def test_the_docs_robot_commands_work_in_the_install_as_written(install, tmp_pat
                              "$(ros2 pkg prefix cstomo_sensor)/share/cstomo_sensor/config/cstomo_sensor.yaml "
                              "-p port:=/dev/cstomo -p autostart:=false"], cwd=ws, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
-    time.sleep(4)
-    assert node.poll() is None, node.stdout.read()
+    up = node.stdout.readline()  # its first line says it is up and waits for a transition (no fixed sleep: a
+    assert "autostart is false" in up, up + node.communicate(timeout=20)[0]  # busy host loads rclpy for seconds)
     node.send_signal(2)
     out = node.communicate(timeout=20)[0]
     assert node.returncode == 0 and "Traceback" not in out, out

@@ -77,29 +77,27 @@ def main(argv: list[str] | None = None) -> int:
     if not init_ros("cstomo_sensor_host", argv):
         return 2
     nodes: list[CstomoSensorNode] = []
-    try:
+    handler, code = None, 0
+    try:  # once rclpy is up, a Ctrl-C is the sensors' normal end (exit 0), also before they spin
         for ns in namespaces:
-            nodes.append(CstomoSensorNode(namespace=ns))
-    except ConfigError as err:
-        print(f"cstomo_sensor_host: {namespaces[len(nodes)]}: {err}", file=sys.stderr)
+            try:
+                nodes.append(CstomoSensorNode(namespace=ns))
+            except ConfigError as err:
+                print(f"cstomo_sensor_host: {ns}: {err}", file=sys.stderr)
+                return 2  # (the sensors made before it are destroyed below)
+        # one route for the library's records (each node attached its own: every record N times)
         for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        return 2
-    # one route for the library's records (each node attached its own: every record N times)
-    for node in nodes:
-        ros_log.detach(node._log_handler)
-    handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), nodes[0].context.ok, label=sensor_of)
-    failed = Future()
-    for node in nodes:
-        node.autostart_failed.add_done_callback(lambda _f, node=node: failed.done() or failed.set_result(node))
-    # a thread per sensor beside one for the timers: a tare (a service call that waits for its frames)
-    # never holds up another sensor's diagnostics
-    executor = MultiThreadedExecutor(num_threads=len(nodes) + 1)
-    for node in nodes:
-        executor.add_node(node)
-    code = 0
-    try:
+            ros_log.detach(node._log_handler)
+        handler = ros_log.attach(rclpy.logging.get_logger("cstomo_sensor_host"), nodes[0].context.ok,
+                                 label=sensor_of)
+        failed = Future()
+        for node in nodes:
+            node.autostart_failed.add_done_callback(lambda _f, node=node: failed.done() or failed.set_result(node))
+        # a thread per sensor beside one for the timers: a tare (a service call that waits for its frames)
+        # never holds up another sensor's diagnostics
+        executor = MultiThreadedExecutor(num_threads=len(nodes) + 1)
+        for node in nodes:
+            executor.add_node(node)
         executor.spin_until_future_complete(failed)
         if failed.done():
             code = 1  # the refused node logged why; say which one, then stop every sensor
@@ -113,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
             node._release()
         for node in nodes:
             node.destroy_node()
-        ros_log.detach(handler)
+        if handler is not None:
+            ros_log.detach(handler)
         rclpy.try_shutdown()
     return code
 

@@ -91,6 +91,9 @@ class CstomoSensorNode(LifecycleNode):
         self.autostart_failed = Future()  # done when autostart could not configure (main exits then)
         if self.get_parameter("autostart").value:
             self._autostart_timer = self.create_timer(0.0, self._autostart)
+        else:  # say that it is up, and what it waits for
+            self.get_logger().info(f"autostart is false: unconfigured until told, e.g. `ros2 lifecycle set "
+                                   f"{self.get_fully_qualified_name()} configure` (then activate)")
 
     @property
     def reference_source(self) -> str:

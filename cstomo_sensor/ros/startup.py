@@ -189,26 +189,25 @@ def main(node_class, argv: list[str] | None = None) -> int:
         return 0
     if not init_ros("cstomo_sensor_node", argv):
         return 2
-    try:
+    node, code = None, 0
+    try:  # once rclpy is up, a Ctrl-C is the node's normal end (exit 0), also before it spins
         node = node_class()
-    except ConfigError as err:  # overrides refused
-        print(f"cstomo_sensor_node: {err}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(node)
-    code = 0
-    try:
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
         executor.spin_until_future_complete(node.autostart_failed)
         if node.autostart_failed.done():
             code = 1  # configure refused (the log says why); the parameters are read-only: restart needed
+    except ConfigError as err:  # overrides refused
+        print(f"cstomo_sensor_node: {err}", file=sys.stderr)
+        code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         # a second Ctrl-C (or the one rclpy's handler passes on just after shutting the context
         # down) must not interrupt the joins below with a KeyboardInterrupt traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        node._release()
-        node.destroy_node()
+        if node is not None:
+            node._release()
+            node.destroy_node()
         rclpy.try_shutdown()
     return code
