@@ -8,8 +8,9 @@ data, cached: force/estimators/training.py; the calibration never sees the hones
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/estimators/tps.py), started from the linear estimate
   (or, while the load moves within the noise, from the previous frame's fit moved by its own step for the
-  frame's change: :data:`WARM_SIGMAS`); 2-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench
-  --heldout``). The surrogate follows the
+  frame's change: :data:`WARM_SIGMAS`, until the next step's quadratic bound is below the tolerance:
+  :data:`QUADRATIC_C`); 1-2 evaluations of the surrogate a frame where the load is held, 3-5 from the
+  linear estimate, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``). The surrogate follows the
   device's resistivity gradients (the drift tracker's states, passed per frame) to first order
   (:func:`~.training.response_set`): a warmed block's gradient changes how a load shows in the voltages.
 
