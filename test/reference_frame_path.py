@@ -305,3 +305,36 @@ def joint_measure(joint, expected=None, others: bool = False):
     inflate = max(1.0, chi2 / joint.dof)
     part = joint.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
     return b / H, inflate / H, k * sol[:, 0], k * sol[:, 1], np.asarray(x_hat) * k, part
+
+
+# ---- helper est (issue 34's frame cost: the estimator, the joint fit, the sigma) ----------------------------------
+
+def spline_rows(spline, x: np.ndarray) -> np.ndarray:
+    """``ThinPlateSpline.basis_rows`` as it was: the value's row ``[phi(r_i) | 1 | x]`` and the gradient's
+    ``[(2 log r_i + 1)(x - p_i) | 0 | I]``, the ``x - p_i`` term included, by broadcasting."""
+    p = spline.points
+    n, d = p.shape
+    diff = np.asarray(x, float)[None, :] - p  # (n, d)
+    r = np.sqrt(np.sum(diff * diff, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        phi = np.where(r > 0, r * r * np.log(np.where(r > 0, r, 1.0)), 0.0)
+        g = np.where(r > 0, 2.0 * np.log(np.where(r > 0, r, 1.0)) + 1.0, 0.0)
+    rows = np.zeros((1 + d, n + 1 + d))
+    rows[0, :n], rows[0, n], rows[0, n + 1:] = phi, 1.0, x
+    rows[1:, :n] = (g[:, None] * diff).T
+    rows[1:, n + 1:] = np.eye(d)
+    return rows
+
+
+def model_estimate_tight(est, y: np.ndarray, tolerance_n: float = 1e-7) -> np.ndarray:
+    """The ``model`` estimator's fit of ``y`` from the linear estimate, iterated until a step is below
+    ``tolerance_n`` (N): the iteration's limit, against which a fit that stopped sooner is judged."""
+    x = est.linear.estimate(y) / est.scale
+    target = est.basis @ (y[est.keep] * est.w)
+    for _ in range(50):
+        pred, J = est.surrogate.value_and_jacobian(x)
+        step = _solve3(J.T @ J, J.T @ (target - pred))
+        x = x + step
+        if not step @ step >= (tolerance_n / est.scale) ** 2:
+            break
+    return x * est.scale

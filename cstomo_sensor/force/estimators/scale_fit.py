@@ -56,7 +56,12 @@ class JointScale:
         rw = np.asarray(r, float)[estimator.keep] * estimator.w
         self.rw, self.Brw, self.rr = rw, estimator.basis @ rw, float(rw.dot(rw))
         self.dof = max(len(rw) - 4, 1)
-        self._M = np.empty((len(self.Brw), 2))
+        # measure's work arrays: the rows [rho, B w r, B y] (its inner products and the Jacobian's with them, one
+        # product each) and the fit's last step
+        self._V = np.empty((3, len(self.Brw)))
+        self._V[1] = self.Brw
+        self._VT = self._V.T
+        self._s = np.empty(3)
         self.n_others = 0
         if others is not None and len(others):  # the tracker's other states' directions (whitened, in use)
             Dw = np.ascontiguousarray(np.atleast_2d(np.asarray(others, float))[:, estimator.keep] * estimator.w)
@@ -68,6 +73,12 @@ class JointScale:
             self._Q = np.empty((1 + k, 1 + k))
             self._Q[1:, 1:] = self._DD
 
+    def _step_row(self, step) -> np.ndarray:
+        """The fit's last step (3 floats) as a work array (3 item assignments: no new array)."""
+        s = self._s
+        s[0], s[1], s[2] = step
+        return s
+
     def measure(self, expected: tuple | None = None, others: bool = False) -> tuple | None:
         """(d, its variance, u, v, the frame's force, the others' part) of the estimator's latest frame (class
         docstring); ``expected``: (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives
@@ -75,36 +86,47 @@ class JointScale:
         ``V``): their information and information vector with the load and the scale profiled out
         (:meth:`others_part`), and the force's step per unit of each (``dF = u - v d - V d_o``); else None."""
         est = self.est
-        if est.last_fit is None:
+        fit = est.last_fit
+        if fit is None:
             return None
-        yw, By, step, x_hat, out, _ = est.last_fit
+        yw, By, step, x_hat, out = fit.yw, fit.by, fit.step, fit.x, fit.out
         k = est.scale
         Jt = out[1:]  # (3, k): the Jacobian's transpose at the last iterate, before its step
         # the residual at the final force, By - s(x + step) = -(out[0] + J step) to first order (before: out[0]'s
         # negative plus J step, the residual at x - step: the force's step u then carried twice the fit's last step,
         # 2e-5 N at the 1e-4 N tolerance, 0.02 N at a 0.01 N one; the scale's measurement, its load profiled out, is
-        # the same either way)
-        # (ndarray.dot, not np.dot: its dispatch costs more than these small products)
-        rho = np.array(step, float).dot(Jt)
+        # the same either way), into the first of V = [rho, B w r, B y]
+        V = self._V
+        rho = self._step_row(step).dot(Jt, out=V[0])
         rho += out[0]
         np.negative(rho, out=rho)
-        Bd = self.Brw + By
-        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
-        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
-        dy_perp = ry + yy - float(Bd.dot(By))  # d_w . y_w outside the basis
+        V[2] = By
         ext = others and self.n_others > 0
-        M = self._Mx if ext else self._M
-        M[:, 0] = rho
-        M[:, 1] = Bd
-        rhs = Jt.dot(M)  # (3, 2 [+ k]): J^T rho, g = J^T d_w [, J^T D_o]
+        # (ndarray.dot, not np.dot: its dispatch costs more than these small products)
+        ry, yy = float(self.rw.dot(yw)), float(yw.dot(yw))
+        (pp, pr, py), (_, _, ry_b), (_, _, yy_b) = V.dot(self._VT).tolist()  # the inner products of rho, B w r, B y
+        dd = self.rr + 2.0 * ry + yy       # |d_w|^2, d_w = w (r + y)
+        dy_perp = ry + yy - ry_b - yy_b  # d_w . y_w outside the basis (B d_w = B w r + B y)
         # A = J^T J (+ L) and its inverse on Python floats: a 3 x 3 system, where a LAPACK call and numpy's
-        # small-array calls around it cost more than its arithmetic
-        (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = Jt.dot(Jt.T).tolist()
+        # small-array calls around it cost more than its arithmetic; J^T J is the fit's last normal matrix
+        (_, a0, a1, a2), (_, a3, a4, a5), (_, a6, a7, a8) = fit.normal.tolist()
+        if ext:  # the others' columns too: J^T [rho, d_w, D_o] as one array (others_part)
+            M = self._Mx
+            M[:, 0] = rho
+            np.add(self.Brw, By, out=M[:, 1])
+            rhs = Jt.dot(M)  # (3, 2 + n_o)
+            (r0, g0, *_), (r1, g1, *_), (r2, g2, *_) = rhs.tolist()
+        else:  # J^T [rho, B w r, B y]: J^T rho and g = J^T d_w
+            (r0, gr0, gy0), (r1, gr1, gy1), (r2, gr2, gy2) = Jt.dot(self._VT).tolist()
+            g0, g1, g2 = gr0 + gy0, gr1 + gy1, gr2 + gy2
         if expected is not None:
             f, sig = expected
             lam = (k / sig) ** 2
             a0, a4, a8 = a0 + lam, a4 + lam, a8 + lam
-            rhs[:, 0] += lam * (np.asarray(f, float) / k - np.asarray(x_hat))
+            f0, f1, f2 = (float(v) / k for v in f)
+            r0, r1, r2 = r0 + lam * (f0 - x_hat[0]), r1 + lam * (f1 - x_hat[1]), r2 + lam * (f2 - x_hat[2])
+            if ext:
+                rhs[0, 0], rhs[1, 0], rhs[2, 0] = r0, r1, r2
         inv = inverse3(a0, a1, a2, a3, a4, a5, a6, a7, a8)
         if inv is None:  # singular
             return None
@@ -112,16 +134,14 @@ class JointScale:
         if ext:  # the others' columns too: their solution as an array (others_part)
             sol = np.array(inv).reshape(3, 3).dot(rhs)
             (s0, t0, *_), (s1, t1, *_), (s2, t2, *_) = sol.tolist()
-            (_, g0, *_), (_, g1, *_), (_, g2, *_) = rhs.tolist()
         else:
-            (r0, g0), (r1, g1), (r2, g2) = rhs.tolist()
             s0, s1, s2 = i0 * r0 + i1 * r1 + i2 * r2, i3 * r0 + i4 * r1 + i5 * r2, i6 * r0 + i7 * r1 + i8 * r2
             t0, t1, t2 = i0 * g0 + i1 * g1 + i2 * g2, i3 * g0 + i4 * g1 + i5 * g2, i6 * g0 + i7 * g1 + i8 * g2
         H = dd - (g0 * t0 + g1 * t1 + g2 * t2)
-        b = float(Bd.dot(rho)) + dy_perp - (g0 * s0 + g1 * s1 + g2 * s2)
+        b = pr + py + dy_perp - (g0 * s0 + g1 * s1 + g2 * s2)  # (B d_w) . rho = (B w r + B y) . rho
         if not H > 0:
             return None
-        chi2 = float(rho.dot(rho)) + yy - float(By.dot(By)) - b * b / H
+        chi2 = pp + yy - yy_b - b * b / H
         inflate = max(1.0, chi2 / self.dof)  # the model's mismatch with the device, beyond the noise
         part = self.others_part(yw, By, rho, rhs, sol, dd, H, b, chi2, k) if ext else None
         return (b / H, inflate / H, np.array((k * s0, k * s1, k * s2)), np.array((k * t0, k * t1, k * t2)),

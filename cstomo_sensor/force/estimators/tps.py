@@ -56,22 +56,22 @@ class ThinPlateSpline:
         self._basis_part, self._x_row = self._Bt[:, :n], self._Bt[0, n + 1:]
         self._d3 = d == 3
         # x - p_i as one product of the rows' own [x; I] block (transposed: [x | I]) and [1; -p^T] (exact:
-        # the other terms are zeros); from the table of their squares and 1 (below), one product gives
-        # [r^2, 1, r^2 / 2] beside them: W = [r^2, 1, r^2 / 2, x - p_i (d rows)]; then log r^2 in place,
-        # and one more product [log r^2, log r^2 + 1 (d rows)] = E [log r^2; 1]: their product with W's
-        # last d + 1 rows is the basis rows, r^2 log r = (r^2 / 2) log r^2 and (2 log r + 1)(x - p_i); no
-        # broadcasting (numpy's costs 1.5 us a call)
+        # the other terms are zeros); from the table of their squares and 1 (below), one product gives [r^2, r^2 / 2]
+        # beside them: W = [r^2, r^2 / 2, x - p_i (d rows)]; then log r^2 in place, and the basis rows are W's last
+        # d + 1 rows times log r^2 (one broadcast product): r^2 log r = (r^2 / 2) log r^2, and (log r^2) (x - p_i)
+        # for the gradient's (2 log r + 1)(x - p_i) = (log r^2 + 1)(x - p_i): the coefficients c of the spline's
+        # basis functions sum to zero with every node's coordinates as weights too (P^T c = 0, the system's last
+        # rows), so the terms 1 (x - p_i) add nothing to the Jacobian (on the model estimator's spline they sum
+        # to 2e-13 against coefficients of 300)
         self._xI = self._Bt[:, n + 1:].T
         self._P1 = np.vstack([np.ones(n), -p.T])
         self._sq = np.ones((d + 1, n))
         self._sq_d = self._sq[:d]
         # r^2 + 1e-300 (at a node, r^2 < 1e-284, it keeps the log finite: phi is 1e-300 log(1e-300)
         # there instead of 0, and x - p_i = 0)
-        self._sums = np.array([[1.0] * d + [1e-300], [0.0] * d + [1.0], [0.5] * d + [0.5e-300]])
-        self._W = W = np.empty((d + 3, n))
-        self._diff, self._factors, self._r2, self._sums_out, self._lhs = W[3:], W[2:], W[0], W[:3], W[:2]
-        self._E = np.vstack([[1.0, 0.0], np.ones((d, 2))])
-        self._L = np.empty((d + 1, n))
+        self._sums = np.array([[1.0] * d + [1e-300], [0.5] * d + [0.5e-300]])
+        self._W = W = np.empty((d + 2, n))
+        self._diff, self._factors, self._r2, self._sums_out = W[2:], W[1:], W[0], W[:2]
         self._Mt = np.ascontiguousarray(coef)  # (n + 1 + d, m)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -87,8 +87,10 @@ class ThinPlateSpline:
     def basis_rows(self, x: np.ndarray) -> np.ndarray:
         """The (1 + d, n + 1 + d) rows whose product with the coefficients (:attr:`coefficients`,
         (n + 1 + d, m)) is the value (row 0) and the Jacobian's transpose (rows 1..d) at one point
-        ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[(2 log r_i + 1)(x - p_i) | 0 | I]``. A work
-        array, overwritten by the next call."""
+        ``x`` (d floats): ``[phi(r_i) | 1 | x]`` and ``[2 log r_i (x - p_i) | 0 | I]`` (the gradient's
+        ``(2 log r_i + 1)(x - p_i)`` without its ``x - p_i``, which the coefficients of this spline, and of
+        any values at its nodes (:meth:`coefficients_of`), take to zero). A work array, overwritten by the
+        next call."""
         xr = self._x_row
         if self._d3:  # (3 item assignments: half the cost of a slice's from a tuple)
             xr[0], xr[1], xr[2] = x
@@ -99,8 +101,7 @@ class ThinPlateSpline:
         np.multiply(diff, diff, out=self._sq_d)
         self._sums.dot(self._sq, out=self._sums_out)
         np.log(r2, out=r2)
-        self._E.dot(self._lhs, out=self._L)
-        np.multiply(self._L, self._factors, out=self._basis_part)
+        np.multiply(self._factors, r2, out=self._basis_part)
         return self._Bt
 
     @property
