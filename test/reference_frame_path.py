@@ -324,17 +324,3 @@ def spline_rows(spline, x: np.ndarray) -> np.ndarray:
     rows[1:, :n] = (g[:, None] * diff).T
     rows[1:, n + 1:] = np.eye(d)
     return rows
-
-
-def model_estimate_tight(est, y: np.ndarray, tolerance_n: float = 1e-7) -> np.ndarray:
-    """The ``model`` estimator's fit of ``y`` from the linear estimate, iterated until a step is below
-    ``tolerance_n`` (N): the iteration's limit, against which a fit that stopped sooner is judged."""
-    x = est.linear.estimate(y) / est.scale
-    target = est.basis @ (y[est.keep] * est.w)
-    for _ in range(50):
-        pred, J = est.surrogate.value_and_jacobian(x)
-        step = _solve3(J.T @ J, J.T @ (target - pred))
-        x = x + step
-        if not step @ step >= (tolerance_n / est.scale) ** 2:
-            break
-    return x * est.scale

@@ -351,7 +351,7 @@ def test_spline_basis_rows_without_the_zero_terms_equal_the_full_rows(nodes, war
 
     p, v = nodes
     rng = np.random.default_rng(5)
-    for spline, coefs in ((ThinPlateSpline(p, v), None), (warm_model_estimator.surrogate, None)):
+    for spline in (ThinPlateSpline(p, v), warm_model_estimator.surrogate):
         pts = spline.points
         scale = np.abs(pts).max()
         xs = list(rng.uniform(-1, 1, (20, 3)) * scale) + [pts[3] + 1e-9, pts[7]]
@@ -361,40 +361,3 @@ def test_spline_basis_rows_without_the_zero_terms_equal_the_full_rows(nodes, war
                 want = spline_rows(spline, x) @ coef
                 got = spline.basis_rows(tuple(x)) @ coef
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
-
-
-def test_a_warm_fit_stopped_by_the_quadratic_bound_is_near_the_iterations_limit(warm_model_estimator):
-    """A warm-started fit stops once its step's quadratic bound puts the next step below 1e-4 N
-    (``QUADRATIC_C``): held loads and a rest with the frames' noise read within 2 mN of the iteration's limit
-    (a tight fit from the linear estimate), and take fewer evaluations than the 1e-4 N step alone would."""
-    from reference_frame_path import model_estimate_tight
-
-    from cstomo_sensor.force.estimators import estimate as E
-
-    est = warm_model_estimator.with_noise(warm_model_estimator.noise)
-    rng = np.random.default_rng(11)
-    loads = [est.y[i] for i in rng.choice(np.arange(1, len(est.y)), 4, replace=False)] + [np.zeros(est.y.shape[1])]
-    ys = [load + rng.normal(size=len(load)) * est.noise for load in loads for _ in range(8)]  # held: 1 cold, 7 warm
-    calls = []
-    spline_type, basis_rows = type(est.surrogate), type(est.surrogate).basis_rows
-
-    def counted(self, x):
-        calls.append(1)
-        return basis_rows(self, x)
-
-    forces, evaluations = {}, {}
-    rule = 20.0  # the rule's measured C (the default's; math.inf turns the rule off, as 1e12 nearly does)
-    for c in (rule, 1e12):  # the rule, and (C huge) the 1e-4 N step alone
-        calls.clear()
-        est.forget()
-        E.QUADRATIC_C, saved = c, E.QUADRATIC_C
-        spline_type.basis_rows = counted
-        try:
-            forces[c] = [est.estimate(y) for y in ys]
-        finally:
-            spline_type.basis_rows, E.QUADRATIC_C = basis_rows, saved
-        evaluations[c] = len(calls)
-    errors = [np.linalg.norm(f - model_estimate_tight(est, y)) for f, y in zip(forces[rule], ys)]
-    print(f"largest distance from the limit {max(errors) * 1e3:.3f} mN; evaluations {evaluations}")
-    assert max(errors) < 2e-3
-    assert evaluations[rule] < 0.8 * evaluations[1e12]

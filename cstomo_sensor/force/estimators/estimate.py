@@ -8,9 +8,8 @@ data, cached: force/estimators/training.py; the calibration never sees the hones
   spline surrogate of the forward + mechanical model y(F) built on the calibration set (its value
   and analytic Jacobian in one small product, force/estimators/tps.py), started from the linear estimate
   (or, while the load moves within the noise, from the previous frame's fit moved by its own step for the
-  frame's change: :data:`WARM_SIGMAS`, until the next step's quadratic bound is below the tolerance:
-  :data:`QUADRATIC_C`); 1-2 evaluations of the surrogate a frame where the load is held, 3-5 from the
-  linear estimate, about 0.04 ms per frame at 60 dB (``cstomo bench --heldout``). The surrogate follows the
+  frame's change: :data:`WARM_SIGMAS`); 2-4 steps, about 0.04 ms per frame at 60 dB (``cstomo bench
+  --heldout``). The surrogate follows the
   device's resistivity gradients (the drift tracker's states, passed per frame) to first order
   (:func:`~.training.response_set`): a warmed block's gradient changes how a load shows in the voltages.
 
@@ -52,18 +51,6 @@ STEP_TOLERANCE_N = 1e-4
 #: by-product the slow states read (the fit's residual and Jacobian, :class:`ModelFit`) are the cold start's
 #: to that tolerance.
 WARM_SIGMAS, WARM_MIN_N = 6.0, 0.5
-#: A warm-started fit stops after a step ``s`` once the next step, by the Gauss-Newton iteration's quadratic
-#: bound ``C |s|^2`` (N), is below STEP_TOLERANCE_N: ``|s| < sqrt(STEP_TOLERANCE_N / C)``, 2.2 mN, where the force's
-#: noise is 0.28 N at 60 dB. ``C`` (1/N) is the spline's: on the frame-cost stream (``cstomo bench --frame-cost``)
-#: the ratio ``|s_2| / |s_1|^2`` of a fit's first two steps reads median 7.5 and p90 20 under a load, median 3 and
-#: p90 13 at rest. At rest the iteration converges only linearly (the spline's node at zero load, where its
-#: curvature is that of ``r^2 log r``): later steps are 0.1-0.2 of the one before, so there the force stops within
-#: about 1 mN of the iteration's limit (median 0.04 mN; under a load within 0.1 mN). A held load then takes one
-#: evaluation of the spline a frame, a rest two (the frame-cost stream: 1.86 a frame, 2.99 with the 1e-4 N step
-#: alone); the joint fit and the sigma read the fit's residual linearised at the force it ended at
-#: (:class:`ModelFit`), as before. A cold start (the first frame, a new load, after a tare or a mask) iterates to a
-#: step of STEP_TOLERANCE_N as before: it re-anchors the warm frames that follow at the iteration's limit.
-QUADRATIC_C = 20.0
 
 
 class LinearEstimator:
@@ -206,16 +193,10 @@ class ModelEstimator:
             if dx is not None and dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2] < self._warm2:
                 px = fit.x
                 x = (px[0] + dx[0], px[1] + dx[1], px[2] + dx[2])
-        # the squared step (units of scale) it stops below: warm, where the next one is below the tolerance by the
-        # quadratic bound (QUADRATIC_C), or this one is; cold, the tolerance's
-        tol, k2 = STEP_TOLERANCE_N, self.scale * self.scale
         if x is None:
             x = self._W_unit.dot(y).tolist()  # the linear estimate, in units of scale: Python floats through the iteration
-            tol2 = tol * tol / k2
-        else:
-            tol2 = max(tol / QUADRATIC_C, tol * tol) / k2
         np.subtract(self._d0, by, out=self._d0_target)
-        spline, coef, out = self.surrogate, self._coef, self._out
+        spline, coef, out, tol2 = self.surrogate, self._coef, self._out, (STEP_TOLERANCE_N / self.scale) ** 2
         jt, out_t, G = self._jt, self._out_t, self._G
         for _ in range(self.iterations):
             # the residual's negative -r (row 0 of out) and the Jacobian's transpose (rows 1..3) in
@@ -228,7 +209,7 @@ class ModelEstimator:
                 step = np.linalg.lstsq(out[1:].T, -out[0], rcond=None)[0].tolist()
             s0, s1, s2 = step
             x = (x[0] + s0, x[1] + s1, x[2] + s2)
-            if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # (or NaN: stop)
+            if not s0 * s0 + s1 * s1 + s2 * s2 >= tol2:  # |step| < 1e-4 N (or NaN: stop)
                 break
         self.last_fit = fit = ModelFit(yw, by, step, x, out, G)
         self._warm = fit if math.isfinite(x[0] + x[1] + x[2]) else None  # the next frame's start
