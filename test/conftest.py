@@ -335,6 +335,23 @@ def start(ros, tmp_path, source, faults=None, rate=BAG_RATE, name="cstomo_sensor
     return h, board
 
 
+def prepare_board(cmd: list[str]) -> None:
+    """The frames of the board ``cmd`` (``[executable, "board-sim", ...]`` with a load script and the typical creep,
+    as a launch's simulated board runs) computed in this process, into the cache the board reads (the same
+    Timeline, so the same key: tools/board_sim.py's own call); read from the cache when another test or worker
+    computed them. On a fresh clone a board's process would factorise the elasticity for the script's loads
+    (15-20 s) before its knots; this one keeps the factor of the tests before (the mechanics' factors kept
+    above) and keeps it for those after. test_launch_sensors, test_colcon_install and test_board_pty play the
+    launch's own script (tools/launching.py SIM_LOAD): whichever runs first computes it, once."""
+    from cstomo_sensor.tools import board_sim
+
+    assert cmd[1] == "board-sim", cmd
+    a = board_sim.parser().parse_args(cmd[2:])
+    assert a.load_script and a.creep != 0 and not a.scene, cmd  # board_sim._main plays it as script_timeline's
+    board_sim.script_timeline(a.load_script, a.creep, sensor=a.sensor, duration=a.duration, snr_db=a.snr,
+                              seed=a.seed)
+
+
 def diag_records(h):
     from diagnostic_msgs.msg import DiagnosticArray
 

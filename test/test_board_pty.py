@@ -414,15 +414,19 @@ def test_board_sim_stopped_by_sigint_exits_cleanly_through_repeated_sigints(tmp_
     import sys
     from pathlib import Path
 
+    from conftest import prepare_board
+
     from cstomo_sensor.tools.launching import SIM_LOAD
 
     script = tmp_path / "load.csv"
     script.write_text(SIM_LOAD)  # a launch's own (its frames are cached by the launch tests)
     exe = Path(sys.executable).parent / "cstomo"
+    cmd = [str(exe), "board-sim", "--load-script", str(script), "--rate", "200", "--protocol", "text",
+           "--link", str(tmp_path / "board")]
+    prepare_board(cmd)  # its frames in this process (read from the cache after the launch tests), not the board's
     err = tmp_path / "err.txt"
     with open(err, "w") as fe:
-        p = subprocess.Popen([str(exe), "board-sim", "--load-script", str(script), "--rate", "200", "--protocol",
-                              "text", "--link", str(tmp_path / "board")], stdout=subprocess.PIPE, stderr=fe, text=True,
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=fe, text=True,
                              env=dict(os.environ, OPENBLAS_NUM_THREADS="1"))
         try:
             for line in p.stdout:  # text protocol: streams without a reader

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import PIPE, wait_for
+from conftest import PIPE, prepare_board, wait_for
 
 rclpy = pytest.importorskip("rclpy")
 
@@ -29,21 +29,6 @@ def _stop(procs: list[subprocess.Popen]) -> None:
     from cstomo_sensor.tools.common import interrupt
 
     interrupt(procs, timeout=10.0)  # nodes first, then their boards (the list's order)
-
-
-def prepare_board(cmd: list[str]) -> None:
-    """The frames of the board ``cmd`` (``cstomo board-sim`` with a load script and the typical creep, as a
-    launch's simulated board runs) computed in this process, into the cache the board reads (the same
-    Timeline, so the same key: tools/board_sim.py's own call). On a fresh clone a board's process would
-    factorise the elasticity for the script's loads (15-20 s); this one keeps the factor of the tests before
-    (conftest) and keeps it for those after."""
-    from cstomo_sensor.tools import board_sim
-
-    assert cmd[1] == "board-sim", cmd
-    a = board_sim.parser().parse_args(cmd[2:])
-    assert a.load_script and a.creep != 0 and not a.scene, cmd  # board_sim._main plays it as script_timeline's
-    board_sim.script_timeline(a.load_script, a.creep, sensor=a.sensor, duration=a.duration, snr_db=a.snr,
-                              seed=a.seed)
 
 
 def test_two_sensors_of_a_list_publish_in_their_namespaces_frames_and_tare_files(tmp_path, warm_model):
