@@ -18,7 +18,6 @@ adjoint fields are the drive fields themselves).
 from __future__ import annotations
 
 import copy
-import hashlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -140,9 +139,8 @@ class CEMSystem:
         The matrix is symmetric positive definite, so SuperLU runs in its symmetric mode (minimum
         degree on A + A^T, diagonal pivots, no pivot search): stable for SPD matrices, and about 8
         times faster than partial pivoting on the default mesh (16 ms instead of 135 ms), which
-        matters where the conductivity changes per load (calibration, simulation). The ordering is
-        found once per mesh (:func:`reordered_lu`): a fifth of each later factorisation."""
-        return reordered_lu(self.matrix(sigma)).solve
+        matters where the conductivity changes per load (calibration, simulation)."""
+        return symmetric_lu(self.matrix(sigma)).solve
 
     def solve(self, sigma: np.ndarray, currents: np.ndarray, solver=None) -> Fields:
         """Fields for current patterns ``currents`` (n_electrodes, P), amperes, each summing to zero."""
@@ -163,46 +161,6 @@ def symmetric_lu(A: sp.spmatrix):
     diagonal (stable without pivoting for SPD matrices). Shared by the CEM and the elasticity."""
     return spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                      options={"SymmetricMode": True})
-
-
-#: The fill-reducing ordering of each sparsity pattern factorised by :func:`reordered_lu` in this process (a CEM
-#: matrix's pattern is its mesh's and electrodes': every conductivity on them shares it), at most ORDERINGS_KEPT.
-_ORDERINGS: dict[str, np.ndarray] = {}
-ORDERINGS_KEPT = 32
-
-
-class _PermutedLU:
-    """The SuperLU factor of ``A[q][:, q]``, solving with ``A``: ``x[q] = solve(b[q])``."""
-
-    def __init__(self, lu, q: np.ndarray) -> None:
-        self.lu, self.q = lu, q
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        b = np.asarray(b, dtype=float)
-        x = np.empty_like(b)
-        x[self.q] = self.lu.solve(b[self.q])
-        return x
-
-
-def reordered_lu(A: sp.spmatrix) -> _PermutedLU:
-    """:func:`symmetric_lu` of ``A`` with the minimum-degree ordering found once per sparsity pattern: the pattern's
-    first matrix is ordered as :func:`symmetric_lu` orders it (that factor's column order), every matrix of the
-    pattern, the first included, is then factorised in that order without a search of its own (SuperLU's natural
-    order on the permuted matrix: the same fill, about 20 % less time on the 3 and 4 mm meshes). One path for
-    every matrix, so the same matrix gives the same bits whatever was factorised before it in the process
-    (the timeline's knots, a training set, a simulated device: hundreds of conductivities on one mesh)."""
-    A = sp.csc_matrix(A)
-    A.sort_indices()
-    key = hashlib.sha1(np.array(A.shape, dtype=np.int64).tobytes() + A.indptr.tobytes() + A.indices.tobytes()).hexdigest()
-    q = _ORDERINGS.pop(key, None)
-    if q is None:
-        q = np.argsort(symmetric_lu(A).perm_c)
-    _ORDERINGS[key] = q  # the most recently used last
-    while len(_ORDERINGS) > ORDERINGS_KEPT:
-        del _ORDERINGS[next(iter(_ORDERINGS))]
-    lu = spla.splu(sp.csc_matrix(A[q][:, q]), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    return _PermutedLU(lu, q)
 
 
 def _csr_positions(indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
