@@ -73,12 +73,6 @@ class JointScale:
             self._Q = np.empty((1 + k, 1 + k))
             self._Q[1:, 1:] = self._DD
 
-    def _step_row(self, step) -> np.ndarray:
-        """The fit's last step (3 floats) as a work array (3 item assignments: no new array)."""
-        s = self._s
-        s[0], s[1], s[2] = step
-        return s
-
     def measure(self, expected: tuple | None = None, others: bool = False) -> tuple | None:
         """(d, its variance, u, v, the frame's force, the others' part) of the estimator's latest frame (class
         docstring); ``expected``: (force (3,) N, 1-sigma N) a controller expects now. None when the fit gives
@@ -97,7 +91,9 @@ class JointScale:
         # 2e-5 N at the 1e-4 N tolerance, 0.02 N at a 0.01 N one; the scale's measurement, its load profiled out, is
         # the same either way), into the first of V = [rho, B w r, B y]
         V = self._V
-        rho = self._step_row(step).dot(Jt, out=V[0])
+        s = self._s  # the fit's last step into a work array (3 item assignments: no new array)
+        s[0], s[1], s[2] = step
+        rho = s.dot(Jt, out=V[0])
         rho += out[0]
         np.negative(rho, out=rho)
         V[2] = By
